@@ -1,0 +1,138 @@
+"""Typed per-image result of the detector (ALGORITHM.md section 9) and its JSON record."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+__all__ = ["HoughLine", "Row", "ImageResult", "STATUSES", "REASONS"]
+
+#: ``ok``: every row valid. ``invalid``: at least one row invalid. ``no_vp``: fewer than two
+#: Hough lines or a singular vanishing-point system, so no rows. ``no_vegetation``: the
+#: vegetation mask is empty below the horizon (a special case of ``no_vp``). ``error``: the
+#: input could not be read or converted (only in records written by the CLI).
+STATUSES = ("ok", "invalid", "no_vp", "no_vegetation", "error")
+
+#: Why a row is invalid (``""`` when valid), section 7.
+REASONS = ("", "no_support", "horizon", "parallel", "too_close")
+
+
+@dataclass(frozen=True)
+class HoughLine:
+    """A Hough peak: angle index ``j`` (theta = j * theta_step degrees), ``rho`` (px), votes."""
+
+    theta_index: int
+    rho: int
+    weight: int
+    theta_step: int = 1
+
+    @property
+    def theta(self) -> float:
+        """Angle in radians (``numpy.deg2rad(j * theta_step)``)."""
+        return float(np.deg2rad(np.float64(self.theta_index * self.theta_step)))
+
+    def to_list(self) -> list[float | int]:
+        return [self.theta, int(self.rho), int(self.weight)]
+
+
+@dataclass(frozen=True)
+class Row:
+    """A fitted crop row ``x = a*y + b`` in working-image pixels.
+
+    ``a``/``b`` are NaN when the row had no support. ``hypothesis`` is the index of the
+    winning RANSAC hypothesis (-1 when none was scored).
+    """
+
+    a: float
+    b: float
+    valid: bool
+    reason: str = ""
+    hypothesis: int = -1
+
+    def x_at(self, y: np.ndarray | float) -> np.ndarray | float:
+        return self.a * y + self.b
+
+
+@dataclass
+class ImageResult:
+    """Everything the detector says about one image (ALGORITHM.md section 9)."""
+
+    width: int
+    height: int
+    status: str
+    sky: int = 0
+    veg_color: tuple[int, int, int] = (0, 0, 0)
+    k: int = 4
+    bushy: bool = False
+    n_rows: int = 0
+    hough: list[HoughLine] = field(default_factory=list)
+    outliers: list[HoughLine] = field(default_factory=list)
+    vp: tuple[float, float] | None = None
+    rows: list[Row] = field(default_factory=list)
+    name: str | None = None
+    error: str | None = None
+
+    @property
+    def valid(self) -> bool:
+        return self.status == "ok"
+
+    def valid_rows(self) -> list[Row]:
+        return [r for r in self.rows if r.valid]
+
+    def to_record(self) -> dict[str, Any]:
+        """JSON-ready dict with the keys documented in the README (NaN -> null)."""
+
+        def num(v: float) -> float | None:
+            return None if v is None or not math.isfinite(v) else float(v)
+
+        rec: dict[str, Any] = {
+            "name": self.name,
+            "status": self.status,
+            "width": int(self.width),
+            "height": int(self.height),
+            "sky": int(self.sky),
+            "veg_color": [int(c) for c in self.veg_color],
+            "k": int(self.k),
+            "bushy": bool(self.bushy),
+            "n_rows": int(self.n_rows),
+            "hough": [h.to_list() for h in self.hough],
+            "outliers": [h.to_list() for h in self.outliers],
+            "vp": None if self.vp is None else [num(self.vp[0]), num(self.vp[1])],
+            "rows": [{"a": num(r.a), "b": num(r.b), "valid": bool(r.valid), "reason": r.reason}
+                     for r in self.rows],
+        }
+        if self.error is not None:
+            rec["error"] = self.error
+        return rec
+
+    @classmethod
+    def from_record(cls, rec: dict[str, Any], theta_step: int = 1) -> "ImageResult":
+        """Inverse of :meth:`to_record` (hypothesis indices are not stored in records)."""
+
+        def line(v: list) -> HoughLine:
+            j = int(round(math.degrees(v[0]) / theta_step))
+            return HoughLine(j, int(v[1]), int(v[2]), theta_step)
+
+        def f(v: Any) -> float:
+            return float("nan") if v is None else float(v)
+
+        return cls(
+            width=int(rec.get("width", 0)), height=int(rec.get("height", 0)),
+            status=rec["status"], sky=int(rec.get("sky", 0)),
+            veg_color=tuple(rec.get("veg_color", (0, 0, 0))),  # type: ignore[arg-type]
+            k=int(rec.get("k", 4)), bushy=bool(rec.get("bushy", False)),
+            n_rows=int(rec.get("n_rows", 0)),
+            hough=[line(v) for v in rec.get("hough", [])],
+            outliers=[line(v) for v in rec.get("outliers", [])],
+            vp=None if rec.get("vp") is None else (f(rec["vp"][0]), f(rec["vp"][1])),
+            rows=[Row(f(r["a"]), f(r["b"]), bool(r["valid"]), r.get("reason", "")) for r in rec.get("rows", [])],
+            name=rec.get("name"), error=rec.get("error"),
+        )
+
+    @classmethod
+    def failed(cls, name: str | None, error: str, width: int = 0, height: int = 0) -> "ImageResult":
+        """Record for an input that could not be processed (status ``error``)."""
+        return cls(width=width, height=height, status="error", name=name, error=error)

@@ -1,0 +1,147 @@
+"""Tables shared bit for bit by the reference and the tensor path.
+
+ALGORITHM.md requires that both implementations see the same bits wherever a float decides a
+discrete output. Three quantities are therefore computed exactly once, here:
+
+* the CIE LAB value of every 8-bit sRGB colour (section 2): a ``(2**24, 3)`` float64 table
+  built from :func:`kornia.color.rgb_to_lab` in float64. It is a table and not a direct call
+  because kornia's float64 result for one colour depends on where that colour sits in the
+  input tensor (SIMD tails and BLAS blocking; measured: 6 of ~90k random colours differ by
+  1 ulp between layouts), so two calls on differently shaped inputs would not agree. The
+  table is built in canonical slabs (one ``(1, 3, 256, 256)`` call per red value), cached on
+  disk (about 400 MB, ``TORCHROW_CACHE`` or ``~/.cache/torchrow``) and memory-mapped;
+* the Hough angle cosines and sines ``numpy.cos/sin(numpy.deg2rad(j))`` (section 5);
+* the RANSAC hypothesis table ``numpy.random.default_rng(seed).random((trials, 2))``
+  (section 7).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from .params import Params
+
+__all__ = [
+    "lab_table",
+    "rgb_to_lab",
+    "pack_rgb",
+    "hough_trig",
+    "hypothesis_table",
+    "subsample_key",
+]
+
+_N_COLORS = 1 << 24
+
+
+def _cache_dir() -> Path:
+    env = os.environ.get("TORCHROW_CACHE")
+    if env:
+        return Path(env)
+    return Path.home() / ".cache" / "torchrow"
+
+
+def _table_name() -> str:
+    import kornia
+    import torch
+
+    tv = torch.__version__.split("+")[0]
+    return f"lab_f64_torch{tv}_kornia{kornia.__version__}.npy"
+
+
+def _build_lab_table(out: np.ndarray) -> None:
+    """Fill ``out`` (2**24, 3) float64 slab by slab: one kornia call per red value."""
+    import kornia
+    import torch
+    from tqdm.auto import tqdm
+
+    gb = torch.arange(256, dtype=torch.float64)
+    g = gb.view(256, 1).expand(256, 256)
+    b = gb.view(1, 256).expand(256, 256)
+    with torch.no_grad():
+        for r in tqdm(range(256), desc="torchrow: building LAB table (once)", file=sys.stderr,
+                      leave=False, disable=None):
+            rgb = torch.stack([torch.full((256, 256), float(r), dtype=torch.float64), g, b])
+            lab = kornia.color.rgb_to_lab((rgb / 255.0).unsqueeze(0))[0]  # (3, 256, 256)
+            out[r << 16:(r + 1) << 16] = lab.reshape(3, -1).T.numpy()
+
+
+@functools.lru_cache(maxsize=1)
+def lab_table() -> np.ndarray:
+    """LAB of every 8-bit sRGB colour, ``(2**24, 3)`` float64, index ``(R<<16)|(G<<8)|B``.
+
+    Read-only memory map of the on-disk cache (built on first use, ~10 s on 2 cores). If
+    the cache directory cannot be written, the table is built in memory for this process.
+    """
+    path = _cache_dir() / _table_name()
+    if path.is_file():
+        try:
+            table = np.load(path, mmap_mode="r")
+            if table.shape == (_N_COLORS, 3) and table.dtype == np.float64:
+                return table
+        except (OSError, ValueError):
+            pass
+    table = np.empty((_N_COLORS, 3), dtype=np.float64)
+    _build_lab_table(table)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npy.tmp")
+        with os.fdopen(fd, "wb") as fh:
+            np.save(fh, table)
+        os.replace(tmp, path)
+    except OSError:
+        pass
+    table.setflags(write=False)
+    return table
+
+
+def pack_rgb(rgb: np.ndarray) -> np.ndarray:
+    """``(..., 3)`` uint8 RGB -> ``(...)`` int64 colour code ``(R<<16)|(G<<8)|B``."""
+    rgb = np.asarray(rgb)
+    return (rgb[..., 0].astype(np.int64) << 16) | (rgb[..., 1].astype(np.int64) << 8) | rgb[..., 2]
+
+
+def rgb_to_lab(rgb: np.ndarray) -> np.ndarray:
+    """The shared LAB function: ``(..., 3)`` uint8 sRGB -> ``(..., 3)`` float64 L*a*b* (D65).
+
+    Equals ``kornia.color.rgb_to_lab`` in float64 on the colour's canonical slab and agrees
+    with ``skimage.color.rgb2lab`` to about 3e-13.
+    """
+    rgb = np.asarray(rgb)
+    if rgb.dtype != np.uint8 or rgb.ndim < 1 or rgb.shape[-1] != 3:
+        raise ValueError(f"rgb_to_lab expects uint8 (..., 3); got {rgb.dtype} {rgb.shape}")
+    return lab_table()[pack_rgb(rgb)]
+
+
+@functools.lru_cache(maxsize=8)
+def hough_trig(theta_step: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """``(cos, sin)`` of the Hough angles ``j * theta_step`` degrees, each ``(180/step,)`` float64."""
+    theta = np.deg2rad(np.arange(0, 180, theta_step, dtype=np.float64))
+    c, s = np.cos(theta), np.sin(theta)
+    c.setflags(write=False)
+    s.setflags(write=False)
+    return c, s
+
+
+def hough_theta(params: Params) -> np.ndarray:
+    """Hough angles in radians, ``(n_theta,)`` float64 (``numpy.deg2rad(j * step)``)."""
+    return np.deg2rad(np.arange(0, 180, params.theta_step, dtype=np.float64))
+
+
+@functools.lru_cache(maxsize=8)
+def hypothesis_table(seed: int = 0, trials: int = 1000) -> np.ndarray:
+    """RANSAC hypothesis table ``U``, ``(trials, 2)`` float64 in [0, 1), shared by all rows."""
+    u = np.random.default_rng(seed).random((trials, 2))
+    u.setflags(write=False)
+    return u
+
+
+def subsample_key(x: np.ndarray, y: np.ndarray, width: int, mult: int = 2654435761) -> np.ndarray:
+    """Subsampling key ``((y*W + x) * mult) mod 2**32`` as int64 (section 7.2)."""
+    lin = y.astype(np.int64) * width + x.astype(np.int64)
+    return (lin * mult) & 0xFFFFFFFF
