@@ -1,0 +1,229 @@
+"""Command line: ``torchrow detect | eval | score | demo`` (also ``python -m torchrow``).
+
+Errors in arguments or paths print one line (``torchrow: error: ...``) and exit with 2; a
+file that cannot be read inside a run gets an ``error`` record and the run goes on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+from typing import Sequence
+
+from . import __version__
+from .io import IMAGE_EXTENSIONS
+from .params import Params
+
+__all__ = ["main"]
+
+
+class CLIError(Exception):
+    """A user error: reported as one line, exit status 2."""
+
+
+def _parse_params(items: Sequence[str] | None) -> Params:
+    """``NAME=VALUE`` pairs -> Params (values parsed as JSON, else kept as strings)."""
+    fields = {f.name: f for f in dataclasses.fields(Params)}
+    changes: dict[str, object] = {}
+    for item in items or []:
+        name, sep, raw = item.partition("=")
+        if not sep or name not in fields:
+            raise CLIError(f"--param expects NAME=VALUE with NAME one of Params' fields; got {item!r}")
+        try:
+            value = json.loads(raw)
+        except json.JSONDecodeError:
+            value = raw
+        if isinstance(value, list):
+            value = tuple(value)
+        changes[name] = value
+    try:
+        return Params(**changes)  # type: ignore[arg-type]
+    except (ValueError, TypeError) as exc:
+        raise CLIError(str(exc)) from None
+
+
+def _collect_images(inputs: Sequence[str]) -> list[Path]:
+    paths: list[Path] = []
+    for raw in inputs:
+        p = Path(raw)
+        if p.is_dir():
+            found = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_EXTENSIONS)
+            if not found:
+                raise CLIError(f"no images ({', '.join(IMAGE_EXTENSIONS)}) in folder {p}")
+            paths.extend(found)
+        elif p.is_file():
+            paths.append(p)
+        else:
+            raise CLIError(f"no such file or folder: {p}")
+    return paths
+
+
+def _reference_detect(params: Params):
+    from .reference import detect
+
+    return lambda rgb, name: detect(rgb, params, name=name)
+
+
+def cmd_detect(args: argparse.Namespace) -> int:
+    from .annotate import draw_result, save_rgb
+    from .evaluate import detect_files
+
+    params = _parse_params(args.param)
+    paths = _collect_images(args.inputs)
+    out = Path(args.out)
+    if out.parent and not out.parent.exists():
+        raise CLIError(f"output folder does not exist: {out.parent}")
+    ann = Path(args.annotate) if args.annotate else None
+    if ann is not None:
+        ann.mkdir(parents=True, exist_ok=True)
+    counts: dict[str, int] = {}
+    with open(out, "w") as fh:
+        for path, rgb, res in detect_files(paths, _reference_detect(params), params.image_width,
+                                           progress=not args.quiet):
+            fh.write(json.dumps(res.to_record()) + "\n")
+            fh.flush()
+            counts[res.status] = counts.get(res.status, 0) + 1
+            if ann is not None and rgb is not None:
+                save_rgb(ann / f"{path.stem}.png", draw_result(rgb, res))
+    summary = ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
+    print(f"torchrow: {len(paths)} image(s) -> {out} ({summary})", file=sys.stderr)
+    return 0
+
+
+def _open_crbd(data: str | None):
+    from .datasets import CRBD
+
+    try:
+        return CRBD(data)
+    except FileNotFoundError as exc:
+        raise CLIError(str(exc).splitlines()[0]) from None
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from .evaluate import evaluate
+
+    params = _parse_params(args.param)
+    crbd = _open_crbd(args.data)
+    indices = list(range(len(crbd)))[:: args.every]
+    if args.limit:
+        indices = indices[: args.limit]
+    report = evaluate(crbd, _reference_detect(params), indices, params, progress=not args.quiet)
+    print(report.format_summary())
+    if args.out:
+        for p in report.write(Path(args.out)):
+            print(f"wrote {p}", file=sys.stderr)
+    return 0
+
+
+def cmd_score(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from .evaluate import score_tmg_files
+    from .metrics import summarize
+
+    crbd = _open_crbd(args.data)
+    results = Path(args.results)
+    if not results.is_dir():
+        raise CLIError(f"results folder not found: {results}")
+    ext = args.ext if args.ext.startswith(".") else "." + args.ext
+    scores = score_tmg_files(crbd, results, ext, progress=not args.quiet)
+    for label, col in (("sigma 0.1", 1), ("sigma 0.3", 2)):
+        s = summarize(np.array([r[col] for r in scores]))
+        print(f"CRDA {label}: mean {s['mean']:.3f}  median {s['median']:.3f}  (n={s['n']})")
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from .annotate import draw_result, save_rgb
+    from .datasets import GroundTruth
+    from .metrics import crda_official
+    from .reference import detect
+    from .synthetic import demo_field
+
+    params = _parse_params(args.param)
+    field = demo_field()
+    res = detect(field.image, params, name="synthetic-demo")
+    h = field.image.shape[0]
+    n = len(field.crp)
+    gt = GroundTruth(field.crp[:, 0].copy(), field.crp[:, 1].copy(), h - n, h)
+    score = crda_official(res, gt)
+    ys = np.arange(h - n, h, dtype=np.float64)
+    gt_lines = [(ys, field.crp[:, 0] + j * field.crp[:, 1] + field.image.shape[1] / 2) for j in range(-3, 4)]
+    out = Path(args.out)
+    save_rgb(out, draw_result(field.image, res, ground_truth=gt_lines))
+    valid = sum(r.valid for r in res.rows)
+    print(f"synthetic field {field.image.shape[1]}x{h}: status {res.status}, {valid}/{len(res.rows)} valid rows, "
+          f"vanishing point {_fmt_vp(res.vp)} (true {_fmt_vp(field.vp)}), CRDA (sigma 0.1) {score:.3f}")
+    print(f"annotated image: {out}")
+    return 0
+
+
+def _fmt_vp(vp) -> str:
+    return "none" if vp is None else f"({vp[0]:.1f}, {vp[1]:.1f})"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="torchrow", description="Crop-row detection (ALGORITHM.md), "
+                                 "reference and batched tensor implementations.")
+    ap.add_argument("--version", action="version", version=f"torchrow {__version__}")
+    sub = ap.add_subparsers(dest="command", required=True)
+
+    def common(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--param", action="append", metavar="NAME=VALUE",
+                       help="override a Params field, e.g. --param n_rows=4 (repeatable)")
+        p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+
+    p = sub.add_parser("detect", help="detect rows in images, write one JSON record per file")
+    p.add_argument("inputs", nargs="+", metavar="IMAGE_OR_DIR")
+    p.add_argument("--out", required=True, help="JSONL output file")
+    p.add_argument("--annotate", metavar="DIR", help="write annotated PNGs to DIR")
+    common(p)
+    p.set_defaults(func=cmd_detect)
+
+    p = sub.add_parser("eval", help="run on CRBD and report CRDA (official and thesis variant)")
+    p.add_argument("--data", help="CRBD folder (or a folder holding crbd/); default $TORCHROW_DATA")
+    p.add_argument("--out", help="folder for scores.csv, detections.jsonl, summary.json, crda_histogram.png")
+    p.add_argument("--every", type=int, default=1, help="use every N-th image (default 1)")
+    p.add_argument("--limit", type=int, default=0, help="at most this many images")
+    common(p)
+    p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("score", help="score external CRBD result files (.tmg format)")
+    p.add_argument("--data", help="CRBD folder; default $TORCHROW_DATA")
+    p.add_argument("--results", required=True, help="folder of result files named like the images")
+    p.add_argument("--ext", default=".tmg", help="result file extension (default .tmg)")
+    common(p)
+    p.set_defaults(func=cmd_score)
+
+    p = sub.add_parser("demo", help="detect rows on a built-in synthetic field (no data needed)")
+    p.add_argument("--out", default="torchrow-demo.png", help="annotated image (default torchrow-demo.png)")
+    common(p)
+    p.set_defaults(func=cmd_demo)
+    return ap
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    if getattr(args, "every", 1) < 1 or getattr(args, "limit", 0) < 0:
+        ap.exit(2, "torchrow: error: --every must be >= 1 and --limit >= 0\n")
+    try:
+        return int(args.func(args) or 0)
+    except CLIError as exc:
+        print(f"torchrow: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("torchrow: interrupted", file=sys.stderr)
+        return 130
+    except OSError as exc:
+        print(f"torchrow: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,204 @@
+"""Dataset evaluation on CRBD: detection, CRDA per image, summaries, files and a plot."""
+
+from __future__ import annotations
+
+import csv
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable, Sequence
+
+import numpy as np
+
+from .datasets import CRBD
+from .io import ImageError
+from .metrics import crda, crda_official, crda_thesis, summarize
+from .params import Params
+from .results import ImageResult
+
+__all__ = ["EvalRow", "EvalReport", "evaluate", "detect_files", "score_tmg_files", "SUBSETS"]
+
+#: Subsets reported: CRBD's own classification (1 straight, 2 curved).
+SUBSETS = ("all", "straight", "curved")
+
+DetectFn = Callable[[np.ndarray, str], ImageResult]
+
+
+@dataclass
+class EvalRow:
+    """Scores of one image."""
+
+    name: str
+    row_set: int | None
+    tmgem_set: int | None
+    status: str
+    crda_01: float
+    crda_03: float
+    crda_thesis: float
+    tmgem_01: float
+    tmgem_03: float
+    seconds: float
+
+
+@dataclass
+class EvalReport:
+    rows: list[EvalRow] = field(default_factory=list)
+    records: list[dict] = field(default_factory=list)
+
+    def summary(self) -> dict[str, dict[str, dict[str, float | int]]]:
+        """``{subset: {metric: {mean, median, n}}}`` for subsets all / straight / curved."""
+        out: dict[str, dict[str, dict[str, float | int]]] = {}
+        for sub in SUBSETS:
+            rows = [r for r in self.rows if sub == "all" or r.row_set == (1 if sub == "straight" else 2)]
+            out[sub] = {m: summarize([getattr(r, m) for r in rows]) for m in
+                        ("crda_01", "crda_03", "crda_thesis", "tmgem_01", "tmgem_03")}
+        return out
+
+    def format_summary(self) -> str:
+        s = self.summary()
+        lines = [f"{'subset':<9} {'n':>4}  {'CRDA s=0.1':>17}  {'CRDA s=0.3':>17}  {'thesis variant':>17}  "
+                 f"{'TMGEM s=0.1':>17}",
+                 f"{'':<9} {'':>4}  {'mean / median':>17}  {'mean / median':>17}  {'mean / median':>17}  "
+                 f"{'mean / median':>17}"]
+        for sub in SUBSETS:
+            m = s[sub]
+            cell = lambda k: f"{m[k]['mean']:.3f} / {m[k]['median']:.3f}" if m[k]["n"] else "-"  # noqa: E731
+            lines.append(f"{sub:<9} {m['crda_01']['n']:>4}  {cell('crda_01'):>17}  {cell('crda_03'):>17}  "
+                         f"{cell('crda_thesis'):>17}  {cell('tmgem_01'):>17}")
+        return "\n".join(lines)
+
+    def write(self, out_dir: Path) -> list[Path]:
+        """Write ``scores.csv``, ``detections.jsonl``, ``summary.json`` and ``crda_histogram.png``."""
+        out_dir.mkdir(parents=True, exist_ok=True)
+        paths = [out_dir / "scores.csv", out_dir / "detections.jsonl", out_dir / "summary.json",
+                 out_dir / "crda_histogram.png"]
+        with open(paths[0], "w", newline="") as fh:
+            wr = csv.writer(fh)
+            wr.writerow(["name", "row_set", "tmgem_set", "status", "crda_sigma0.1", "crda_sigma0.3",
+                         "crda_thesis", "tmgem_sigma0.1", "tmgem_sigma0.3", "seconds"])
+            for r in self.rows:
+                wr.writerow([r.name, r.row_set, r.tmgem_set, r.status, f"{r.crda_01:.6f}", f"{r.crda_03:.6f}",
+                             f"{r.crda_thesis:.6f}", f"{r.tmgem_01:.6f}", f"{r.tmgem_03:.6f}", f"{r.seconds:.4f}"])
+        with open(paths[1], "w") as fh:
+            for rec in self.records:
+                fh.write(json.dumps(rec) + "\n")
+        paths[2].write_text(json.dumps(self.summary(), indent=2) + "\n")
+        plot_cumulative([("torchrow", [r.crda_01 for r in self.rows]),
+                         ("TMGEM", [r.tmgem_01 for r in self.rows])], paths[3],
+                        title=f"CRBD, official CRDA (sigma 0.1, m 3), {len(self.rows)} images")
+        return paths
+
+
+def plot_cumulative(series: Sequence[tuple[str, Sequence[float]]], path: Path, title: str = "") -> None:
+    """Normalised cumulative CRDA histogram as CRBD's demo draws it: for each CRDA value x,
+    the fraction of images scoring at least x."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = np.linspace(0, 1, 101)
+    fig, ax = plt.subplots(figsize=(5.5, 4), dpi=110)
+    for label, scores in series:
+        s = np.asarray(scores, dtype=np.float64)
+        if s.size == 0:
+            continue
+        frac = (s[None, :] >= x[:, None]).mean(axis=1)
+        ax.plot(x, frac, label=f"{label} (mean {s.mean():.3f}, median {np.median(s):.3f})")
+    ax.set_xlabel("CRDA")
+    ax.set_ylabel("fraction of images with CRDA >= x")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower left", fontsize=8)
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _progress(it: Iterable, total: int, desc: str, enabled: bool) -> Iterable:
+    from tqdm.auto import tqdm
+
+    return tqdm(it, total=total, desc=desc, file=sys.stderr, disable=not enabled, unit="img")
+
+
+def evaluate(crbd: CRBD, detect_fn: DetectFn, indices: Sequence[int] | None = None,
+             params: Params | None = None, progress: bool = True) -> EvalReport:
+    """Run ``detect_fn(rgb, name)`` on CRBD images and score each one.
+
+    A file that cannot be read or a detector failure gives an ``error`` record and scores 0;
+    the run always goes on.
+    """
+    params = params or Params()
+    indices = list(range(len(crbd))) if indices is None else list(indices)
+    report = EvalReport()
+    for i in _progress(indices, len(indices), "eval", progress):
+        item = crbd[i]
+        t0 = time.perf_counter()
+        try:
+            rgb = crbd.image(i)
+            if rgb.shape[1] != params.image_width:
+                raise ImageError(f"CRBD image is {rgb.shape[1]} px wide but image_width is "
+                                 f"{params.image_width}; the ground truth is in the image's own pixels")
+            res = detect_fn(rgb, item.name)
+        except Exception as exc:  # one bad file never aborts a run
+            res = ImageResult.failed(item.name, f"{type(exc).__name__}: {exc}")
+        dt = time.perf_counter() - t0
+        gt = item.ground_truth
+        try:
+            tm = crbd.tmgem(i)
+            tm01 = crda(tm, gt.c, gt.d, sigma=0.1, width=params.image_width)
+            tm03 = crda(tm, gt.c, gt.d, sigma=0.3, width=params.image_width)
+        except (OSError, ValueError):
+            tm01 = tm03 = float("nan")
+        report.rows.append(EvalRow(
+            item.name, item.row_set, item.tmgem_set, res.status,
+            crda_official(res, gt, sigma=0.1), crda_official(res, gt, sigma=0.3),
+            crda_thesis(res, gt, sigma=params.crda_sigma), tm01, tm03, dt))
+        rec = res.to_record()
+        report.records.append(rec)
+    return report
+
+
+def score_tmg_files(crbd: CRBD, results_dir: Path, ext: str = ".tmg",
+                    progress: bool = True) -> list[tuple[str, float, float]]:
+    """Score external result files in CRBD's ``.tmg`` format (h lines x 3 columns: x of three
+    adjacent rows per image row). Returns ``(name, crda sigma 0.1, crda sigma 0.3)``; a missing
+    or malformed file scores 0."""
+    out = []
+    for i in _progress(range(len(crbd)), len(crbd), "score", progress):
+        item = crbd[i]
+        path = results_dir / f"{item.stem}{ext}"
+        gt = item.ground_truth
+        try:
+            U = np.loadtxt(path, dtype=np.float64, ndmin=2)
+            if U.shape != (gt.height, 3):
+                raise ValueError(f"{path.name}: expected {gt.height} x 3 values, got {U.shape}")
+            s01, s03 = crda(U, gt.c, gt.d, sigma=0.1), crda(U, gt.c, gt.d, sigma=0.3)
+        except (OSError, ValueError) as exc:
+            print(f"torchrow: warning: {exc}", file=sys.stderr)
+            s01 = s03 = 0.0
+        out.append((item.name, s01, s03))
+    return out
+
+
+def detect_files(paths: Sequence[Path], detect_fn: DetectFn, width: int,
+                 progress: bool = True) -> Iterable[tuple[Path, np.ndarray | None, ImageResult]]:
+    """Load and detect each file, yielding ``(path, working rgb or None, result)``; failures
+    yield an ``error`` result instead of raising."""
+    from .io import load_image
+
+    for p in _progress(paths, len(paths), "detect", progress):
+        try:
+            rgb = load_image(p, width)
+        except ImageError as exc:
+            yield p, None, ImageResult.failed(p.name, str(exc))
+            continue
+        try:
+            res = detect_fn(rgb, p.name)
+        except Exception as exc:
+            res = ImageResult.failed(p.name, f"{type(exc).__name__}: {exc}", rgb.shape[1], rgb.shape[0])
+        yield p, rgb, res

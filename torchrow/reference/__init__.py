@@ -1,0 +1,11 @@
+"""Plain per-image reference implementation of ALGORITHM.md (NumPy + OpenCV).
+
+One module per stage, named as in the tensor path: :mod:`.sky` (section 1), :mod:`.color`
+(2), :mod:`.vegetation` (3-4), :mod:`.hough` (5), :mod:`.vanishing` (6), :mod:`.ransac` (7);
+:mod:`.pipeline` composes them. Readable first: loops where they read best.
+"""
+
+from . import color, hough, ransac, sky, vanishing, vegetation
+from .pipeline import detect, prepare
+
+__all__ = ["detect", "prepare", "sky", "color", "vegetation", "hough", "vanishing", "ransac"]

@@ -1,0 +1,73 @@
+"""Reference per-image pipeline (ALGORITHM.md sections 0-7 and 9): composes the stages."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..io import ImageError, resize_to_width, to_rgb8
+from ..params import Params
+from ..results import ImageResult
+from .color import vegetation_color
+from .ransac import fit_row, validate_rows
+from .sky import sky_row
+from .vanishing import find_lines
+from .vegetation import hough_input, raw_mask, remove_bushy
+
+__all__ = ["detect", "prepare"]
+
+
+def prepare(image: np.ndarray, params: Params) -> np.ndarray:
+    """Section 0 on an in-memory array: validate, convert to 8-bit RGB, resize to the working width.
+
+    Raises
+    ------
+    TypeError
+        If ``image`` is not a numpy array.
+    ImageError
+        (a ``ValueError``) if it is empty or not convertible to ``uint8 (H, W, 3)``.
+    """
+    if not isinstance(image, np.ndarray):
+        raise TypeError(f"detect expects a numpy array of shape (H, W, 3), got {type(image).__name__}")
+    return resize_to_width(to_rgb8(image), params.image_width)
+
+
+def detect(image: np.ndarray, params: Params | None = None, name: str | None = None) -> ImageResult:
+    """Detect crop rows in one RGB image, the plain per-image way.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        ``(H, W, 3)`` uint8 RGB (grey, RGBA and 16-bit are converted, see :mod:`torchrow.io`).
+        Resized to ``params.image_width`` (``cv2.INTER_AREA``) unless already that wide.
+    params : Params, optional
+        Constants; ``Params()`` by default.
+    name : str, optional
+        Stored in the result (e.g. the file name).
+
+    Returns
+    -------
+    ImageResult
+        Rows ``x = a*y + b`` in working-image pixels, with validity and reasons.
+    """
+    params = params or Params()
+    rgb = prepare(image, params)
+    h, w = rgb.shape[:2]
+    sky = sky_row(rgb, params)
+    color, _ = vegetation_color(rgb, params)
+    k = params.veg_tol
+    veg = remove_bushy(raw_mask(rgb, color, k, sky), sky, params)
+    res = ImageResult(width=w, height=h, status="no_vp", sky=sky, veg_color=color, k=k, name=name)
+    if not veg.any():
+        res.status = "no_vegetation"
+        res.n_rows = 0
+        return res
+    hin, res.bushy = hough_input(veg, sky, params)
+    search = find_lines(hin, params)
+    res.hough, res.outliers, res.n_rows, res.vp = search.lines, search.outliers, search.n_rows, search.vp
+    if search.vp is None:
+        return res
+    band = params.ransac_band_px(w, res.bushy)
+    fits = [fit_row(veg, line, search.vp, band, params) for line in search.lines]
+    res.rows = validate_rows(fits, h, w, params)
+    res.status = "ok" if all(r.valid for r in res.rows) else "invalid"
+    return res
