@@ -2,21 +2,15 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..params import Params
 from ..results import HoughLine
-from ..shared import hough_trig
+from ..shared import hough_trig, rho_offset
 
 __all__ = ["rho_offset", "line_distance", "votes", "excluded_angles", "HoughState", "extract_line"]
-
-
-def rho_offset(height: int, width: int) -> int:
-    """``D = ceil(sqrt(H^2 + W^2))``: accumulator row of ``rho`` is ``rho + D``."""
-    return math.ceil(math.sqrt(height * height + width * width))
 
 
 def line_distance(xs: np.ndarray, ys: np.ndarray, j: int, rho: int, params: Params) -> np.ndarray:

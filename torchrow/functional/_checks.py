@@ -1,0 +1,31 @@
+"""Input guards shared by the tensor stages: one clear error naming expected and actual."""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["check_images", "check_masks", "check_rows"]
+
+
+def check_images(images: torch.Tensor, name: str = "images") -> None:
+    """Require ``uint8 (B, 3, H, W)`` with ``H, W >= 1`` (B may be 0)."""
+    if not isinstance(images, torch.Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor uint8 (B, 3, H, W), got {type(images).__name__}")
+    if images.dim() != 4 or images.shape[1] != 3 or images.shape[2] < 1 or images.shape[3] < 1:
+        raise ValueError(f"{name}: expected shape (B, 3, H, W) with H, W >= 1, got {tuple(images.shape)}")
+    if images.dtype != torch.uint8:
+        raise ValueError(f"{name}: expected dtype torch.uint8, got {images.dtype}")
+
+
+def check_masks(masks: torch.Tensor, name: str = "mask") -> None:
+    """Require ``bool (B, H, W)``."""
+    if not isinstance(masks, torch.Tensor) or masks.dim() != 3 or masks.dtype != torch.bool:
+        got = f"{masks.dtype} {tuple(masks.shape)}" if isinstance(masks, torch.Tensor) else type(masks).__name__
+        raise ValueError(f"{name}: expected a bool tensor (B, H, W), got {got}")
+
+
+def check_rows(sky: torch.Tensor, batch: int, name: str = "sky") -> None:
+    """Require an integer ``(B,)`` tensor of horizon rows."""
+    if not isinstance(sky, torch.Tensor) or sky.shape != (batch,) or sky.dtype.is_floating_point:
+        got = f"{sky.dtype} {tuple(sky.shape)}" if isinstance(sky, torch.Tensor) else type(sky).__name__
+        raise ValueError(f"{name}: expected an integer tensor of shape ({batch},), got {got}")

@@ -1,0 +1,202 @@
+"""Batched constrained RANSAC, one row per held line (ALGORITHM.md section 7).
+
+All ``B x S`` rows are processed at once. Each row's support is the set of vegetation pixels
+in a band around its Hough line; at most ``max(ransac_max_points, ransac_subsample)`` of them
+are kept (the subsampling rule bounds the count statically), and all ``T`` hypotheses of the
+shared table are scored against them in chunks of hypotheses so memory stays bounded.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..params import Params
+from ..results import REASONS
+from ..shared import hypothesis_table
+from .hough import active_width, pixel_list, trig
+
+__all__ = ["RowFits", "fit_rows", "validate_rows", "REASON_CODES", "SCORE_BUDGET"]
+
+#: Reason codes of :attr:`RowFits.reason`, indices into :data:`torchrow.results.REASONS`.
+REASON_CODES = {r: i for i, r in enumerate(REASONS)}
+
+#: Elements per float64 scoring temporary ``(B, S, T_chunk, P)``: 4M (32 MB each, a few alive).
+SCORE_BUDGET = 1 << 22
+
+
+@dataclass
+class RowFits:
+    """Fitted rows, ``(B, S)`` each: ``x = a*y + b`` (float64, NaN without support),
+    ``valid``/``reason`` (int64 code into REASONS), ``hypothesis`` (int64, -1 when none),
+    ``present`` (bool: the slot holds a row at all)."""
+
+    a: torch.Tensor
+    b: torch.Tensor
+    valid: torch.Tensor
+    reason: torch.Tensor
+    hypothesis: torch.Tensor
+    present: torch.Tensor
+
+
+def _band_points(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, band: torch.Tensor,
+                 params: Params):
+    """Steps 7 (band) and 7.2 (subsample): the kept pixels of every row, row-major.
+
+    Returns ``px, py`` float64 ``(B, S, P)``, ``n_keep`` and ``v_keep`` int64 ``(B, S)`` and
+    ``n`` (pixels in the band before subsampling).
+    """
+    bsz, h, w = veg.shape
+    idx, count = pixel_list(veg)
+    k = active_width(count)
+    idx = idx[:, :k]
+    live = torch.arange(k, device=veg.device) < count.unsqueeze(1)  # (B, K)
+    xs, ys = idx % w, idx // w
+    cos, sin = trig(params, veg.device)
+    dist = ((xs.to(torch.float64).unsqueeze(1) * cos[theta].unsqueeze(2)
+             + ys.to(torch.float64).unsqueeze(1) * sin[theta].unsqueeze(2)) - rho.to(torch.float64).unsqueeze(2)).abs()
+    member = (dist <= (band.to(torch.float64) / 2).view(-1, 1, 1)) & live.unsqueeze(1)  # (B, S, K)
+    n = member.sum(dim=2)
+    v = n // 2
+    sub = n + v > params.ransac_max_points
+    n_keep = torch.where(sub, (params.ransac_subsample * n) // torch.clamp(n + v, min=1), n)
+    v_keep = torch.where(sub, params.ransac_subsample - n_keep, v)
+    lin = idx.unsqueeze(1).expand_as(member)  # raster index y*W + x, row-major order
+    key = torch.where(sub.unsqueeze(2), (lin * params.subsample_hash) & 0xFFFFFFFF, lin)
+    big = torch.iinfo(torch.int64).max
+    key = key.masked_fill(~member, big)
+    p = min(k, max(params.ransac_max_points, params.ransac_subsample))
+    p = min(p, active_width(n_keep.flatten()))
+    sel = torch.topk(key, p, dim=2, largest=False, sorted=True).indices if p > 0 else key[..., :0]
+    rank_ok = torch.arange(p, device=veg.device) < n_keep.unsqueeze(2)
+    chosen = torch.where(rank_ok, torch.gather(lin, 2, sel), torch.full_like(sel, big))
+    chosen = torch.sort(chosen, dim=2).values  # back to row-major order; padding last
+    chosen = torch.where(chosen == big, torch.zeros_like(chosen), chosen)
+    return (chosen % w).to(torch.float64), (chosen // w).to(torch.float64), n_keep, v_keep, n
+
+
+def _pick(px: torch.Tensor, py: torch.Tensor, i: torch.Tensor, n_keep: torch.Tensor, vp: torch.Tensor):
+    """Coordinates of point index ``i`` (B, S, T): pixel ``i`` if ``i < n'``, else the VP."""
+    is_vp = i >= n_keep.unsqueeze(2)
+    j = torch.where(is_vp, torch.zeros_like(i), i)
+    x = torch.where(is_vp, vp[:, 0].view(-1, 1, 1), torch.gather(px, 2, j))
+    y = torch.where(is_vp, vp[:, 1].view(-1, 1, 1), torch.gather(py, 2, j))
+    return x, y
+
+
+def _inliers(px, py, vx, vy, x1, y1, x2, y2, thr: float):
+    """Inlier test of pixels ``(B, S, T, P)`` and the VP ``(B, S, T)`` for the lines through
+    ``(x1, y1), (x2, y2)`` ``(B, S, T)``: ``|(x2-x1)(y-y1) - (y2-y1)(x-x1)| < thr*sqrt(...)``."""
+    dx, dy = x2 - x1, y2 - y1
+    lim = thr * torch.sqrt(dx * dx + dy * dy)
+    dx4, dy4, x14, y14, lim4 = (t.unsqueeze(3) for t in (dx, dy, x1, y1, lim))
+    pix = (dx4 * (py.unsqueeze(2) - y14) - dy4 * (px.unsqueeze(2) - x14)).abs() < lim4
+    vpi = (dx * (vy.view(-1, 1, 1) - y1) - dy * (vx.view(-1, 1, 1) - x1)).abs() < lim
+    return pix, vpi
+
+
+def fit_rows(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, present: torch.Tensor,
+             vp: torch.Tensor, band: torch.Tensor, params: Params):
+    """Steps 7.1-7.5 for every row of every image.
+
+    Parameters
+    ----------
+    veg : bool (B, H, W) vegetation mask (bushy-removed, not the Canny edges).
+    theta, rho : int64 (B, S) held Hough lines; ``present`` bool (B, S) marks them.
+    vp : float64 (B, 2) vanishing point (rows of images without one must not be present).
+    band : int64 (B,) RANSAC band width (px) per image.
+
+    Returns
+    -------
+    ``(cx, cy, dx, dy)`` float64 (B, S) centroid and unit direction, ``hypothesis`` int64
+    (B, S) (-1: no support) and ``support`` bool (B, S).
+
+    Memory: ``(B, S, K)`` band temporaries (K = most vegetation pixels in an image) plus
+    scoring chunks of :data:`SCORE_BUDGET` float64 elements.
+    """
+    dev = veg.device
+    px, py, n_keep, v_keep, n = _band_points(veg, theta, rho, band, params)
+    p = px.shape[2]
+    support = present & (n + n // 2 >= params.ransac_min_points)
+    u = torch.tensor(hypothesis_table(params.seed, params.ransac_trials), device=dev)  # (T, 2)
+    t_all = u.shape[0]
+    total = (n_keep + v_keep).to(torch.float64)  # (B, S)
+    valid_pt = torch.arange(p, device=dev) < n_keep.unsqueeze(2)  # (B, S, P)
+    bsz, s = theta.shape
+    chunk = max(1, SCORE_BUDGET // max(1, bsz * s * p))
+    best_score = torch.full((bsz, s), -2, dtype=torch.int64, device=dev)
+    best_t = torch.zeros((bsz, s), dtype=torch.int64, device=dev)
+    for t0 in range(0, t_all, chunk):
+        uc = u[t0:t0 + chunk]
+        i1 = torch.floor(uc[:, 0].view(1, 1, -1) * total.unsqueeze(2)).to(torch.int64)
+        i2 = torch.floor(uc[:, 1].view(1, 1, -1) * total.unsqueeze(2)).to(torch.int64)
+        nk = n_keep.unsqueeze(2)
+        degenerate = (i1 == i2) | ((i1 >= nk) & (i2 >= nk))
+        x1, y1 = _pick(px, py, i1, n_keep, vp)
+        x2, y2 = _pick(px, py, i2, n_keep, vp)
+        pix, vpi = _inliers(px, py, vp[:, 0], vp[:, 1], x1, y1, x2, y2, params.ransac_threshold)
+        score = (pix & valid_pt.unsqueeze(2)).sum(dim=3) + vpi.to(torch.int64) * v_keep.unsqueeze(2)
+        score = score.masked_fill(degenerate, -1)
+        carg = torch.argmax(score, dim=2)  # first maximum within the chunk
+        cmax = score.gather(2, carg.unsqueeze(2)).squeeze(2)
+        better = cmax > best_score  # strict: an earlier chunk wins ties
+        best_score = torch.where(better, cmax, best_score)
+        best_t = torch.where(better, carg + t0, best_t)
+    support = support & (best_score >= 0)
+    # refit on the inliers of the best hypothesis
+    ub = u[best_t]  # (B, S, 2)
+    i1 = torch.floor(ub[..., 0] * total).to(torch.int64).unsqueeze(2)
+    i2 = torch.floor(ub[..., 1] * total).to(torch.int64).unsqueeze(2)
+    x1, y1 = _pick(px, py, i1, n_keep, vp)
+    x2, y2 = _pick(px, py, i2, n_keep, vp)
+    pix, vpi = _inliers(px, py, vp[:, 0], vp[:, 1], x1, y1, x2, y2, params.ransac_threshold)
+    wpix = (pix.squeeze(2) & valid_pt).to(torch.float64)  # (B, S, P)
+    wvp = vpi.squeeze(2).to(torch.float64) * v_keep.to(torch.float64)  # (B, S)
+    vx, vy = vp[:, 0].view(-1, 1), vp[:, 1].view(-1, 1)
+    wsum = wpix.sum(2) + wvp
+    safe = torch.where(wsum > 0, wsum, torch.ones_like(wsum))
+    cx = ((wpix * px).sum(2) + wvp * vx) / safe
+    cy = ((wpix * py).sum(2) + wvp * vy) / safe
+    ex, ey = px - cx.unsqueeze(2), py - cy.unsqueeze(2)
+    evx, evy = vx - cx, vy - cy
+    sxx = (wpix * ex * ex).sum(2) + wvp * evx * evx
+    syy = (wpix * ey * ey).sum(2) + wvp * evy * evy
+    sxy = (wpix * ex * ey).sum(2) + wvp * evx * evy
+    phi = 0.5 * torch.atan2(2.0 * sxy, sxx - syy)
+    dx, dy = torch.cos(phi), torch.sin(phi)
+    flip = (dy < 0) | ((dy == 0) & (dx < 0))
+    dx, dy = torch.where(flip, -dx, dx), torch.where(flip, -dy, dy)
+    hyp = torch.where(support, best_t, torch.full_like(best_t, -1))
+    return cx, cy, dx, dy, hyp, support
+
+
+def validate_rows(cx, cy, dx, dy, hyp, support, present, height: int, hough_band: torch.Tensor,
+                  params: Params) -> RowFits:
+    """Step 7.6: validity in row order; ``hough_band`` int64 (B,) px."""
+    with torch.no_grad():
+        a = dx / dy
+        b = cx - a * cy
+    nan = torch.full_like(a, float("nan"))
+    a = torch.where(support, a, nan)
+    b = torch.where(support, b, nan)
+    orient = torch.atan2(dy, dx)
+    horizon = torch.atan2(dy.abs(), dx.abs()) < params.horizon_angle
+    x_bottom = a * (height - 1) + b
+    bsz, s = a.shape
+    reason = torch.zeros((bsz, s), dtype=torch.int64, device=a.device)
+    valid = torch.zeros((bsz, s), dtype=torch.bool, device=a.device)
+    band = hough_band.to(torch.float64)
+    for k in range(s):
+        earlier = valid[:, :k]
+        par = ((orient[:, :k] - orient[:, k:k + 1]).abs() < params.min_angle_diff) & earlier
+        close = ((x_bottom[:, :k] - x_bottom[:, k:k + 1]).abs() < band.view(-1, 1)) & earlier
+        r = torch.full((bsz,), REASON_CODES["too_close"], dtype=torch.int64, device=a.device)
+        r = torch.where(close.any(1), r, torch.zeros_like(r))
+        r = torch.where(par.any(1), torch.full_like(r, REASON_CODES["parallel"]), r)
+        r = torch.where(horizon[:, k], torch.full_like(r, REASON_CODES["horizon"]), r)
+        r = torch.where(support[:, k], r, torch.full_like(r, REASON_CODES["no_support"]))
+        r = torch.where(present[:, k], r, torch.zeros_like(r))
+        reason[:, k] = r
+        valid[:, k] = present[:, k] & (r == 0)
+    return RowFits(a, b, valid, reason, hyp, present)

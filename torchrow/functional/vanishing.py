@@ -1,0 +1,186 @@
+"""Batched vanishing point with outlier lines and restarts (ALGORITHM.md sections 5-6).
+
+The per-image control flow of the reference (fill N lines, solve, drop an outlier, refill,
+restart with N-1 after ``max_outliers`` drops) runs as a state machine: at every step each
+unfinished image either extracts one Hough line or checks its vanishing point. The number of
+steps has a static bound; the loop stops early once every image is finished.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..params import Params
+from .hough import HoughState, excluded_angles, peak, trig
+
+__all__ = ["VPSolution", "vanishing_point", "LineSearch", "find_lines", "max_steps"]
+
+
+@dataclass
+class VPSolution:
+    """Batched weighted least-squares intersection; all ``(B,)`` except ``residuals`` ``(B, S)``."""
+
+    x: torch.Tensor  # float64
+    y: torch.Tensor  # float64
+    ok: torch.Tensor  # bool: >= 2 lines and a regular system
+    residuals: torch.Tensor  # float64 (B, S), 0 on empty slots
+    spread: torch.Tensor  # float64
+
+
+def vanishing_point(theta: torch.Tensor, rho: torch.Tensor, weight: torch.Tensor, valid: torch.Tensor,
+                    params: Params) -> VPSolution:
+    """Solve ``[[A, C], [C, B]] [x0, y0] = [D, E]`` for every image by Cramer's rule.
+
+    Parameters
+    ----------
+    theta, rho, weight : int64 (B, S) held lines, compact at the front in held order.
+    valid : bool (B, S) which slots hold a line.
+
+    Sums run slot by slot in held order, as in the reference, so the bits agree.
+    """
+    cos, sin = trig(params, theta.device)
+    co, si = cos[theta], sin[theta]
+    w, r = weight.to(torch.float64), rho.to(torch.float64)
+    z = torch.zeros(theta.shape[0], dtype=torch.float64, device=theta.device)
+    a = b = c = d = e = wsum = z
+    for k in range(theta.shape[1]):
+        m = valid[:, k]
+        wk, ck, sk, rk = w[:, k], co[:, k], si[:, k], r[:, k]
+        a = torch.where(m, a + wk * ck * ck, a)
+        b = torch.where(m, b + wk * sk * sk, b)
+        c = torch.where(m, c + wk * sk * ck, c)
+        d = torch.where(m, d + wk * rk * ck, d)
+        e = torch.where(m, e + wk * rk * sk, e)
+        wsum = torch.where(m, wsum + wk, wsum)
+    det = a * b - c * c
+    trace = a + b
+    ok = (valid.sum(dim=1) >= 2) & ~(det.abs() < params.singular_tol * trace * trace)
+    safe = torch.where(ok, det, torch.ones_like(det))
+    x0 = torch.where(ok, (d * b - c * e) / safe, z)
+    y0 = torch.where(ok, (a * e - c * d) / safe, z)
+    res = torch.where(valid, r - x0.unsqueeze(1) * co - y0.unsqueeze(1) * si, torch.zeros_like(r))
+    safe_w = torch.where(wsum > 0, wsum, torch.ones_like(wsum))
+    s2 = z
+    for k in range(theta.shape[1]):
+        s2 = torch.where(valid[:, k], s2 + (w[:, k] / safe_w) * (res[:, k] * res[:, k]), s2)
+    return VPSolution(x0, y0, ok, res, torch.sqrt(s2))
+
+
+@dataclass
+class LineSearch:
+    """Outcome of sections 5-6 for a batch.
+
+    ``theta``/``rho``/``weight`` int64 ``(B, n_rows)`` held lines (compact, ``valid`` marks
+    them); ``out_*`` int64 ``(B, O)`` dropped outliers in drop order (``out_valid``);
+    ``n_rows`` int64 ``(B,)``; ``vp`` float64 ``(B, 2)`` with ``has_vp`` bool ``(B,)``.
+    """
+
+    theta: torch.Tensor
+    rho: torch.Tensor
+    weight: torch.Tensor
+    valid: torch.Tensor
+    out_theta: torch.Tensor
+    out_rho: torch.Tensor
+    out_weight: torch.Tensor
+    out_valid: torch.Tensor
+    n_rows: torch.Tensor
+    vp: torch.Tensor
+    has_vp: torch.Tensor
+
+
+def max_steps(params: Params) -> int:
+    """Static bound on state-machine steps: for each N, N fills, then per outlier one check
+    and one refill, then a final check."""
+    return sum(n + 2 * params.max_outliers + 1 for n in range(2, params.n_rows + 1)) + 1
+
+
+def _drop(t: torch.Tensor, i: torch.Tensor, which: torch.Tensor) -> torch.Tensor:
+    """Remove slot ``i`` (B,) from ``t`` (B, S) where ``which``; later slots move up one."""
+    s = t.shape[1]
+    k = torch.arange(s, device=t.device).unsqueeze(0)
+    src = (k + (k >= i.unsqueeze(1)).to(k.dtype)).clamp(max=s - 1)
+    return torch.where(which.unsqueeze(1), torch.gather(t, 1, src), t)
+
+
+def find_lines(hough_in: torch.Tensor, params: Params) -> LineSearch:
+    """N-maximum extraction with outlier rejection and N-1 restarts, for every image at once.
+
+    Parameters
+    ----------
+    hough_in : bool (B, H, W) Hough input (section 4).
+
+    Memory: the accumulator and a copy of it, int32 ``(B, 2D+1, n_theta)`` each (about
+    37 MB each at B = 64, 320x240), plus the voting temporaries of :mod:`.hough`.
+    """
+    dev = hough_in.device
+    bsz = hough_in.shape[0]
+    s_max = params.n_rows
+    o_max = max(params.n_rows - 1, 1) * params.max_outliers
+    state = HoughState.start(hough_in, params)
+    i64 = dict(dtype=torch.int64, device=dev)
+    theta = torch.zeros((bsz, s_max), **i64)
+    rho = torch.zeros((bsz, s_max), **i64)
+    weight = torch.zeros((bsz, s_max), **i64)
+    held = torch.zeros(bsz, **i64)  # number of held lines
+    out = torch.zeros((bsz, o_max, 3), **i64)
+    n_out = torch.zeros(bsz, **i64)
+    n = torch.full((bsz,), params.n_rows, **i64)
+    dropped = torch.zeros(bsz, **i64)
+    done = n < 2
+    vp = torch.zeros((bsz, 2), dtype=torch.float64, device=dev)
+    has_vp = torch.zeros(bsz, dtype=torch.bool, device=dev)
+    slots = torch.arange(s_max, device=dev).unsqueeze(0)
+
+    for _ in range(max_steps(params)):
+        if bool(done.all()):  # early exit; the bound above is what an exported graph keeps
+            break
+        valid = slots < held.unsqueeze(1)
+        fill = ~done & (held < n)
+        check = ~done & ~fill
+
+        # --- fill: extract one line --------------------------------------------------------
+        th, r_idx, w = peak(state.acc, excluded_angles(theta, valid, params))
+        got = fill & (w > 0)
+        n = torch.where(fill & (w == 0), held, n)  # extraction ran dry: N becomes the count
+        put = got.unsqueeze(1) & (slots == held.unsqueeze(1))
+        rho_new = r_idx - state.d
+        theta = torch.where(put, th.unsqueeze(1), theta)
+        rho = torch.where(put, rho_new.unsqueeze(1), rho)
+        weight = torch.where(put, w.unsqueeze(1), weight)
+        held = held + got.to(torch.int64)
+        if bool(got.any()):
+            state.erase(th, rho_new, got, params)
+
+        # --- check: vanishing point and outlier --------------------------------------------
+        sol = vanishing_point(theta, rho, weight, valid, params)
+        no_vp = check & ~sol.ok
+        err = torch.where(valid, sol.residuals.abs(), torch.full_like(sol.residuals, -1.0))
+        i = torch.argmax(err, dim=1)
+        e_i = err.gather(1, i.unsqueeze(1)).squeeze(1)
+        is_out = (e_i > params.outlier_ratio * sol.spread) & (e_i > params.outlier_min_px)
+        finish = check & sol.ok & ~is_out
+        vp = torch.where(finish.unsqueeze(1), torch.stack([sol.x, sol.y], 1), vp)
+        has_vp = has_vp | finish
+        drop = check & sol.ok & is_out
+        rec = torch.stack([theta.gather(1, i.unsqueeze(1)).squeeze(1), rho.gather(1, i.unsqueeze(1)).squeeze(1),
+                           weight.gather(1, i.unsqueeze(1)).squeeze(1)], 1)
+        o_slot = (torch.arange(o_max, device=dev).unsqueeze(0) == n_out.unsqueeze(1)) & drop.unsqueeze(1)
+        out = torch.where(o_slot.unsqueeze(-1), rec.unsqueeze(1), out)
+        n_out = n_out + drop.to(torch.int64)
+        theta, rho, weight = _drop(theta, i, drop), _drop(rho, i, drop), _drop(weight, i, drop)
+        held = held - drop.to(torch.int64)
+        dropped = dropped + drop.to(torch.int64)
+        restart = drop & (dropped == params.max_outliers)
+        if bool(restart.any()):
+            n = n - restart.to(torch.int64)
+            held = torch.where(restart, torch.zeros_like(held), held)
+            dropped = torch.where(restart, torch.zeros_like(dropped), dropped)
+            state.reset(restart)
+        done = done | no_vp | finish | (restart & (n < 2))
+
+    valid = slots < held.unsqueeze(1)
+    out_valid = torch.arange(o_max, device=dev).unsqueeze(0) < n_out.unsqueeze(1)
+    return LineSearch(theta, rho, weight, valid, out[..., 0], out[..., 1], out[..., 2], out_valid,
+                      n, vp, has_vp)
