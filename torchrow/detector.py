@@ -1,0 +1,222 @@
+"""The batched detector: composes the tensor stages of :mod:`torchrow.functional`.
+
+:class:`CropRowDetector` runs ALGORITHM.md sections 1-7 on ``uint8 (B, 3, H, W)`` batches and
+returns a :class:`BatchResult` of padded tensors with masks; :meth:`BatchResult.results`
+turns it into the same per-image :class:`~torchrow.results.ImageResult` records as
+:func:`torchrow.reference.detect`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Iterator, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from .functional import color as fcolor
+from .functional import ransac as fransac
+from .functional import sky as fsky
+from .functional import vanishing as fvan
+from .functional import vegetation as fveg
+from .functional._checks import check_images
+from .io import ImageError, load_image, resize_to_width, to_rgb8
+from .params import Params
+from .results import REASONS, STATUSES, HoughLine, ImageResult, Row
+
+__all__ = ["BatchResult", "CropRowDetector", "STATUS_CODES"]
+
+STATUS_CODES = {s: i for i, s in enumerate(STATUSES)}
+
+
+@dataclass
+class BatchResult:
+    """Detections of a batch of ``B`` images of one working size ``width x height``.
+
+    Per image: ``status`` int64 (code into :data:`torchrow.results.STATUSES`), ``sky``,
+    ``k``, ``n_rows`` int64, ``bushy`` bool, ``veg_color`` uint8 ``(B, 3)``, ``vp`` float64
+    ``(B, 2)`` with ``has_vp``. Hough lines ``hough_*`` ``(B, n_rows)`` with ``hough_valid``;
+    dropped outliers ``out_*`` ``(B, O)`` with ``out_valid``; rows ``row_a``/``row_b`` float64
+    ``(B, n_rows)`` (``x = a*y + b``), ``row_valid``, ``row_reason`` (code into
+    :data:`torchrow.results.REASONS`), ``row_hypothesis``, ``row_present``.
+    ``timings`` holds seconds per stage when the detector was asked to profile.
+    """
+
+    width: int
+    height: int
+    status: torch.Tensor
+    sky: torch.Tensor
+    veg_color: torch.Tensor
+    k: torch.Tensor
+    bushy: torch.Tensor
+    n_rows: torch.Tensor
+    hough_theta: torch.Tensor
+    hough_rho: torch.Tensor
+    hough_weight: torch.Tensor
+    hough_valid: torch.Tensor
+    out_theta: torch.Tensor
+    out_rho: torch.Tensor
+    out_weight: torch.Tensor
+    out_valid: torch.Tensor
+    vp: torch.Tensor
+    has_vp: torch.Tensor
+    row_a: torch.Tensor
+    row_b: torch.Tensor
+    row_valid: torch.Tensor
+    row_reason: torch.Tensor
+    row_hypothesis: torch.Tensor
+    row_present: torch.Tensor
+    theta_step: int = 1
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.status.shape[0])
+
+    def results(self, names: Sequence[str | None] | None = None) -> list[ImageResult]:
+        """Per-image records, equal to what :func:`torchrow.reference.detect` returns."""
+        cpu = {k: (v.cpu() if isinstance(v, torch.Tensor) else v) for k, v in self.__dict__.items()}
+        out = []
+        for b in range(len(self)):
+            def lines(th, rh, wt, ok):
+                return [HoughLine(int(th[b, j]), int(rh[b, j]), int(wt[b, j]), self.theta_step)
+                        for j in range(th.shape[1]) if bool(ok[b, j])]
+
+            rows = [Row(float(cpu["row_a"][b, j]), float(cpu["row_b"][b, j]), bool(cpu["row_valid"][b, j]),
+                        REASONS[int(cpu["row_reason"][b, j])], int(cpu["row_hypothesis"][b, j]))
+                    for j in range(cpu["row_a"].shape[1]) if bool(cpu["row_present"][b, j])]
+            vp = (float(cpu["vp"][b, 0]), float(cpu["vp"][b, 1])) if bool(cpu["has_vp"][b]) else None
+            out.append(ImageResult(
+                width=self.width, height=self.height, status=STATUSES[int(cpu["status"][b])],
+                sky=int(cpu["sky"][b]), veg_color=tuple(int(c) for c in cpu["veg_color"][b]),  # type: ignore[arg-type]
+                k=int(cpu["k"][b]), bushy=bool(cpu["bushy"][b]), n_rows=int(cpu["n_rows"][b]),
+                hough=lines(cpu["hough_theta"], cpu["hough_rho"], cpu["hough_weight"], cpu["hough_valid"]),
+                outliers=lines(cpu["out_theta"], cpu["out_rho"], cpu["out_weight"], cpu["out_valid"]),
+                vp=vp, rows=rows, name=None if names is None else names[b]))
+        return out
+
+
+class CropRowDetector(nn.Module):
+    """Batched crop-row detector (ALGORITHM.md, image mode), identical to the reference.
+
+    Parameters
+    ----------
+    params : Params
+        Constants (defaults as in ALGORITHM.md).
+    device : str or torch.device, optional
+        Where the stages run; inputs are moved there. Default: CPU.
+
+    Examples
+    --------
+    >>> det = CropRowDetector()
+    >>> batch = det(images)            # uint8 (B, 3, H, W) -> BatchResult
+    >>> records = batch.results()      # list[ImageResult], as torchrow.reference.detect
+    """
+
+    def __init__(self, params: Params | None = None, device: str | torch.device | None = None) -> None:
+        super().__init__()
+        self.params = params or Params()
+        self.device = torch.device(device) if device is not None else torch.device("cpu")
+
+    @torch.no_grad()
+    def forward(self, images: torch.Tensor, profile: bool = False) -> BatchResult:
+        """Detect rows in ``uint8 (B, 3, H, W)`` RGB images already at working size.
+
+        With ``profile=True`` the result's ``timings`` holds seconds per stage (this adds a
+        device synchronisation after each stage).
+        """
+        check_images(images)
+        p = self.params
+        x = images.to(self.device)
+        bsz, _, h, w = x.shape
+        timings: dict[str, float] = {}
+        clock = [time.perf_counter()]
+
+        def lap(name: str) -> None:
+            if profile:
+                if x.device.type == "cuda":
+                    torch.cuda.synchronize(x.device)
+                now = time.perf_counter()
+                timings[name] = now - clock[0]
+                clock[0] = now
+
+        i64 = dict(dtype=torch.int64, device=x.device)
+        sky = fsky.sky_row(x, p)
+        lap("sky")
+        color = fcolor.vegetation_color(x, p)
+        lap("color")
+        k = torch.full((bsz,), p.veg_tol, **i64)
+        veg = fveg.remove_bushy(fveg.raw_mask(x, color, k, sky), sky, p)
+        has_veg = veg.flatten(1).any(dim=1)
+        hin, bushy = fveg.hough_input(veg, sky, p)
+        lap("vegetation")
+        ls = fvan.find_lines(hin, p)
+        lap("hough+vp")
+        present = ls.valid & ls.has_vp.unsqueeze(1)
+        band = torch.where(bushy, torch.full((bsz,), p.ransac_band_px(w, True), **i64),
+                           torch.full((bsz,), p.ransac_band_px(w, False), **i64))
+        fit = fransac.fit_rows(veg, ls.theta, ls.rho, present, ls.vp, band, p)
+        rows = fransac.validate_rows(*fit, present, h, torch.full((bsz,), p.hough_band_px(w), **i64), p)
+        lap("ransac")
+        all_valid = (rows.valid | ~present).all(dim=1)
+        status = torch.where(all_valid, torch.full((bsz,), STATUS_CODES["ok"], **i64),
+                             torch.full((bsz,), STATUS_CODES["invalid"], **i64))
+        status = torch.where(ls.has_vp, status, torch.full_like(status, STATUS_CODES["no_vp"]))
+        status = torch.where(has_veg, status, torch.full_like(status, STATUS_CODES["no_vegetation"]))
+        return BatchResult(
+            width=w, height=h, status=status, sky=sky.to(torch.int64), veg_color=color, k=k, bushy=bushy,
+            n_rows=ls.n_rows, hough_theta=ls.theta, hough_rho=ls.rho, hough_weight=ls.weight,
+            hough_valid=ls.valid, out_theta=ls.out_theta, out_rho=ls.out_rho, out_weight=ls.out_weight,
+            out_valid=ls.out_valid, vp=ls.vp, has_vp=ls.has_vp, row_a=rows.a, row_b=rows.b,
+            row_valid=rows.valid, row_reason=rows.reason, row_hypothesis=rows.hypothesis,
+            row_present=rows.present, theta_step=p.theta_step, timings=timings)
+
+    def prepare(self, image: np.ndarray | str | Path) -> np.ndarray:
+        """Section 0 for one input: load a path or convert an array, resize to the working width."""
+        if isinstance(image, (str, Path)):
+            return load_image(image, self.params.image_width)
+        if not isinstance(image, np.ndarray):
+            raise TypeError(f"expected a path or a numpy array (H, W, 3), got {type(image).__name__}")
+        return resize_to_width(to_rgb8(image), self.params.image_width)
+
+    def detect(self, images: torch.Tensor | Sequence[np.ndarray | str | Path]) -> BatchResult:
+        """Detect rows in a ``uint8 (B, 3, H, W)`` tensor, or a list of same-sized arrays or paths.
+
+        Lists are converted and resized as :func:`torchrow.reference.detect` does. For inputs of
+        different working sizes use :meth:`detect_many`.
+        """
+        if isinstance(images, torch.Tensor):
+            return self(images)
+        arrays = [self.prepare(im) for im in images]
+        if len({a.shape for a in arrays}) > 1:
+            raise ValueError("images of different working sizes: use CropRowDetector.detect_many")
+        if not arrays:
+            raise ValueError("detect got an empty list")
+        return self(torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).contiguous())
+
+    def detect_many(self, items: Iterable[tuple[str | None, np.ndarray]], batch_size: int = 64
+                    ) -> Iterator[tuple[int, ImageResult]]:
+        """Detect ``(name, working rgb)`` items in batches grouped by working size.
+
+        Yields ``(input index, result)`` as each batch finishes (so not necessarily in input
+        order); a batch is flushed when it reaches ``batch_size`` images of one size.
+        """
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        groups: dict[tuple[int, ...], list[tuple[int, str | None, np.ndarray]]] = defaultdict(list)
+
+        def flush(key):
+            group = groups.pop(key)
+            batch = torch.from_numpy(np.stack([g[2] for g in group])).permute(0, 3, 1, 2).contiguous()
+            for (i, _, _), res in zip(group, self(batch).results([g[1] for g in group])):
+                yield i, res
+
+        for i, (name, rgb) in enumerate(items):
+            groups[rgb.shape].append((i, name, rgb))
+            if len(groups[rgb.shape]) >= batch_size:
+                yield from flush(rgb.shape)
+        for key in list(groups):
+            yield from flush(key)
