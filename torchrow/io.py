@@ -82,12 +82,12 @@ def load_image(path: str | Path, width: int | None = None) -> np.ndarray:
     data = np.fromfile(p, dtype=np.uint8)
     if data.size == 0:
         raise ImageError(f"empty file: {p}")
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    # ANYDEPTH|ANYCOLOR keeps 16-bit and grey data as they are and, unlike IMREAD_UNCHANGED,
+    # applies the EXIF orientation as cv2.imread does; an alpha channel is dropped here.
+    img = cv2.imdecode(data, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
     if img is None:
         raise ImageError(f"cannot decode image: {p}")
     if img.ndim == 3 and img.shape[2] == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-    elif img.ndim == 3 and img.shape[2] == 4:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA)
     rgb = to_rgb8(img)
     return resize_to_width(rgb, width) if width is not None else rgb
