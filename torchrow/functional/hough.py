@@ -66,7 +66,7 @@ def pixel_list(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         raster order, then the others.
     count : int64 (B,), the number of mask pixels.
     """
-    flat = mask.reshape(mask.shape[0], -1)
+    flat = mask.reshape(mask.shape[0], mask.shape[1] * mask.shape[2])
     idx = torch.sort((~flat).to(torch.uint8), dim=1, stable=True).indices
     return idx, flat.sum(dim=1)
 

@@ -1,0 +1,933 @@
+"""Synthetic crop-row fields with exact CRBD-style ground truth (NumPy + OpenCV only).
+
+The renderer draws a field of green plant rows on textured brown soil as seen by a forward
+looking camera, optionally with sky at the top, weeds, darker soil patches and sensor noise,
+and returns the ground truth in the Crop Row Benchmark Dataset's ``.crp`` convention.
+
+Geometry (pixel coordinates: ``x`` = column, ``y``/``v`` = row, origin at the top-left
+pixel centre, as everywhere in ``torchrow``)
+-----------------------------------------------------------------------------------------
+Let ``W, H`` be the image size, ``v0 = sky_rows`` the first ground row, ``(vx, vy)`` the
+vanishing point (``vy < v0``), ``L = (H - 1) - vy`` and the perspective scale of image row
+``v``::
+
+    s(v) = (v - vy) / L          # 1 at the bottom row, 0 at the vanishing point
+
+Ground rows are equally spaced, so with a camera without roll the rows seen on one image row
+are equally spaced too. Row ``j`` (``j = 0`` is the central row, ``j > 0`` to its right) has
+its centre at::
+
+    x_j(v) = xc(v) + j * d(v)
+    xc(v)  = vx + (xb - vx) * s(v) + k(v)          # central row, xb = W/2 + lateral_offset_px
+    d(v)   = spacing_px * s(v)                     # spacing between adjacent rows
+    k(v)   = curvature * ((H - 1 - v) / (H - 1 - v0)) ** 2   # 0 at the bottom row
+
+With ``curvature == 0`` every row is the straight line ``x = a_j * y + b_j`` through the
+vanishing point, ``a_j = (xb + j * spacing_px - vx) / L``, ``b_j = vx - a_j * vy``. The
+curvature term is an image-space quadratic bend shared by all rows (so adjacent rows stay
+exactly ``d(v)`` apart and the CRBD model ``c_v + j * d_v`` stays exact). The ground truth is
+``c_v = xc(v) - W/2`` and ``d_v = d(v)`` for ``v = v0 .. H-1`` (CRBD: ``u = W/2 + c_v +
+j * d_v`` is the 0-based column of row ``j``).
+
+Ground attachment
+-----------------
+Plants, weeds, soil texture and dark patches live on the ground, in coordinates ``p``
+(across the rows, in row spacings, ``p = j`` on the centre of row ``j``) and ``u = 1 / s``
+(along the rows, proportional to depth; ``u = 1`` on the bottom image row) shifted by the
+forward travel ``travel_px / L``. Everything on the ground is generated from
+``numpy.random.default_rng`` seeded with ``(seed, ...)`` and a ground cell index, never from
+the frame's geometry, so a sequence of frames that only changes the camera pose shows the
+same plants moving coherently. Per-frame sensor noise is seeded with ``(seed, frame)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+__all__ = [
+    "FieldSpec",
+    "SyntheticField",
+    "render",
+    "render_batch",
+    "demo_field",
+    "write_crp",
+    "save",
+    "sequence",
+]
+
+# Texture extent on the ground: p in [-_TEX_P, _TEX_P] row spacings, u in [0, _TEX_U];
+# beyond it the texture is mirrored.
+_TEX_P = 8.0
+_TEX_U = 4.0
+_TEX_MAX = 1024  # at most this many texels along each texture axis
+# soil brightness octaves: (feature size in px at the bottom row, amplitude), and the
+# brightness of light / dark specks (stones, crumbs), all in units of soil_texture
+_SOIL_OCTAVES = ((4.0, 1.2), (12.0, 0.6), (60.0, 0.5))
+_SPECKS = (1.8, -1.4)
+_SHADOW_STRENGTH = 0.38  # brightness removed at the centre of a dark soil patch
+_ROW_MIN_RADIUS = 1.0  # px: beyond the depth where a plant is thinner, rows are drawn as lines
+_ID_OFFSET = 1 << 24  # keeps cell indices non-negative for numpy.random.SeedSequence
+_CELL_ROWS = 8  # rows per ground cell (one random stream per cell)
+_SHIFT = 4  # sub-pixel bits for OpenCV drawing
+_ONE = 1 << _SHIFT
+
+# random-stream tags (first entry after the seed)
+_STREAM_TEXTURE = 0
+_STREAM_CELL = 1
+_STREAM_NOISE = 2
+
+
+def _rgb_tuple(value: object, name: str) -> tuple[int, int, int]:
+    if not (isinstance(value, (tuple, list)) and len(value) == 3):
+        raise ValueError(f"FieldSpec.{name} must be an (R, G, B) triple; got {value!r}")
+    out = []
+    for c in value:
+        if isinstance(c, bool) or not isinstance(c, (int, np.integer)) or not 0 <= int(c) <= 255:
+            raise ValueError(f"FieldSpec.{name} must hold integers in 0..255; got {value!r}")
+        out.append(int(c))
+    return (out[0], out[1], out[2])
+
+
+@dataclass(frozen=True)
+class FieldSpec:
+    """Everything that defines one synthetic field image (all lengths in pixels).
+
+    Lengths "at the bottom" are measured on the bottom image row ``y = H - 1``; towards the
+    vanishing point they shrink with the perspective scale ``s(v)`` (module docstring).
+
+    Parameters
+    ----------
+    width, height : int
+        Image size ``W x H`` (px), at least 16 x 16.
+    n_rows : int or None
+        Number of plant rows drawn, centred on the central row (``j = -(n//2) ..
+        n - 1 - n//2``). ``None`` (default) draws every row that enters the image, like a
+        real field: about 5 rows at the bottom of the default view and many more towards the
+        horizon.
+    spacing_px : float
+        Distance between adjacent row centres on the bottom image row (px), > 0.
+    vp : (float, float) or None
+        Vanishing point ``(x, y)`` (px). Must satisfy ``y < sky_rows`` (above the first
+        ground row, so every ground-truth row has a positive spacing). ``None``:
+        ``(W/2 + 0.025*W, -0.4*H)`` without sky, ``(W/2 + 0.025*W, sky_rows - 0.1*H)`` with
+        sky (the field is cut by its far edge a little below the horizon).
+    sky_rows : int
+        Rows ``0 .. sky_rows-1`` are sky (bluish-white vertical gradient); ``0`` = no sky.
+        Must be ``< H - 1``. The ground truth covers rows ``v0 = sky_rows .. H-1``.
+    lateral_offset_px : float
+        x of the central row on the bottom image row minus ``W/2`` (px).
+    curvature : float
+        Lateral bend (px) of every row on the first ground row ``v0`` relative to the
+        straight row, growing quadratically from 0 on the bottom row. 0 = straight rows.
+    plant_width_px : float
+        Width of a plant row at the bottom (px, > 0); a row at scale ``s`` is
+        ``plant_width_px * s`` wide.
+    plant_spacing_px : float
+        Mean distance (image rows at the bottom, px, > 0) between consecutive leaf clumps of
+        a row (sown: a jittered regular spacing); clumps are placed on the ground, so they
+        crowd together towards the horizon.
+    plant_density : float
+        Fraction in ``(0, 1]`` of each row's length that carries plants; the rest are
+        missing-plant gaps (mean length about 25 px at the bottom). 1 = continuous rows.
+    missing_rows : tuple of int
+        Row indices ``j`` drawn without any plants (their ground truth is unchanged).
+    weeds : float
+        Expected number of weed blobs between the rows per ``spacing_px**2`` of soil at the
+        bottom-row scale (>= 0; 0 = clean field).
+    shadows : float
+        Expected number of darker soil patches per ``spacing_px**2`` of soil at the
+        bottom-row scale (>= 0; 0 = none; 0.02 gives a few in view).
+    noise : float
+        Standard deviation (intensity levels, >= 0) of per-pixel Gaussian sensor noise.
+    blur : float
+        Standard deviation (px, >= 0) of the Gaussian optical blur applied before the noise.
+    soil_color, plant_color : (int, int, int)
+        Mean RGB of the soil and of the plant leaves. The plant colour must be green-dominant
+        (``G >= R + 20`` and ``G >= B + 20``).
+    soil_texture : float
+        Standard deviation (intensity levels, >= 0) of the soil brightness texture (clods,
+        furrows along the rows).
+    color_jitter : float
+        Standard deviation (intensity levels, >= 0) of the per-clump leaf colour; leaf
+        colours are clamped to stay green-dominant (``G - R >= 20``, ``G - B >= 30``).
+    travel_px : float
+        Forward travel of the camera over the ground, in image rows at the bottom (px). The
+        plants move towards the bottom of the image as it grows; the rows do not change.
+    frame : int
+        Index of the sensor-noise stream (>= 0); used by :func:`sequence`.
+    focal_px : float or None
+        Focal length (px) used only to convert the heading to radians
+        (``heading_rad = atan((vp_x - W/2) / focal_px)``). ``None``: ``0.75 * W``.
+    seed : int
+        Seed (>= 0) of every random choice.
+
+    Raises
+    ------
+    ValueError
+        On construction, naming the field, for values outside the ranges above.
+    """
+
+    width: int = 320
+    height: int = 240
+    n_rows: int | None = None
+    spacing_px: float = 60.0
+    vp: tuple[float, float] | None = None
+    sky_rows: int = 0
+    lateral_offset_px: float = 0.0
+    curvature: float = 0.0
+    plant_width_px: float = 13.0
+    plant_spacing_px: float = 7.0
+    plant_density: float = 1.0
+    missing_rows: tuple[int, ...] = ()
+    weeds: float = 0.12
+    shadows: float = 0.0
+    noise: float = 3.0
+    blur: float = 0.6
+    soil_color: tuple[int, int, int] = (148, 124, 96)
+    plant_color: tuple[int, int, int] = (84, 136, 52)
+    soil_texture: float = 20.0
+    color_jitter: float = 9.0
+    travel_px: float = 0.0
+    frame: int = 0
+    focal_px: float | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        def need(cond: bool, name: str, what: str) -> None:
+            if not cond:
+                raise ValueError(f"FieldSpec.{name} {what}; got {getattr(self, name)!r}")
+
+        def is_int(v: object) -> bool:
+            return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+
+        def is_num(v: object) -> bool:
+            return (isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+                    and math.isfinite(float(v)))
+
+        need(is_int(self.width) and self.width >= 16, "width", "must be an integer >= 16")
+        need(is_int(self.height) and self.height >= 16, "height", "must be an integer >= 16")
+        need(self.n_rows is None or (is_int(self.n_rows) and self.n_rows >= 1), "n_rows",
+             "must be None or an integer >= 1")
+        need(is_int(self.sky_rows) and 0 <= self.sky_rows < self.height - 1, "sky_rows",
+             "must be an integer in [0, height - 1)")
+        need(is_int(self.frame) and self.frame >= 0, "frame", "must be an integer >= 0")
+        need(is_int(self.seed) and 0 <= self.seed < 2**63, "seed", "must be an integer in [0, 2**63)")
+        for name in ("spacing_px", "plant_width_px", "plant_spacing_px"):
+            v = getattr(self, name)
+            need(is_num(v) and v > 0, name, "must be a finite number > 0")
+        for name in ("weeds", "shadows", "noise", "blur", "soil_texture", "color_jitter"):
+            v = getattr(self, name)
+            need(is_num(v) and v >= 0, name, "must be a finite number >= 0")
+        for name in ("lateral_offset_px", "curvature", "travel_px"):
+            need(is_num(getattr(self, name)), name, "must be a finite number")
+        need(is_num(self.plant_density) and 0 < self.plant_density <= 1, "plant_density",
+             "must lie in (0, 1]")
+        need(self.focal_px is None or (is_num(self.focal_px) and self.focal_px > 0), "focal_px",
+             "must be None or a finite number > 0")
+        need(isinstance(self.missing_rows, tuple) and all(is_int(j) for j in self.missing_rows),
+             "missing_rows", "must be a tuple of integers")
+        _rgb_tuple(self.soil_color, "soil_color")
+        pc = _rgb_tuple(self.plant_color, "plant_color")
+        need(pc[1] >= pc[0] + 20 and pc[1] >= pc[2] + 20, "plant_color",
+             "must be green-dominant (G >= R + 20 and G >= B + 20)")
+        if self.vp is not None:
+            need(isinstance(self.vp, (tuple, list)) and len(self.vp) == 2 and all(is_num(c) for c in self.vp),
+                 "vp", "must be None or a pair of finite numbers (x, y)")
+            need(float(self.vp[1]) < self.sky_rows, "vp",
+                 f"must lie above the first ground row: y < sky_rows = {self.sky_rows}")
+            object.__setattr__(self, "vp", (float(self.vp[0]), float(self.vp[1])))
+
+    # ------------------------------------------------------------------------------------
+    @property
+    def vanishing_point(self) -> tuple[float, float]:
+        """The vanishing point ``(x, y)`` in px, with the default of ``vp=None`` resolved."""
+        if self.vp is not None:
+            return (float(self.vp[0]), float(self.vp[1]))
+        x = self.width / 2 + 0.025 * self.width
+        y = -0.4 * self.height if self.sky_rows == 0 else self.sky_rows - 0.1 * self.height
+        return (float(x), float(y))
+
+    @property
+    def focal(self) -> float:
+        """Focal length (px) for heading conversions: ``focal_px`` or ``0.75 * W``."""
+        return float(self.focal_px) if self.focal_px is not None else 0.75 * self.width
+
+    def replace(self, **changes: object) -> "FieldSpec":
+        """A copy with some fields changed (validated like a new object)."""
+        return dataclasses.replace(self, **changes)  # type: ignore[arg-type]
+
+    @classmethod
+    def at_size(cls, width: int, height: int, **changes: object) -> "FieldSpec":
+        """The default field scaled to ``width x height`` (then ``changes`` applied).
+
+        Lengths of the 320 x 240 defaults (``spacing_px``, ``plant_width_px``,
+        ``plant_spacing_px``) are multiplied by ``width / 320``, so the picture looks the
+        same at every size; the default vanishing point is already relative to the size.
+
+        Parameters
+        ----------
+        width, height : int
+            Image size (px).
+        **changes
+            Any :class:`FieldSpec` field, applied after scaling (not scaled).
+        """
+        k = width / 320.0
+        base = cls()
+        kw: dict[str, object] = dict(
+            width=width, height=height,
+            spacing_px=base.spacing_px * k,
+            plant_width_px=base.plant_width_px * k,
+            plant_spacing_px=base.plant_spacing_px * k,
+        )
+        kw.update(changes)
+        return cls(**kw)  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True, eq=False)
+class SyntheticField:
+    """One rendered field and its exact ground truth.
+
+    Attributes
+    ----------
+    image : numpy.ndarray, shape (H, W, 3), uint8
+        RGB image.
+    crp : numpy.ndarray, shape (H - sky, 2), float64
+        Ground truth in CRBD's ``.crp`` convention, image rows ``v0 = sky .. H-1``: column 0
+        is ``c_v`` (x of the central row minus ``W/2``, px), column 1 is ``d_v`` (spacing
+        between adjacent rows, px).
+    rows : list of (float, float)
+        ``(a, b)`` with ``x = a*y + b`` (px) for every row in :attr:`row_ids`, left to right:
+        the true row centre lines, through :attr:`vp`. With ``curvature != 0`` these are the
+        straight rows before bending; the exact centres are in :attr:`centers`.
+    row_ids : list of int
+        Row index ``j`` of each entry of :attr:`rows` (0 = central row, the one ``crp``
+        describes; negative to its left). Every row whose centre crosses the image below
+        the sky is listed (restricted to the drawn rows when ``spec.n_rows`` is set).
+    centers : numpy.ndarray, shape (len(rows), H - sky), float64
+        Exact x (px) of each listed row's centre on image rows ``sky .. H-1``
+        (``W/2 + c_v + j * d_v``, curvature included).
+    vp : (float, float)
+        Vanishing point ``(x, y)`` (px).
+    sky : int
+        Number of sky rows at the top (= ``v0``).
+    spec : FieldSpec
+        The specification that produced it.
+    """
+
+    image: np.ndarray
+    crp: np.ndarray
+    rows: list[tuple[float, float]]
+    row_ids: list[int]
+    centers: np.ndarray
+    vp: tuple[float, float]
+    sky: int
+    spec: FieldSpec
+
+    @property
+    def v0(self) -> int:
+        """First ground-truth image row (= :attr:`sky`)."""
+        return self.sky
+
+    @property
+    def heading_px(self) -> float:
+        """Heading as the vanishing point's x offset from the image centre: ``vp_x - W/2`` (px)."""
+        return self.vp[0] - self.spec.width / 2
+
+    @property
+    def heading_rad(self) -> float:
+        """Heading in radians, ``atan(heading_px / spec.focal)`` (pinhole model)."""
+        return math.atan2(self.heading_px, self.spec.focal)
+
+    @property
+    def lateral_px(self) -> float:
+        """Lateral offset: x of the central row on the bottom image row minus ``W/2`` (px)."""
+        return float(self.crp[-1, 0])
+
+    def x_at(self, j: int, y: np.ndarray | float) -> np.ndarray | float:
+        """Exact x (px) of row ``j``'s centre on image row(s) ``y`` (curvature included)."""
+        return _Geometry(self.spec).x(j, y)
+
+
+# ----------------------------------------------------------------------------------------
+class _Geometry:
+    """The perspective model of the module docstring for one spec (all float64)."""
+
+    def __init__(self, spec: FieldSpec) -> None:
+        self.W = spec.width
+        self.H = spec.height
+        self.v0 = spec.sky_rows
+        self.vx, self.vy = spec.vanishing_point
+        self.L = (self.H - 1) - self.vy
+        self.xb = self.W / 2 + float(spec.lateral_offset_px)
+        self.spacing = float(spec.spacing_px)
+        self.curv = float(spec.curvature)
+        self.travel_u = float(spec.travel_px) / self.L
+
+    def s(self, v: np.ndarray | float) -> np.ndarray | float:
+        return (np.asarray(v, dtype=np.float64) - self.vy) / self.L
+
+    def bend(self, v: np.ndarray | float) -> np.ndarray | float:
+        if self.curv == 0.0:
+            return np.zeros_like(np.asarray(v, dtype=np.float64))
+        t = ((self.H - 1) - np.asarray(v, dtype=np.float64)) / ((self.H - 1) - self.v0)
+        return self.curv * t * t
+
+    def xc(self, v: np.ndarray | float) -> np.ndarray | float:
+        return self.vx + (self.xb - self.vx) * self.s(v) + self.bend(v)
+
+    def d(self, v: np.ndarray | float) -> np.ndarray | float:
+        return self.spacing * self.s(v)
+
+    def x(self, j: int, v: np.ndarray | float) -> np.ndarray | float:
+        v = np.asarray(v, dtype=np.float64)
+        out = self.xc(v) + j * self.d(v)
+        return float(out) if out.ndim == 0 else out
+
+    def line(self, j: int) -> tuple[float, float]:
+        a = (self.xb + j * self.spacing - self.vx) / self.L
+        return (float(a), float(self.vx - a * self.vy))
+
+    def v_of_u(self, u: np.ndarray) -> np.ndarray:
+        return self.vy + self.L / u
+
+    def j_range(self, v: np.ndarray, x_lo: float, x_hi: float) -> tuple[int, int]:
+        """Smallest/largest j whose centre lies in [x_lo, x_hi] on some row of ``v``."""
+        xc, d = self.xc(v), self.d(v)
+        lo = np.ceil((x_lo - xc) / d)
+        hi = np.floor((x_hi - xc) / d)
+        ok = lo <= hi
+        if not ok.any():
+            return (0, -1)
+        return (int(lo[ok].min()), int(hi[ok].max()))
+
+
+def _fold(t: np.ndarray, n: int) -> np.ndarray:
+    """Mirror texel coordinates ``t`` into ``[0, n-1]`` (reflect-101, any magnitude)."""
+    if n <= 1:
+        return np.zeros_like(t)
+    if t.size and t.min() >= 0 and t.max() <= n - 1:
+        return t
+    period = t.dtype.type(2 * (n - 1))
+    return np.abs(np.mod(t + t.dtype.type(n - 1), period) - t.dtype.type(n - 1))
+
+
+def _noise_octave(rng: np.random.Generator, shape: tuple[int, int], cell_u: float,
+                  cell_p: float) -> np.ndarray:
+    """Smooth value noise, about unit variance, features ``cell_u x cell_p`` texels large."""
+    gh = max(2, int(math.ceil(shape[0] / max(1.0, cell_u))) + 1)
+    gw = max(2, int(math.ceil(shape[1] / max(1.0, cell_p))) + 1)
+    g = rng.standard_normal((gh, gw), dtype=np.float32)
+    if (gh, gw) == shape:
+        return g
+    return cv2.resize(g, (shape[1], shape[0]), interpolation=cv2.INTER_CUBIC)
+
+
+@functools.lru_cache(maxsize=8)
+def _ground_texture(seed: int, n_u: int, n_p: int, tpu: float, tpp: float, fu: float, fp: float,
+                    shadow_count_mean: float) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Soil texture on the ground grid (texel ``[iu, ip]``), cached per seed and size.
+
+    ``tpu``/``tpp`` are texels per unit of ``u``/``p``; ``fu``/``fp`` texels per bottom-row
+    pixel along/across the rows. Returns the brightness texture (float32 (n_u, n_p), of
+    order unit variance), its blurred copy (used where the image minifies the texture) and
+    the dark-patch map in [0, 1] (``None`` without patches). The arrays are shared and
+    read-only.
+    """
+    rng = np.random.default_rng((seed, _STREAM_TEXTURE))
+    shape = (n_u, n_p)
+
+    def octave(cell_px: float) -> np.ndarray:
+        return _noise_octave(rng, shape, cell_px * fu, cell_px * fp)
+
+    tex = np.zeros(shape, np.float32)
+    for cell_px, amp in _SOIL_OCTAVES:
+        tex += np.float32(amp) * octave(cell_px)
+    # stones and crumbs: sparse light and dark specks of a texel or two
+    speck = octave(1.0)
+    tex += np.where(speck > 2.0, _SPECKS[0], 0.0).astype(np.float32)
+    tex += np.where(speck < -2.2, _SPECKS[1], 0.0).astype(np.float32)
+    # furrows along the rows: slightly lighter midway between rows (p = j + 1/2); the
+    # copy without them is used where rows are so close that they would alias into moire
+    tex_soft = tex.copy()
+    p = (np.arange(n_p, dtype=np.float32) / np.float32(tpp)) - np.float32(_TEX_P)
+    tex += (-0.45 * np.cos(2 * np.pi * p)).astype(np.float32)[None, :]
+    n_sh = int(rng.poisson(shadow_count_mean)) if shadow_count_mean > 0 else 0
+    shade = None
+    if n_sh:
+        shade = np.zeros(shape, np.float32)
+        r = rng.random((n_sh, 6))
+        for i in range(n_sh):
+            cp, cu = r[i, 0] * n_p, r[i, 1] * n_u
+            ap = (0.3 + 0.7 * r[i, 2]) * tpp  # half-axes in texels
+            au = (0.05 + 0.2 * r[i, 3]) * tpu
+            cv2.ellipse(shade, (int(cp * _ONE), int(cu * _ONE)),
+                        (max(_ONE, int(ap * _ONE)), max(_ONE, int(au * _ONE))),
+                        -20.0 + 40.0 * r[i, 4], 0, 360, 0.6 + 0.4 * r[i, 5], -1, cv2.LINE_8, _SHIFT)
+        shade = cv2.GaussianBlur(shade, (0, 0), max(1.5, 0.2 * min(tpp, tpu)))
+    for a in (tex, tex_soft, shade):
+        if a is not None:
+            a.setflags(write=False)
+    return tex, tex_soft, shade
+
+
+def _soil(spec: FieldSpec, geo: _Geometry, v: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Soil RGB (float32, (H - v0, W, 3)) for ground rows ``v`` and columns ``x``."""
+    # texel densities: one texel per 3 px at the bottom, capped to keep the texture small
+    tpp = min(geo.spacing / 3.0, _TEX_MAX / (2 * _TEX_P))  # texels per row spacing
+    tpu = min(geo.L / 3.0, _TEX_MAX / _TEX_U)  # texels per unit of u
+    n_p = max(2, int(round(2 * _TEX_P * tpp)))
+    n_u = max(2, int(round(_TEX_U * tpu)))
+    area = (2 * _TEX_P) * _TEX_U * geo.L / geo.spacing  # in spacing_px**2 at the bottom scale
+    tex, tex_soft, shade = _ground_texture(spec.seed, n_u, n_p, tpu, tpp, tpu / geo.L,
+                                           tpp / geo.spacing, spec.shadows * area)
+
+    # ground coordinates of every pixel (float32 is ample for texture look-ups)
+    vv = v[:, None]
+    s = geo.s(vv)
+    inv_d = (1.0 / geo.d(vv)).astype(np.float32)
+    xc = geo.xc(vv).astype(np.float32)
+    tp = (x[None, :].astype(np.float32) - xc) * (inv_d * np.float32(tpp)) + np.float32(_TEX_P * tpp)
+    tu = np.broadcast_to(((1.0 / s + geo.travel_u) * tpu).astype(np.float32), tp.shape)
+    tp = _fold(tp, n_p)
+    tu = np.ascontiguousarray(_fold(tu, n_u))
+    # where adjacent rows are less than 8 px apart, fade to the level without furrows
+    wgt = np.clip((8.0 - geo.d(vv)) / 4.0, 0.0, 1.0).astype(np.float32)
+    if np.all(wgt == 0):
+        t = cv2.remap(tex, tp, tu, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    else:
+        sharp = cv2.remap(tex, tp, tu, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        soft = cv2.remap(tex_soft, tp, tu, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        t = sharp + (soft - sharp) * wgt
+    t *= np.float32(spec.soil_texture)
+    out = (np.asarray(spec.soil_color, np.float32)[None, None, :]
+           + t[:, :, None] * np.array([1.0, 0.92, 0.8], np.float32))
+    if shade is not None:
+        sh = cv2.remap(shade, tp, tu, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        out *= (1.0 - np.float32(_SHADOW_STRENGTH) * np.clip(sh, 0, 1))[:, :, None]
+    return out
+
+
+def _sky(spec: FieldSpec, n: int, width: int) -> np.ndarray:
+    """Sky RGB (float32, (n, W, 3)): blue at the top to hazy white at the horizon."""
+    top = np.array([118.0, 158.0, 214.0], np.float32)
+    hor = np.array([208.0, 216.0, 228.0], np.float32)
+    t = (np.arange(n, dtype=np.float32) / max(1, n - 1)) ** 0.7 if n > 1 else np.ones(1, np.float32)
+    col = top[None, :] * (1 - t[:, None]) + hor[None, :] * t[:, None]
+    # a faint horizontal brightness drift across the sky
+    xs = np.linspace(-1.0, 1.0, width, dtype=np.float32)
+    drift = (6.0 * xs)[None, :, None]
+    return col[:, None, :] + drift
+
+
+def _green(base: np.ndarray, z: np.ndarray, jitter: float,
+           tint: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """Leaf colours (float64 (n, 3)) around ``base`` from standard normals ``z`` (n, 4).
+
+    Column 0 of ``z`` drives the brightness, columns 1..3 the per-channel tint; the result
+    is clamped to stay green-dominant (``G - R >= 20``, ``G - B >= 30``).
+    """
+    c = (base[None, :] + np.asarray(tint)[None, :]
+         + (z[:, 0:1] * jitter) * np.array([0.8, 1.0, 0.55]) + z[:, 1:4] * (0.35 * jitter))
+    c[:, 1] = np.clip(c[:, 1], 60, 235)
+    c[:, 0] = np.clip(c[:, 0], 0, c[:, 1] - 20)
+    c[:, 2] = np.clip(c[:, 2], 0, c[:, 1] - 30)
+    return c
+
+
+def _draw_ellipses(img: np.ndarray, depth: np.ndarray, x: np.ndarray, y: np.ndarray,
+                   ax: np.ndarray, ay: np.ndarray, ang: np.ndarray, col: np.ndarray) -> None:
+    """Fill ellipses (centres/half-axes in px, angles in degrees) far-to-near (``depth`` desc)."""
+    if depth.size == 0:
+        return
+    order = np.argsort(-depth, kind="stable")
+    cx = np.rint(x[order] * _ONE).astype(np.int64).tolist()
+    cy = np.rint(y[order] * _ONE).astype(np.int64).tolist()
+    a1 = np.maximum(np.rint(ax[order] * _ONE), _ONE // 2).astype(np.int64).tolist()
+    a2 = np.maximum(np.rint(ay[order] * _ONE), _ONE // 2).astype(np.int64).tolist()
+    an = ang[order].tolist()
+    cl = col[order].tolist()
+    ellipse, line8 = cv2.ellipse, cv2.LINE_8
+    for i in range(len(cx)):
+        ellipse(img, (cx[i], cy[i]), (a1[i], a2[i]), an[i], 0, 360, cl[i], -1, line8, _SHIFT)
+
+
+def _plants(spec: FieldSpec, geo: _Geometry, img: np.ndarray, drawn: range | None) -> None:
+    """Draw the plant rows and weeds onto ``img`` (float32 (H, W, 3), modified in place).
+
+    The ground is cut into cells ``(b, g)``: ``u`` in ``[b, b+1)`` along the rows
+    ``j = 8g .. 8g+7`` (plus, for weeds, the strip between each row ``j`` and ``j+1``). Each
+    cell's content comes from its own ``default_rng((seed, 1, b, g))`` stream, drawn in a
+    fixed order whatever is visible, so it does not depend on the camera pose.
+    """
+    W, H = geo.W, geo.H
+    half_w = spec.plant_width_px / 2.0
+    base = np.asarray(spec.plant_color, np.float64)
+    # image u range that can touch the image: a little below the bottom row up to the
+    # depth where plants get thinner than _ROW_MIN_RADIUS (farther: drawn as lines)
+    u_top = geo.L / (geo.v0 - geo.vy)
+    u_bot = geo.L / ((H - 1) + 1.2 * half_w - geo.vy)
+    s_min = _ROW_MIN_RADIUS / (half_w * 0.8)
+    u_cap = min(u_top, 1.0 / s_min) if s_min < 1.0 else u_bot
+    n_per = max(1, int(round(geo.L / spec.plant_spacing_px)))  # clumps per unit u per row
+    slot = np.tile(np.arange(n_per, dtype=np.float64), _CELL_ROWS)
+    # missing-plant gaps: a Poisson process of stretches of mean length gap_len (u units,
+    # about 25 px at the bottom for the default spacing); a point is outside every gap with
+    # probability exp(-gap_rate * gap_len) = plant_density
+    gap_len = 25.0 / geo.L * (spec.spacing_px / 60.0)
+    gap_rate = -math.log(spec.plant_density) / gap_len
+    weed_rate = spec.weeds * geo.L / geo.spacing  # per ground cell (1 spacing x 1 u)
+    missing = set(int(j) for j in spec.missing_rows)
+    tu = geo.travel_u
+    margin = 2.0 * half_w + 2.0  # px at the bottom scale: leaf radius + lateral jitter
+
+    clumps: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (j, uniforms (n, 8), normals (n, 5))
+    weeds: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (j, uniforms (n, 12), normals (n, 10))
+    G = _CELL_ROWS
+    if u_cap > u_bot:
+        for b in range(int(math.floor(u_bot + tu)), int(math.floor(u_cap + tu)) + 1):
+            ua = max(b - tu, u_bot)  # image-u interval of this ground block
+            ub = min(b + 1 - tu, u_cap)
+            if ub <= ua:
+                continue
+            vs = geo.v_of_u(np.linspace(ua, ub, 9))
+            j_lo, j_hi = geo.j_range(vs, -margin, W - 1 + margin)
+            for g in range((j_lo - 1) // G, (j_hi + 1) // G + 1):
+                rng = np.random.default_rng((spec.seed, _STREAM_CELL, b + _ID_OFFSET, g + _ID_OFFSET))
+                rows_j = np.arange(g * G, g * G + G)
+                # sown crops: clumps on a jittered regular grid along each row
+                cu = rng.random((G * n_per, 8))
+                cn = rng.standard_normal((len(cu), 5))
+                cj = np.repeat(rows_j, n_per)
+                cu[:, 0] = (slot + 0.5 + 0.7 * (cu[:, 0] - 0.5)) / n_per
+                n_gap = rng.poisson(gap_rate, G) if spec.plant_density < 1 else np.zeros(G, np.int64)
+                gu = rng.random((int(n_gap.sum()), 2))
+                gj = np.repeat(rows_j, n_gap)
+                n_w = rng.poisson(weed_rate, G) if weed_rate > 0 else np.zeros(G, np.int64)
+                wu = rng.random((int(n_w.sum()), 12))
+                wn = rng.standard_normal((len(wu), 10))
+                wj = np.repeat(rows_j, n_w)
+                cu[:, 0] += b
+                wu[:, 0] += b
+                keep = np.ones(len(cu), bool)
+                if drawn is not None:
+                    keep &= (cj >= drawn.start) & (cj < drawn.stop)
+                for jm in missing:
+                    keep &= cj != jm
+                if len(gu):  # missing-plant stretches: drop the clumps inside them
+                    g0 = b + gu[:, 0] - 0.5 * gap_len
+                    g1 = g0 - gap_len * np.log1p(-gu[:, 1])
+                    inside = ((cj[:, None] == gj[None, :]) & (cu[:, 0:1] >= g0[None, :])
+                              & (cu[:, 0:1] < g1[None, :]))
+                    keep &= ~inside.any(axis=1)
+                clumps.append((cj[keep], cu[keep], cn[keep]))
+                weeds.append((wj, wu, wn))
+
+    depth_l, x_l, y_l, ax_l, ay_l, ang_l, col_l = [], [], [], [], [], [], []
+    if clumps:
+        jj = np.concatenate([c[0] for c in clumps]).astype(np.float64)
+        cu = np.concatenate([c[1] for c in clumps])
+        cn = np.concatenate([c[2] for c in clumps])
+        ui = cu[:, 0] - tu
+        ok = (ui >= u_bot) & (ui <= u_cap)
+        s = 1.0 / np.where(ok, ui, 1.0)
+        # far away the clumps crowd together: draw a share that keeps the row covered
+        ok &= cu[:, 7] < np.clip(1.8 * s, 0.0, 1.0)
+        ui, s, jj, cu, cn = ui[ok], s[ok], jj[ok], cu[ok], cn[ok]
+        v = geo.v_of_u(ui)
+        size = 0.55 + 0.45 * cu[:, 1]
+        x = geo.xc(v) + jj * geo.d(v) + cn[:, 0] * (0.12 * spec.plant_width_px) * s
+        r = half_w * size * s
+        on = (x + r >= -1) & (x - r <= W) & (v - r <= H) & (v + r >= -1)
+        ui, s, v, x, r, cu, cn = ui[on], s[on], v[on], x[on], r[on], cu[on], cn[on]
+        aspect = 0.4 + 0.45 * cu[:, 3]
+        ang = 180.0 * cu[:, 2]
+        col = _green(base, cn[:, 1:5], spec.color_jitter)
+        depth_l += [ui]; x_l += [x]; y_l += [v]; ax_l += [r]; ay_l += [r * aspect]
+        ang_l += [ang]; col_l += [col]
+        # a second leaf on most clumps big enough to show it
+        two = (cu[:, 4] < 0.6) & (r > 2.0)
+        r2 = (r * (0.5 + 0.4 * cu[:, 6]))[two]
+        depth_l += [ui[two] - 1e-9]; x_l += [x[two]]; y_l += [v[two]]; ax_l += [r2]
+        ay_l += [r2 * aspect[two] * 0.9]; ang_l += [ang[two] + 50.0 + 80.0 * cu[two, 5]]
+        col_l += [np.clip(col[two] + np.array([4.0, 8.0, 2.0]), 0, 255)]
+    if weeds:
+        jj = np.concatenate([w[0] for w in weeds]).astype(np.float64)
+        wu = np.concatenate([w[1] for w in weeds])
+        wn = np.concatenate([w[2] for w in weeds])
+        ui = wu[:, 0] - tu
+        ok = (ui >= u_bot) & (ui <= u_cap)
+        ui, jj, wu, wn = ui[ok], jj[ok], wu[ok], wn[ok]
+        s = 1.0 / ui
+        v = geo.v_of_u(ui)
+        p = jj + 0.22 + 0.56 * wu[:, 1]
+        xw = geo.xc(v) + p * geo.d(v)
+        rw = (0.12 + 0.2 * wu[:, 2]) * spec.plant_width_px * s
+        k = 1 + np.floor(3.0 * wu[:, 3])  # 1..3 leaves
+        col = _green(base, wn[:, 6:10], spec.color_jitter, tint=(18.0, 8.0, -4.0))
+        for m in range(3):
+            sel = k > m
+            rr = rw[sel] * (1.0 - 0.25 * m)
+            cx = xw[sel] + wn[sel, 2 * m] * rw[sel] * 0.8
+            cy = v[sel] + wn[sel, 2 * m + 1] * rw[sel] * 0.5
+            on = (cx + rr >= -1) & (cx - rr <= W) & (cy - rr <= H) & (cy + rr >= -1)
+            depth_l += [ui[sel][on]]; x_l += [cx[on]]; y_l += [cy[on]]; ax_l += [rr[on]]
+            ay_l += [rr[on] * (0.35 + 0.55 * wu[sel, 4 + m][on])]
+            ang_l += [180.0 * wu[sel, 7 + m][on]]; col_l += [col[sel][on]]
+    if depth_l:
+        _draw_ellipses(img, *(np.concatenate(a) for a in
+                              (depth_l, x_l, y_l, ax_l, ay_l, ang_l, col_l)))
+
+    # far field: rows thinner than _ROW_MIN_RADIUS are drawn as 1-px lines
+    if u_cap < u_top:
+        v_cap = min(float(geo.v_of_u(np.asarray(max(u_cap, u_bot)))), H - 1.0)
+        vs = np.arange(v_cap, geo.v0 - 1.0, -1.0)
+        if vs.size >= 2:
+            j_lo, j_hi = geo.j_range(vs, -2.0, W + 1.0)
+            colour = tuple(float(c) for c in (base * np.array([0.97, 0.97, 0.95])))
+            js = np.array([j for j in range(j_lo, j_hi + 1)
+                           if (drawn is None or j in drawn) and j not in missing], np.float64)
+            if js.size:
+                px = np.rint((geo.xc(vs)[None, :] + js[:, None] * geo.d(vs)[None, :]) * _ONE)
+                py = np.broadcast_to(np.rint(vs * _ONE), px.shape)
+                pts = np.stack([px, py], axis=2).astype(np.int32)  # (rows, points, 2)
+                cv2.polylines(img, list(pts[:, :, None, :]), False, colour, 1, cv2.LINE_8, _SHIFT)
+
+
+def render(spec: FieldSpec | None = None) -> SyntheticField:
+    """Render one synthetic field.
+
+    Parameters
+    ----------
+    spec : FieldSpec, optional
+        What to draw; default ``FieldSpec()`` (320 x 240, straight rows, no sky).
+
+    Returns
+    -------
+    SyntheticField
+        ``image`` uint8 (H, W, 3) RGB, ``crp`` float64 (H - sky_rows, 2) as ``(c_v, d_v)``,
+        the row lines, vanishing point and sky height. Identical bytes for identical specs.
+    """
+    spec = FieldSpec() if spec is None else spec
+    geo = _Geometry(spec)
+    W, H, v0 = geo.W, geo.H, geo.v0
+    v = np.arange(v0, H, dtype=np.float64)
+    x = np.arange(W, dtype=np.float64)
+
+    img = np.empty((H, W, 3), np.float32)
+    img[v0:] = _soil(spec, geo, v, x)
+    drawn = None
+    if spec.n_rows is not None:
+        drawn = range(-(spec.n_rows // 2), spec.n_rows - spec.n_rows // 2)
+    _plants(spec, geo, img, drawn)
+    if v0 > 0:
+        img[:v0] = _sky(spec, v0, W)
+    if spec.blur > 0:
+        img = cv2.GaussianBlur(img, (0, 0), float(spec.blur))
+    if spec.noise > 0:
+        rng = np.random.default_rng((spec.seed, _STREAM_NOISE, spec.frame))
+        noise = rng.standard_normal(img.shape, dtype=np.float32)
+        noise *= np.float32(spec.noise)
+        img += noise
+    np.rint(img, out=img)
+    np.clip(img, 0, 255, out=img)
+    image = img.astype(np.uint8)
+
+    # ground truth
+    c = geo.xc(v) - W / 2.0
+    d = geo.d(v)
+    crp = np.stack([c, d], axis=1).astype(np.float64)
+    j_lo, j_hi = geo.j_range(v, 0.0, W - 1.0)
+    js = np.arange(j_lo, j_hi + 1)
+    if drawn is not None:
+        js = js[(js >= drawn.start) & (js < drawn.stop)]
+    centers = geo.xc(v)[None, :] + js[:, None].astype(np.float64) * d[None, :]
+    # keep only rows whose centre really enters the image on some ground row
+    inside = np.any((centers >= 0) & (centers <= W - 1), axis=1)
+    centers = np.ascontiguousarray(centers[inside])
+    ids = [int(j) for j in js[inside]]
+    rows = [geo.line(j) for j in ids]
+    return SyntheticField(image=image, crp=crp, rows=rows, row_ids=ids, centers=centers,
+                          vp=(geo.vx, geo.vy), sky=v0, spec=spec)
+
+
+def render_batch(specs: Sequence[FieldSpec]) -> np.ndarray:
+    """Render several fields of one size as a batch.
+
+    Parameters
+    ----------
+    specs : sequence of FieldSpec
+        ``B >= 1`` specs, all with the same ``width`` and ``height``.
+
+    Returns
+    -------
+    numpy.ndarray, shape (B, 3, H, W), uint8
+        RGB images, channels first (the tensor path's input layout).
+
+    Raises
+    ------
+    ValueError
+        If ``specs`` is empty or the sizes differ.
+    """
+    specs = list(specs)
+    if not specs:
+        raise ValueError("render_batch needs at least one spec")
+    size = (specs[0].width, specs[0].height)
+    for i, s in enumerate(specs):
+        if (s.width, s.height) != size:
+            raise ValueError(f"render_batch: spec {i} is {s.width}x{s.height}, spec 0 is {size[0]}x{size[1]}")
+    out = np.empty((len(specs), 3, size[1], size[0]), np.uint8)
+    for i, s in enumerate(specs):
+        out[i] = render(s).image.transpose(2, 0, 1)
+    return out
+
+
+def demo_field() -> SyntheticField:
+    """The default field, ``render(FieldSpec())`` (320 x 240, used by ``torchrow demo``)."""
+    return render(FieldSpec())
+
+
+def write_crp(path: str | Path, crp: np.ndarray) -> Path:
+    """Write ground truth in CRBD's ``.crp`` text format.
+
+    Parameters
+    ----------
+    path : str or path-like
+        Output file (parent folders are created).
+    crp : numpy.ndarray, shape (n, 2)
+        ``(c_v, d_v)`` rows (px) for image rows ``H - n .. H - 1``.
+
+    Returns
+    -------
+    pathlib.Path
+        The file written: one line ``"%f\\t%f"`` per image row, each ending in ``"\\n"``.
+    """
+    a = np.asarray(crp, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 2:
+        raise ValueError(f"crp must have shape (n, 2); got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError("crp holds non-finite values")
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text("".join("%f\t%f\n" % (c, d) for c, d in a.tolist()))
+    return p
+
+
+def save(fld: SyntheticField, folder: str | Path, name: str, ext: str = ".png",
+         jpeg_quality: int = 95) -> tuple[Path, Path]:
+    """Write a field as an image plus its ``.crp`` ground truth.
+
+    Parameters
+    ----------
+    fld : SyntheticField
+        The rendered field.
+    folder : str or path-like
+        Output folder (created if needed).
+    name : str
+        File stem, e.g. ``"synth_000"``.
+    ext : str
+        Image extension: ``".png"`` (lossless, default), ``".jpg"``/``".JPG"``/``".jpeg"``.
+    jpeg_quality : int
+        JPEG quality 0..100 when writing a JPEG.
+
+    Returns
+    -------
+    (pathlib.Path, pathlib.Path)
+        The image file and the ``.crp`` file (``folder/name.crp``).
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    if not ext.startswith("."):
+        ext = "." + ext
+    if ext.lower() not in (".png", ".jpg", ".jpeg"):
+        raise ValueError(f"unsupported image extension {ext!r} (use .png or .jpg)")
+    img_path = folder / f"{name}{ext}"
+    bgr = cv2.cvtColor(fld.image, cv2.COLOR_RGB2BGR)
+    params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if ext.lower() != ".png" else []
+    ok, buf = cv2.imencode(ext.lower(), bgr, params)
+    if not ok:
+        raise OSError(f"cannot encode {img_path}")
+    buf.tofile(str(img_path))
+    crp_path = write_crp(folder / f"{name}.crp", fld.crp)
+    return img_path, crp_path
+
+
+def sequence(spec: FieldSpec | None, n_frames: int, drift_px_per_frame: float = 1.0,
+             heading_rad_per_frame: float = 0.0, gap: tuple[int, int] | None = None,
+             seed: int | None = None, speed_px_per_frame: float = 4.0,
+             gap_row: int = 0) -> list[SyntheticField]:
+    """Frames of a camera driving along the field.
+
+    Frame ``k`` (0-based) is ``render`` of ``spec`` with
+
+    * ``lateral_offset_px = spec.lateral_offset_px + k * drift_px_per_frame`` (the rows
+      shift sideways; ground truth :attr:`SyntheticField.lateral_px`),
+    * heading ``psi_k = psi_0 + k * heading_rad_per_frame`` with ``psi_0 = atan((vp_x -
+      W/2) / focal)``, i.e. ``vp_x = W/2 + focal * tan(psi_k)`` (``vp_y`` fixed; ground
+      truth :attr:`SyntheticField.heading_px` / :attr:`SyntheticField.heading_rad`),
+    * ``travel_px = spec.travel_px + k * speed_px_per_frame`` (plants flow downwards),
+    * ``frame = k`` (fresh sensor noise), the same seed (the same plants on the ground),
+    * for ``gap[0] <= k < gap[1]``: row ``gap_row`` without plants (``missing_rows``).
+
+    Parameters
+    ----------
+    spec : FieldSpec or None
+        Frame-0 field; ``None`` = ``FieldSpec()``.
+    n_frames : int
+        Number of frames (>= 0).
+    drift_px_per_frame : float
+        Lateral offset change per frame (px at the bottom row).
+    heading_rad_per_frame : float
+        Heading change per frame (rad); positive moves the vanishing point right.
+    gap : (int, int) or None
+        Half-open frame range ``[start, stop)`` in which ``gap_row`` has no plants.
+    seed : int, optional
+        Overrides ``spec.seed``.
+    speed_px_per_frame : float
+        Forward travel per frame (image rows at the bottom, px).
+    gap_row : int
+        Row index ``j`` that loses its plants during ``gap`` (0 = central row).
+
+    Returns
+    -------
+    list of SyntheticField
+        ``n_frames`` frames.
+
+    Raises
+    ------
+    ValueError
+        If the heading leaves ``(-pi/2, pi/2)`` or ``n_frames < 0``.
+    """
+    spec = FieldSpec() if spec is None else spec
+    if n_frames < 0:
+        raise ValueError(f"n_frames must be >= 0; got {n_frames}")
+    if seed is not None:
+        spec = spec.replace(seed=int(seed))
+    vx0, vy0 = spec.vanishing_point
+    f = spec.focal
+    psi0 = math.atan2(vx0 - spec.width / 2, f)
+    frames: list[SyntheticField] = []
+    for k in range(n_frames):
+        psi = psi0 + k * heading_rad_per_frame
+        if not -math.pi / 2 < psi < math.pi / 2:
+            raise ValueError(f"frame {k}: heading {psi} rad leaves (-pi/2, pi/2)")
+        vx = vx0 if k == 0 else spec.width / 2 + f * math.tan(psi)
+        missing = spec.missing_rows
+        if gap is not None and gap[0] <= k < gap[1]:
+            missing = tuple(sorted(set(missing) | {int(gap_row)}))
+        sk = spec.replace(
+            vp=(vx, vy0),
+            lateral_offset_px=spec.lateral_offset_px + k * drift_px_per_frame,
+            travel_px=spec.travel_px + k * speed_px_per_frame,
+            frame=k,
+            missing_rows=missing,
+        )
+        frames.append(render(sk))
+    return frames
