@@ -125,7 +125,7 @@ def test_python_dash_m_entry_point(tmp_path: Path) -> None:
 @pytest.mark.data
 def test_eval_and_score_on_crbd(crbd_dir: Path, tmp_path: Path, capsys) -> None:
     out = tmp_path / "eval"
-    assert main(["eval", "--data", str(crbd_dir), "--every", "40", "--out", str(out), "-q"]) == 0
+    assert main(["eval", "--data", str(crbd_dir), "--every", "40", "--out", str(out), "-q", "--impl", "reference"]) == 0
     text = capsys.readouterr().out
     assert "straight" in text and "curved" in text
     for f in ("scores.csv", "detections.jsonl", "summary.json", "crda_histogram.png"):
@@ -137,3 +137,38 @@ def test_eval_and_score_on_crbd(crbd_dir: Path, tmp_path: Path, capsys) -> None:
     assert main(["score", "--data", str(crbd_dir), "--results", str(crbd_dir / "TMGEM results"), "-q"]) == 0
     text = capsys.readouterr().out
     assert "sigma 0.1: mean 0.746  median 0.767" in text
+
+
+def test_detect_tensor_and_reference_agree(mixed_folder: Path, tmp_path: Path) -> None:
+    """--impl tensor (batched, several sizes in one run) writes the reference's records."""
+    outs = {}
+    for impl, extra in (("reference", []), ("tensor", ["--batch-size", "2"])):
+        out = tmp_path / f"{impl}.jsonl"
+        assert main(["detect", str(mixed_folder), "--out", str(out), "-q", "--impl", impl, *extra]) == 0
+        outs[impl] = _records(out)
+    assert [r["name"] for r in outs["reference"]] == [r["name"] for r in outs["tensor"]]
+    for a, b in zip(outs["reference"], outs["tensor"]):
+        for key in RECORD_KEYS - {"rows", "vp"}:
+            assert a[key] == b[key], (a["name"], key)
+        assert [(r["valid"], r["reason"]) for r in a["rows"]] == [(r["valid"], r["reason"]) for r in b["rows"]]
+        for ra, rb in zip(a["rows"], b["rows"]):
+            assert (ra["b"] is None and rb["b"] is None) or abs(ra["b"] - rb["b"]) < 1e-6
+
+
+def test_unknown_device_is_a_one_line_error(tmp_path: Path, capsys) -> None:
+    assert main(["detect", str(tmp_path), "--out", str(tmp_path / "x.jsonl"), "--device", "warp9"]) == 2
+    assert capsys.readouterr().err.startswith("torchrow: error: bad --device")
+
+
+@pytest.mark.data
+def test_eval_tensor_equals_reference_scores(crbd_dir: Path, tmp_path: Path) -> None:
+    import csv
+
+    rows = {}
+    for impl in ("reference", "tensor"):
+        out = tmp_path / impl
+        assert main(["eval", "--data", str(crbd_dir), "--every", "25", "--out", str(out), "-q",
+                     "--impl", impl]) == 0
+        rows[impl] = [{k: v for k, v in r.items() if k != "seconds"}
+                      for r in csv.DictReader(open(out / "scores.csv"))]
+    assert rows["reference"] == rows["tensor"]

@@ -61,17 +61,27 @@ def _collect_images(inputs: Sequence[str]) -> list[Path]:
     return paths
 
 
-def _reference_detect(params: Params):
-    from .reference import detect
+def _check_device(device: str | None) -> str | None:
+    if device is None:
+        return None
+    import torch
 
-    return lambda rgb, name: detect(rgb, params, name=name)
+    try:
+        dev = torch.device(device)
+    except RuntimeError as exc:
+        raise CLIError(f"bad --device {device!r}: {exc}") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise CLIError(f"--device {device}: torch sees no CUDA device here")
+    return str(dev)
 
 
 def cmd_detect(args: argparse.Namespace) -> int:
     from .annotate import draw_result, save_rgb
-    from .evaluate import detect_files
+    from .io import load_image
+    from .runner import run
 
     params = _parse_params(args.param)
+    device = _check_device(args.device)
     paths = _collect_images(args.inputs)
     out = Path(args.out)
     if out.parent and not out.parent.exists():
@@ -80,9 +90,10 @@ def cmd_detect(args: argparse.Namespace) -> int:
     if ann is not None:
         ann.mkdir(parents=True, exist_ok=True)
     counts: dict[str, int] = {}
+    items = [(p.name, (lambda p=p: load_image(p, params.image_width))) for p in paths]
     with open(out, "w") as fh:
-        for path, rgb, res in detect_files(paths, _reference_detect(params), params.image_width,
-                                           progress=not args.quiet):
+        for i, rgb, res, _ in run(items, args.impl, params, args.batch_size, device, progress=not args.quiet):
+            path = paths[i]
             fh.write(json.dumps(res.to_record()) + "\n")
             fh.flush()
             counts[res.status] = counts.get(res.status, 0) + 1
@@ -106,11 +117,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from .evaluate import evaluate
 
     params = _parse_params(args.param)
+    device = _check_device(args.device)
     crbd = _open_crbd(args.data)
     indices = list(range(len(crbd)))[:: args.every]
     if args.limit:
         indices = indices[: args.limit]
-    report = evaluate(crbd, _reference_detect(params), indices, params, progress=not args.quiet)
+    report = evaluate(crbd, indices, args.impl, params, args.batch_size, device, progress=not args.quiet)
     print(report.format_summary())
     if args.out:
         for p in report.write(Path(args.out)):
@@ -178,10 +190,17 @@ def build_parser() -> argparse.ArgumentParser:
                        help="override a Params field, e.g. --param n_rows=4 (repeatable)")
         p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
 
+    def impl(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--impl", choices=("tensor", "reference"), default="tensor",
+                       help="batched tensor path (default) or the per-image reference")
+        p.add_argument("--batch-size", type=int, default=64, help="images per batch for --impl tensor")
+        p.add_argument("--device", default=None, help="torch device for --impl tensor (cpu, cuda, cuda:1)")
+
     p = sub.add_parser("detect", help="detect rows in images, write one JSON record per file")
     p.add_argument("inputs", nargs="+", metavar="IMAGE_OR_DIR")
     p.add_argument("--out", required=True, help="JSONL output file")
     p.add_argument("--annotate", metavar="DIR", help="write annotated PNGs to DIR")
+    impl(p)
     common(p)
     p.set_defaults(func=cmd_detect)
 
@@ -190,6 +209,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="folder for scores.csv, detections.jsonl, summary.json, crda_histogram.png")
     p.add_argument("--every", type=int, default=1, help="use every N-th image (default 1)")
     p.add_argument("--limit", type=int, default=0, help="at most this many images")
+    impl(p)
     common(p)
     p.set_defaults(func=cmd_eval)
 
@@ -210,8 +230,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     ap = build_parser()
     args = ap.parse_args(argv)
-    if getattr(args, "every", 1) < 1 or getattr(args, "limit", 0) < 0:
-        ap.exit(2, "torchrow: error: --every must be >= 1 and --limit >= 0\n")
+    if getattr(args, "every", 1) < 1 or getattr(args, "limit", 0) < 0 or getattr(args, "batch_size", 1) < 1:
+        ap.exit(2, "torchrow: error: --every and --batch-size must be >= 1, --limit >= 0\n")
     try:
         return int(args.func(args) or 0)
     except CLIError as exc:

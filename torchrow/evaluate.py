@@ -8,7 +8,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, Sequence
+from typing import Iterable, Sequence
 
 import numpy as np
 
@@ -17,14 +17,12 @@ from .io import ImageError
 from .metrics import crda, crda_official, crda_thesis, summarize
 from .params import Params
 from .results import ImageResult
+from .runner import run
 
-__all__ = ["EvalRow", "EvalReport", "evaluate", "detect_files", "score_tmg_files", "SUBSETS"]
+__all__ = ["EvalRow", "EvalReport", "evaluate", "score_tmg_files", "SUBSETS"]
 
 #: Subsets reported: CRBD's own classification (1 straight, 2 curved).
 SUBSETS = ("all", "straight", "curved")
-
-DetectFn = Callable[[np.ndarray, str], ImageResult]
-
 
 @dataclass
 class EvalRow:
@@ -125,42 +123,47 @@ def _progress(it: Iterable, total: int, desc: str, enabled: bool) -> Iterable:
     return tqdm(it, total=total, desc=desc, file=sys.stderr, disable=not enabled, unit="img")
 
 
-def evaluate(crbd: CRBD, detect_fn: DetectFn, indices: Sequence[int] | None = None,
-             params: Params | None = None, progress: bool = True) -> EvalReport:
-    """Run ``detect_fn(rgb, name)`` on CRBD images and score each one.
+def evaluate(crbd: CRBD, indices: Sequence[int] | None = None, impl: str = "tensor",
+             params: Params | None = None, batch_size: int = 64, device: str | None = None,
+             progress: bool = True) -> EvalReport:
+    """Detect CRBD images with ``impl`` ("tensor" or "reference") and score each one.
 
     A file that cannot be read or a detector failure gives an ``error`` record and scores 0;
-    the run always goes on.
+    the run always goes on. ``seconds`` per image is the batch's wall time divided by its
+    size for the tensor path.
     """
     params = params or Params()
     indices = list(range(len(crbd))) if indices is None else list(indices)
-    report = EvalReport()
-    for i in _progress(indices, len(indices), "eval", progress):
-        item = crbd[i]
-        t0 = time.perf_counter()
-        try:
+
+    def loader(i: int):
+        def load() -> np.ndarray:
             rgb = crbd.image(i)
             if rgb.shape[1] != params.image_width:
                 raise ImageError(f"CRBD image is {rgb.shape[1]} px wide but image_width is "
                                  f"{params.image_width}; the ground truth is in the image's own pixels")
-            res = detect_fn(rgb, item.name)
-        except Exception as exc:  # one bad file never aborts a run
-            res = ImageResult.failed(item.name, f"{type(exc).__name__}: {exc}")
-        dt = time.perf_counter() - t0
-        gt = item.ground_truth
-        try:
-            tm = crbd.tmgem(i)
-            tm01 = crda(tm, gt.c, gt.d, sigma=0.1, width=params.image_width)
-            tm03 = crda(tm, gt.c, gt.d, sigma=0.3, width=params.image_width)
-        except (OSError, ValueError):
-            tm01 = tm03 = float("nan")
-        report.rows.append(EvalRow(
-            item.name, item.row_set, item.tmgem_set, res.status,
-            crda_official(res, gt, sigma=0.1), crda_official(res, gt, sigma=0.3),
-            crda_thesis(res, gt, sigma=params.crda_sigma), tm01, tm03, dt))
-        rec = res.to_record()
-        report.records.append(rec)
+            return rgb
+        return load
+
+    items = [(crbd.names[i], loader(i)) for i in indices]
+    report = EvalReport()
+    for k, _, res, seconds in run(items, impl, params, batch_size, device, progress, desc=f"eval ({impl})"):
+        report.rows.append(_score(crbd, indices[k], res, params, seconds))
+        report.records.append(res.to_record())
     return report
+
+
+def _score(crbd: CRBD, i: int, res: ImageResult, params: Params, seconds: float) -> EvalRow:
+    item = crbd[i]
+    gt = item.ground_truth
+    try:
+        tm = crbd.tmgem(i)
+        tm01 = crda(tm, gt.c, gt.d, sigma=0.1, width=params.image_width)
+        tm03 = crda(tm, gt.c, gt.d, sigma=0.3, width=params.image_width)
+    except (OSError, ValueError):
+        tm01 = tm03 = float("nan")
+    return EvalRow(item.name, item.row_set, item.tmgem_set, res.status,
+                   crda_official(res, gt, sigma=0.1), crda_official(res, gt, sigma=0.3),
+                   crda_thesis(res, gt, sigma=params.crda_sigma), tm01, tm03, seconds)
 
 
 def score_tmg_files(crbd: CRBD, results_dir: Path, ext: str = ".tmg",
@@ -183,22 +186,3 @@ def score_tmg_files(crbd: CRBD, results_dir: Path, ext: str = ".tmg",
             s01 = s03 = 0.0
         out.append((item.name, s01, s03))
     return out
-
-
-def detect_files(paths: Sequence[Path], detect_fn: DetectFn, width: int,
-                 progress: bool = True) -> Iterable[tuple[Path, np.ndarray | None, ImageResult]]:
-    """Load and detect each file, yielding ``(path, working rgb or None, result)``; failures
-    yield an ``error`` result instead of raising."""
-    from .io import load_image
-
-    for p in _progress(paths, len(paths), "detect", progress):
-        try:
-            rgb = load_image(p, width)
-        except ImageError as exc:
-            yield p, None, ImageResult.failed(p.name, str(exc))
-            continue
-        try:
-            res = detect_fn(rgb, p.name)
-        except Exception as exc:
-            res = ImageResult.failed(p.name, f"{type(exc).__name__}: {exc}", rgb.shape[1], rgb.shape[0])
-        yield p, rgb, res
