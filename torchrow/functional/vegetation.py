@@ -1,0 +1,673 @@
+"""Batched vegetation mask and Hough input (ALGORITHM.md sections 3 and 4).
+
+Tensor counterpart of :mod:`torchrow.reference.vegetation`; every image's result equals the
+reference's bit for bit, whatever else shares the batch.
+
+Region rule. Every neighbourhood operation after sky removal (the bushy-region erosion and
+Canny) treats the rows ``y >= sky[b]`` as if they were the whole image, as the reference does
+by cropping. Since ``sky`` differs per image, nothing is cropped here: the rows above the
+horizon are *replaced* (by the region's top row for Sobel's replicated border, by ``True``
+for the erosion's non-eroding border, by ``0`` for the magnitude that non-maximum
+suppression reads) and the whole ``(B, H, W)`` batch is then processed with ordinary
+full-image borders. Rows above the horizon are ``False`` in every output mask.
+
+Canny. :func:`canny_binary` reproduces ``cv2.Canny(region*255, low, high, L2gradient=False)``
+(aperture 3) of OpenCV's ``modules/imgproc/src/canny.cpp``:
+
+* ``dx``/``dy``: 3x3 Sobel (``[-1 0 1] x [1 2 1]ᵀ`` and its transpose) in ``CV_16S`` with
+  ``BORDER_REPLICATE`` (``aaa|abcd|ddd``) on all four sides of the region;
+* magnitude ``m = |dx| + |dy|`` (int); for non-maximum suppression the magnitude buffer is
+  bordered by **zeros** (the row above the first row, the row below the last row and the
+  columns left and right of the image are 0), not replicated;
+* direction by the fixed-point tangent test with ``CANNY_SHIFT = 15`` and
+  ``TG22 = int(tan(22.5°)·2**15 + 0.5) = 13573``: ``Y = |dy| << 15``, ``T22 = |dx|·TG22``,
+  ``T67 = T22 + (|dx| << 16)``; ``Y < T22`` -> horizontal: keep iff ``m > m[y, x-1]`` and
+  ``m >= m[y, x+1]``; else ``Y > T67`` -> vertical: keep iff ``m > m[y-1, x]`` and
+  ``m >= m[y+1, x]``; else diagonal with ``s = -1`` if ``dx`` and ``dy`` have opposite signs
+  (``(dx ^ dy) < 0``) else ``+1``: keep iff ``m > m[y-1, x-s]`` and ``m > m[y+1, x+s]``
+  (both strict). A candidate also needs ``m > low``;
+* kept pixels with ``m > high`` are strong, the others weak; hysteresis grows strong edges
+  into 8-connected weak pixels (the map's one-pixel frame is "never an edge").
+
+On a 0/255 image ``|dx|`` and ``|dy|`` are multiples of 255, so every non-zero magnitude is
+``>= 255``; with ``low, high < 255`` (the defaults 100, 200) every kept pixel is strong and
+hysteresis adds nothing. Hysteresis is still implemented (a masked 8-neighbour dilation
+iterated to a fixed point) and runs only when the thresholds admit a multiple of 255 in
+``(low, high]``, a decision on the parameters alone.
+
+Memory (``N = B*H*W`` pixels). :func:`lab` returns ``24 N`` bytes and holds at most one
+chunk of ``_CHUNK_PIXELS = 2**18`` pixels of temporaries on top (int32 codes + the gathered
+``(n, 3)`` float64 values, 28 B/pixel, ~7 MiB). :func:`raw_mask` and :func:`adapt_k` never
+hold the LAB of the whole batch: peak is the output (``N`` bytes) plus one chunk (~8 MiB).
+:func:`canny_binary` holds about twelve int8/uint8 temporaries the size of the padded grid
+``(B, H+2, W+2)`` (~12 B/pixel, ~60 MB at B=64 and 320x240); :func:`remove_bushy` about
+four (~4 B/pixel). :func:`hough_input` runs Canny on every image and selects per image. The
+LAB table itself is the shared 400 MB memory map on the CPU (a 400 MB copy per accelerator
+device, made once by :func:`torchrow.shared.lab_table_torch`).
+
+Speed notes (CPU): masks are combined as 0/1 ``uint8`` views of the ``bool`` tensors, the
+neighbourhood operations run as contiguous 1-D slices of a flattened padded grid, and the
+large temporaries are reused in place; PyTorch's ``bool`` logic, broadcast ``where`` and
+strided slices were each 5-30x slower, and every fresh multi-MB temporary costs page
+faults.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+import torch.nn.functional as F
+
+from ..params import Params
+from ..shared import lab_table_torch
+from ._checks import check_images, check_masks, check_rows
+
+__all__ = [
+    "CANNY_SHIFT",
+    "TG22",
+    "lab",
+    "raw_mask",
+    "raw_fraction",
+    "adapt_k",
+    "remove_bushy",
+    "canny_binary",
+    "density",
+    "hough_input",
+    "VegetationMask",
+    "HoughInput",
+]
+
+# OpenCV canny.cpp fixed-point direction test (implementation constants of cv2.Canny, not
+# parameters of the algorithm): tan(22.5°) in Q15, rounded half up.
+CANNY_SHIFT = 15
+TG22 = int(0.4142135623730950488016887242097 * (1 << CANNY_SHIFT) + 0.5)  # 13573
+
+
+def _small_direction_rule() -> tuple[int, int, int, int]:
+    """Small-integer form of OpenCV's direction test on a 0/1 image.
+
+    On ``src = 255 * mask`` the Sobel-3 derivatives are ``255 * d`` with ``d`` in
+    ``[-4, 4]``, so ``|dx|, |dy| = 255 * ax, 255 * ay`` with ``ax, ay`` in ``0..4``. The
+    fixed-point tests ``Y < T22`` and ``Y > T67`` (module docstring) are evaluated here,
+    literally, for all 25 pairs and are shown to equal ``5*ay < 2*ax`` (horizontal) and
+    ``2*ay > 5*ax`` (vertical), which :func:`canny_binary` evaluates in int8. Returns the
+    coefficients ``(5, 2, 2, 5)``; raises if the equivalence failed (it cannot).
+    """
+    h_num, h_den, v_num, v_den = 5, 2, 2, 5
+    for ax in range(5):
+        for ay in range(5):
+            x, y = 255 * ax, (255 * ay) << CANNY_SHIFT
+            tg22x = x * TG22
+            horiz = y < tg22x
+            vert = not horiz and y > tg22x + (x << (CANNY_SHIFT + 1))
+            if horiz != (h_num * ay < h_den * ax) or vert != (v_num * ay > v_den * ax):
+                raise AssertionError(f"direction rule differs at |dx|/255={ax}, |dy|/255={ay}")
+    return h_num, h_den, v_num, v_den
+
+
+_H_NUM, _H_DEN, _V_NUM, _V_DEN = _small_direction_rule()
+
+# Pixels per chunk of the LAB gather (bounds the temporaries of lab/raw_mask/adapt_k).
+_CHUNK_PIXELS = 1 << 18
+
+
+# ----------------------------------------------------------------------------------------
+# Input guards and small helpers
+# ----------------------------------------------------------------------------------------
+
+def _check_color(color: torch.Tensor, batch: int) -> None:
+    if not isinstance(color, torch.Tensor) or color.shape != (batch, 3) or color.dtype != torch.uint8:
+        got = (f"{color.dtype} {tuple(color.shape)}" if isinstance(color, torch.Tensor)
+               else type(color).__name__)
+        raise ValueError(f"color: expected a uint8 tensor of shape ({batch}, 3), got {got}")
+
+
+def _check_vector(t: torch.Tensor, batch: int, name: str, allow_int: bool) -> None:
+    ok = isinstance(t, torch.Tensor) and t.shape == (batch,) and t.dtype != torch.bool and (
+        t.dtype.is_floating_point or (allow_int and not t.dtype.is_complex))
+    if not ok:
+        got = f"{t.dtype} {tuple(t.shape)}" if isinstance(t, torch.Tensor) else type(t).__name__
+        kind = "an integer or float" if allow_int else "a float"
+        raise ValueError(f"{name}: expected {kind} tensor of shape ({batch},), got {got}")
+
+
+def _check_params(params: Params) -> None:
+    if not isinstance(params, Params):
+        raise TypeError(f"params: expected torchrow.params.Params, got {type(params).__name__}")
+
+
+def _sky(sky: torch.Tensor, height: int, device: torch.device) -> torch.Tensor:
+    """``sky`` as int64 on ``device``, clamped to ``[0, H]``."""
+    return sky.to(device=device, dtype=torch.int64).clamp(0, height)
+
+
+def _below(sky: torch.Tensor, height: int) -> torch.Tensor:
+    """``uint8 (B, H, 1)``, 1 where row ``y`` lies below the horizon (``y >= sky[b]``).
+
+    Masks are combined as 0/1 ``uint8`` (``bool`` viewed as ``uint8``, no copy): on the CPU,
+    PyTorch's ``bool`` ``&``/``|``/``where`` kernels are 10-30x slower than ``uint8`` ones.
+    """
+    rows = torch.arange(height, device=sky.device, dtype=torch.int64)
+    return (rows.view(1, height) >= sky.view(-1, 1)).unsqueeze(2).view(torch.uint8)
+
+
+def _u8(mask: torch.Tensor) -> torch.Tensor:
+    """A ``bool`` tensor viewed as 0/1 ``uint8`` (no copy)."""
+    return mask.view(torch.uint8)
+
+
+def _pack(images: torch.Tensor) -> torch.Tensor:
+    """``uint8 (b, 3, H, W)`` -> int32 ``(b*H*W,)`` colour codes ``(R<<16)|(G<<8)|B``."""
+    code = images[:, 0].to(torch.int32).bitwise_left_shift_(16)
+    code.bitwise_or_(images[:, 1].to(torch.int32).bitwise_left_shift_(8))
+    code.bitwise_or_(images[:, 2])
+    return code.reshape(-1)
+
+
+def _chunks(batch: int, pixels: int) -> tuple[range, int]:
+    """Chunk starts over the batch and the chunk length (at most ``_CHUNK_PIXELS`` pixels)."""
+    step = max(1, _CHUNK_PIXELS // max(1, pixels))
+    return range(0, batch, step), step
+
+
+def _box(color: torch.Tensor, k: torch.Tensor, table: torch.Tensor):
+    """``(lo, hi)`` = ``(c - k, c + k)``, float64 ``(B, 1, 3)``, ``c`` = LAB of ``color``."""
+    c = table.index_select(0, _pack(color.reshape(-1, 3, 1, 1)))  # (B, 3)
+    kk = k.to(device=c.device, dtype=torch.float64).view(-1, 1)
+    return (c - kk).unsqueeze(1), (c + kk).unsqueeze(1)
+
+
+def _inside(vals: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+    """``all(lo <= vals <= hi)`` over the 3 channels: ``(n, P, 3)`` f64 -> 0/1 uint8 ``(n, P)``.
+
+    ``lo``/``hi`` are ``(n, 1, 3)``. Each comparison is exactly the reference's
+    ``(c - k <= lab) & (lab <= c + k)``; one channel at a time (a contiguous inner loop over
+    pixels instead of a broadcast inner loop of length 3, ~5x faster on the CPU).
+    """
+    acc = None
+    for ch in range(3):
+        v = vals[..., ch]
+        a = torch.le(lo[:, :, ch], v).view(torch.uint8)
+        a.bitwise_and_(torch.le(v, hi[:, :, ch]).view(torch.uint8))
+        acc = a if acc is None else acc.bitwise_and_(a)
+    return acc
+
+
+def _fraction(mask: torch.Tensor, sky: torch.Tensor) -> torch.Tensor:
+    """Ones of ``mask`` in rows ``y >= sky`` divided by the number of such pixels (0 if none)."""
+    _, h, w = mask.shape
+    count = (_u8(mask) & _below(sky, h)).sum(dim=(1, 2), dtype=torch.int64)
+    size = (h - sky) * w
+    frac = count.to(torch.float64) / size.clamp(min=1).to(torch.float64)
+    return torch.where(size > 0, frac, torch.zeros_like(frac))
+
+
+# ----------------------------------------------------------------------------------------
+# Section 3: LAB, raw mask, adaptive k
+# ----------------------------------------------------------------------------------------
+
+def lab(images: torch.Tensor) -> torch.Tensor:
+    """CIE LAB of every pixel by a gather from the shared table.
+
+    Parameters
+    ----------
+    images : torch.Tensor
+        ``uint8 (B, 3, H, W)`` RGB.
+
+    Returns
+    -------
+    torch.Tensor
+        ``float64 (B, 3, H, W)`` (L*, a*, b*), on the input's device; bit-identical to
+        :func:`torchrow.shared.rgb_to_lab` (both read :func:`torchrow.shared.lab_table`).
+
+    Notes
+    -----
+    Gathers chunk by chunk over the batch; peak memory is the output (24 B/pixel) plus one
+    chunk of at most ``2**18`` pixels of temporaries (28 B/pixel, ~7 MiB).
+    """
+    check_images(images)
+    b, _, h, w = images.shape
+    out = torch.empty((b, 3, h, w), dtype=torch.float64, device=images.device)
+    if b == 0:
+        return out
+    table = lab_table_torch(images.device)
+    starts, step = _chunks(b, h * w)
+    for b0 in starts:
+        chunk = images[b0:b0 + step]
+        vals = table.index_select(0, _pack(chunk)).view(chunk.shape[0], h, w, 3)
+        out[b0:b0 + step] = vals.permute(0, 3, 1, 2)
+    return out
+
+
+def raw_mask(images: torch.Tensor, color: torch.Tensor, k: torch.Tensor,
+             sky: torch.Tensor) -> torch.Tensor:
+    """Section 3.2: pixels inside the inclusive LAB box around the vegetation colour.
+
+    ``raw = (c - k <= lab) & (lab <= c + k)`` on all three channels, in float64 and in
+    exactly this form (``c - k`` and ``c + k`` rounded first, as the reference), with rows
+    ``y < sky[b]`` set to False.
+
+    Parameters
+    ----------
+    images : torch.Tensor
+        ``uint8 (B, 3, H, W)`` RGB.
+    color : torch.Tensor
+        ``uint8 (B, 3)`` vegetation colour (RGB) per image.
+    k : torch.Tensor
+        ``(B,)`` box half-width, integer or float dtype (converted to float64).
+    sky : torch.Tensor
+        ``int (B,)`` horizon rows (clamped to ``[0, H]``).
+
+    Returns
+    -------
+    torch.Tensor
+        ``bool (B, H, W)``.
+
+    Notes
+    -----
+    The LAB of the batch is never held whole: peak memory is the output plus one chunk of
+    at most ``2**18`` pixels (~8 MiB of temporaries).
+    """
+    check_images(images)
+    b, _, h, w = images.shape
+    _check_color(color, b)
+    _check_vector(k, b, "k", allow_int=True)
+    check_rows(sky, b)
+    dev = images.device
+    out = torch.zeros((b, h, w), dtype=torch.bool, device=dev)
+    if b == 0:
+        return out
+    table = lab_table_torch(dev)
+    lo, hi = _box(color.to(dev), k, table)
+    starts, step = _chunks(b, h * w)
+    for b0 in starts:
+        chunk = images[b0:b0 + step]
+        n = chunk.shape[0]
+        vals = table.index_select(0, _pack(chunk)).view(n, h * w, 3)
+        lo_c, hi_c = lo[b0:b0 + n], hi[b0:b0 + n]
+        _u8(out[b0:b0 + n]).copy_(_inside(vals, lo_c, hi_c).view(n, h, w))
+    _u8(out).bitwise_and_(_below(_sky(sky, h, dev), h))
+    return out
+
+
+def raw_fraction(raw: torch.Tensor, sky: torch.Tensor) -> torch.Tensor:
+    """Section 3.3: fraction of ``raw`` pixels below the horizon.
+
+    Parameters
+    ----------
+    raw : torch.Tensor
+        ``bool (B, H, W)``.
+    sky : torch.Tensor
+        ``int (B,)`` horizon rows (clamped to ``[0, H]``).
+
+    Returns
+    -------
+    torch.Tensor
+        ``float64 (B,)``: ``count(raw[b, sky:]) / ((H - sky) * W)`` (one IEEE division, as
+        the reference's ``float(sum) / size``); 0 when no row lies below the horizon.
+    """
+    check_masks(raw, "raw")
+    check_rows(sky, raw.shape[0])
+    return _fraction(raw, _sky(sky, raw.shape[1], raw.device))
+
+
+def adapt_k(images: torch.Tensor, color: torch.Tensor, sky: torch.Tensor, info0: torch.Tensor,
+            params: Params) -> tuple[torch.Tensor, torch.Tensor]:
+    """Section 3.3, video mode: adapt the LAB half-width ``k`` to the frame-0 fraction.
+
+    Start at ``k = video_k_start``; while ``fraction > video_shrink_above * info0`` and
+    ``k > video_k_min``: ``k -= 1``; then while ``fraction < video_grow_below * info0`` and
+    ``k < video_k_max``: ``k += 1``. The fraction (:func:`raw_fraction`) of every integer
+    ``k`` in ``[video_k_min, video_k_max]`` is computed once (one LAB gather, one box test
+    per ``k``), then both loops run with static bounds (``k_start - k_min`` and
+    ``k_max - k_min`` steps) on that table, images whose condition failed keep their ``k``
+    (the condition then stays false, so this equals the reference's early exits).
+
+    Parameters
+    ----------
+    images : torch.Tensor
+        ``uint8 (B, 3, H, W)`` RGB.
+    color : torch.Tensor
+        ``uint8 (B, 3)`` vegetation colour.
+    sky : torch.Tensor
+        ``int (B,)`` horizon rows.
+    info0 : torch.Tensor
+        ``float64 (B,)`` raw fraction at ``k = video_k_start`` on frame 0.
+    params : Params
+        Uses ``video_k_start``, ``video_k_min``, ``video_k_max``, ``video_shrink_above``,
+        ``video_grow_below``.
+
+    Returns
+    -------
+    k : torch.Tensor
+        ``int64 (B,)``.
+    raw : torch.Tensor
+        ``bool (B, H, W)``, :func:`raw_mask` at that ``k``.
+    """
+    _check_params(params)
+    check_images(images)
+    b, _, h, w = images.shape
+    _check_color(color, b)
+    check_rows(sky, b)
+    _check_vector(info0, b, "info0", allow_int=False)
+    dev = images.device
+    k_min, k_max, k_start = params.video_k_min, params.video_k_max, params.video_k_start
+    ks = torch.arange(k_min, k_max + 1, device=dev, dtype=torch.int64)  # (K,)
+    n_k = ks.numel()
+    skyc = _sky(sky, h, dev)
+    below = _below(skyc, h)
+    counts = torch.zeros((b, n_k), dtype=torch.int64, device=dev)
+    if b > 0:
+        table = lab_table_torch(dev)
+        c = table.index_select(0, _pack(color.to(dev).reshape(-1, 3, 1, 1)))  # (B, 3)
+        kf = ks.to(torch.float64).view(1, n_k, 1)
+        lo = (c.unsqueeze(1) - kf).unsqueeze(2)  # (B, K, 1, 3)
+        hi = (c.unsqueeze(1) + kf).unsqueeze(2)
+        starts, step = _chunks(b, h * w)
+        for b0 in starts:
+            chunk = images[b0:b0 + step]
+            n = chunk.shape[0]
+            vals = table.index_select(0, _pack(chunk)).view(n, h * w, 3)
+            keep = below[b0:b0 + n].expand(n, h, w).reshape(n, h * w)
+            for j in range(n_k):  # static loop over the k grid, not over images
+                inside = _inside(vals, lo[b0:b0 + n, j], hi[b0:b0 + n, j]).bitwise_and_(keep)
+                counts[b0:b0 + n, j] = inside.sum(dim=1, dtype=torch.int64)
+    size = (h - skyc) * w
+    frac = counts.to(torch.float64) / size.clamp(min=1).to(torch.float64).view(-1, 1)
+    frac = torch.where((size > 0).view(-1, 1), frac, torch.zeros_like(frac))
+    info0 = info0.to(device=dev, dtype=torch.float64)
+    shrink = params.video_shrink_above * info0
+    grow = params.video_grow_below * info0
+    k = torch.full((b,), k_start, dtype=torch.int64, device=dev)
+
+    def frac_at(kk: torch.Tensor) -> torch.Tensor:
+        return frac.gather(1, (kk - k_min).view(-1, 1)).view(-1)
+
+    for _ in range(k_start - k_min):
+        k = k - ((frac_at(k) > shrink) & (k > k_min)).to(torch.int64)
+    for _ in range(k_max - k_min):
+        k = k + ((frac_at(k) < grow) & (k < k_max)).to(torch.int64)
+    return k, raw_mask(images, color, k, sky)
+
+
+# ----------------------------------------------------------------------------------------
+# Section 3.4: bushy-region removal
+# ----------------------------------------------------------------------------------------
+
+def remove_bushy(raw: torch.Tensor, sky: torch.Tensor, params: Params) -> torch.Tensor:
+    """Section 3.4: ``veg = raw AND NOT erode(raw)`` on the region below the horizon.
+
+    The erosion is ``cv2.erode`` with a ``params.bushy_erode = (width, height)`` rectangle
+    of ones and OpenCV's default anchor ``(width // 2, height // 2)``: for (2, 3) the kernel
+    covers columns ``x-1..x`` and rows ``y-1..y+1``. Pixels outside the region (the rows
+    above ``sky[b]`` and outside the image) never erode (OpenCV's default constant border
+    for erosion is the maximum value).
+
+    Parameters
+    ----------
+    raw : torch.Tensor
+        ``bool (B, H, W)``; its rows above the horizon are ignored.
+    sky : torch.Tensor
+        ``int (B,)`` horizon rows (clamped to ``[0, H]``).
+    params : Params
+        Uses ``bushy_erode``.
+
+    Returns
+    -------
+    torch.Tensor
+        ``bool (B, H, W)``, False above the horizon.
+    """
+    _check_params(params)
+    check_masks(raw, "raw")
+    b, h, w = raw.shape
+    check_rows(sky, b)
+    if b == 0:
+        return torch.zeros_like(raw)
+    below = _below(_sky(sky, h, raw.device), h)
+    ew, eh = params.bushy_erode
+    ax, ay = ew // 2, eh // 2
+    # Outside the region is 1 (never erodes): rows above the horizon and the padding.
+    src = _u8(raw) | (below ^ 1)
+    pad = F.pad(src, (ax, ew - 1 - ax, ay, eh - 1 - ay), value=1)
+    hp, wp = pad.shape[1:]
+    flat = pad.reshape(-1)
+    # On the flattened padded grid the kernel offsets are constants dy*wp + dx; position
+    # p = y*wp + x of pad holds the window whose top-left corner is pad[y, x].
+    n = flat.numel() - ((eh - 1) * wp + (ew - 1))
+    eroded = flat[0:n].clone()
+    for dy in range(eh):
+        for dx in range(ew):
+            if dy or dx:
+                eroded.bitwise_and_(flat[dy * wp + dx:dy * wp + dx + n])
+    full = torch.ones(flat.numel(), dtype=torch.uint8, device=raw.device)
+    full[0:n] = eroded
+    eroded = full.view(b, hp, wp)[:, 0:h, 0:w]
+    veg = (eroded ^ 1).bitwise_and_(_u8(raw)).bitwise_and_(below)
+    return veg.view(torch.bool)
+
+
+# ----------------------------------------------------------------------------------------
+# Section 4: Canny and the Hough input
+# ----------------------------------------------------------------------------------------
+
+def _replicate(t: torch.Tensor) -> torch.Tensor:
+    """Pad ``(B, H, W)`` by one pixel on every side, replicating the edge (``aaa|abcd|ddd``)."""
+    t = torch.cat([t[:, :1], t, t[:, -1:]], dim=1)
+    return torch.cat([t[:, :, :1], t, t[:, :, -1:]], dim=2)
+
+
+def _dilate8(t: torch.Tensor) -> torch.Tensor:
+    p = F.pad(t, (1, 1, 1, 1), value=False)
+    h, w = t.shape[1:]
+    rows = p[:, 0:h] | p[:, 1:h + 1] | p[:, 2:h + 2]
+    return rows[:, :, 0:w] | rows[:, :, 1:w + 1] | rows[:, :, 2:w + 2]
+
+
+def canny_binary(veg: torch.Tensor, sky: torch.Tensor, params: Params) -> torch.Tensor:
+    """``cv2.Canny(region * 255, canny_low, canny_high, L2gradient=False) > 0`` per image.
+
+    ``region`` = the rows ``y >= sky[b]`` of ``veg``, treated as the whole image (OpenCV's
+    borders at its top row, not at row 0). Bit-exact with OpenCV's ``canny.cpp``; the rules
+    (Sobel with replicated border, zero-bordered magnitude for non-maximum suppression, the
+    Q15 tangent test and its ``>``/``>=`` comparisons, hysteresis) are listed in the module
+    docstring.
+
+    Parameters
+    ----------
+    veg : torch.Tensor
+        ``bool (B, H, W)`` binary mask; its rows above the horizon are ignored.
+    sky : torch.Tensor
+        ``int (B,)`` horizon rows (clamped to ``[0, H]``).
+    params : Params
+        Uses ``canny_low`` and ``canny_high`` (swapped if ``low > high``, as OpenCV).
+
+    Returns
+    -------
+    torch.Tensor
+        ``bool (B, H, W)`` edges, False above the horizon.
+    """
+    _check_params(params)
+    check_masks(veg, "veg")
+    b, h, w = veg.shape
+    check_rows(sky, b)
+    dev = veg.device
+    low, high = sorted((int(params.canny_low), int(params.canny_high)))
+    skyc = _sky(sky, h, dev)
+    below = _below(skyc, h)
+    if b == 0:
+        return torch.zeros_like(veg)
+    # Rows above the horizon take the value of the region's top row, so that a replicated
+    # image border reproduces the region's replicated border for rows >= sky.
+    vu8 = _u8(veg)
+    top = vu8.gather(1, skyc.clamp(max=h - 1).view(b, 1, 1).expand(b, 1, w))  # (B, 1, W)
+    # Work on the flattened padded grid (B, H+2, W+2): every neighbour is a constant offset
+    # (+-1, +-r, +-r+-1 with r = W+2), so each step below is one contiguous 1-D operation,
+    # done in place where possible (fresh multi-MB temporaries cost page faults on the CPU).
+    # Values are on the 0/1 scale (see _small_direction_rule): OpenCV's divided by 255.
+    r = w + 2
+    src = (vu8 & below).bitwise_or_(top & (below ^ 1))
+    grid = _replicate(src).view(torch.int8).reshape(-1)
+    total = grid.numel()
+    n = total - 2 * (r + 1)  # positions r+1 .. total-r-2 cover every interior pixel
+
+    def g(off: int) -> torch.Tensor:
+        return grid[r + 1 + off:r + 1 + off + n]
+
+    # Sobel 3x3 with replicated border (the grid's padding and the rows above the horizon
+    # carry the replicated values): dx = [-1 0 1] x [1 2 1]^T, dy its transpose; in [-4, 4].
+    dx = g(1 - r) + g(1 + r)
+    for off in (1, 1):
+        dx += g(off)
+    for off in (-1 - r, r - 1, -1, -1):
+        dx -= g(off)
+    dy = g(r - 1) + g(r + 1)
+    for off in (r, r):
+        dy += g(off)
+    for off in (-r - 1, 1 - r, -r, -r):
+        dy -= g(off)
+    same = torch.bitwise_xor(dx, dy).ge_(0).view(torch.bool).view(torch.uint8)  # s = +1
+    ax, ay = dx.abs_(), dy.abs_()
+    t1, t2 = torch.mul(ay, _H_NUM), torch.mul(ax, _H_DEN)
+    horiz = (t1 < t2).view(torch.uint8)  # (|dy|<<15) < |dx|*TG22
+    torch.mul(ay, _V_NUM, out=t1)
+    torch.mul(ax, _V_DEN, out=t2)
+    vert = (t1 > t2).view(torch.uint8)  # (|dy|<<15) > |dx|*TG22 + (|dx|<<16)
+    del t1, t2
+    # L1 magnitude in [0, 8], zero on the grid's frame and above the horizon (NMS border).
+    mag = torch.zeros(total, dtype=torch.int8, device=dev)
+    m = mag[r + 1:r + 1 + n]
+    torch.add(ax, ay, out=m)
+    mag2 = mag.view(b, h + 2, r)
+    mag2[:, 0] = 0  # the frame holds values computed across image boundaries: clear it
+    mag2[:, h + 1] = 0
+    mag2[:, :, 0] = 0
+    mag2[:, :, r - 1] = 0
+    mag2[:, 1:h + 1].bitwise_and_(below.view(torch.int8).neg())  # 0 or all ones
+    del ax, ay, dx, dy
+    tmp = torch.empty(n, dtype=torch.bool, device=dev)
+    tmp_u8 = tmp.view(torch.uint8)
+
+    def both(op1, off1: int, op2, off2: int) -> torch.Tensor:
+        """``(m op1 m[off1]) & (m op2 m[off2])`` as a fresh 0/1 uint8 tensor."""
+        out = op1(m, mag[r + 1 + off1:r + 1 + off1 + n]).view(torch.uint8)
+        op2(m, mag[r + 1 + off2:r + 1 + off2 + n], out=tmp)
+        return out.bitwise_and_(tmp_u8)
+
+    keep = both(torch.gt, -1, torch.ge, 1).bitwise_and_(horiz)  # m > left, m >= right
+    keep.bitwise_or_(both(torch.gt, -r, torch.ge, r).bitwise_and_(vert))  # m > up, m >= down
+    # Diagonal, both strict: s = +1 -> (y-1, x-1), (y+1, x+1); s = -1 -> (y-1, x+1), (y+1, x-1).
+    diag = horiz.bitwise_or_(vert).bitwise_xor_(1)
+    d_pos = both(torch.gt, -r - 1, torch.gt, r + 1).bitwise_and_(same)
+    d_neg = both(torch.gt, 1 - r, torch.gt, r - 1).bitwise_and_(same.bitwise_xor_(1))
+    keep.bitwise_or_(d_pos.bitwise_or_(d_neg).bitwise_and_(diag))
+    del d_pos, d_neg, diag, vert, same
+    # m * 255 > low  <=>  m > low // 255 for integer m >= 0 (same for high).
+    torch.gt(m, low // 255, out=tmp)
+    keep.bitwise_and_(tmp_u8)
+    torch.gt(m, high // 255, out=tmp)
+
+    def to_image(flat: torch.Tensor) -> torch.Tensor:
+        full = torch.zeros(total, dtype=torch.uint8, device=dev)
+        full[r + 1:r + 1 + n] = flat
+        return full.view(b, h + 2, r)[:, 1:h + 1, 1:w + 1].contiguous().view(torch.bool)
+
+    edges = to_image(tmp_u8 & keep)
+    cand = to_image(keep)
+    # Weak edges exist only if some multiple of 255 (the possible magnitudes) is in (low, high].
+    if high // 255 > low // 255:
+        weak = cand & ~edges
+        for _ in range(h * w):  # static bound; stops at the fixed point
+            grown = edges | (weak & _dilate8(edges))
+            if torch.equal(grown, edges):
+                break
+            edges = grown
+    return edges
+
+
+def density(veg: torch.Tensor, sky: torch.Tensor) -> torch.Tensor:
+    """Section 4: ones of ``veg`` below the horizon / pixels below the horizon.
+
+    Parameters
+    ----------
+    veg : torch.Tensor
+        ``bool (B, H, W)``.
+    sky : torch.Tensor
+        ``int (B,)`` horizon rows.
+
+    Returns
+    -------
+    torch.Tensor
+        ``float64 (B,)``; 0 when no row lies below the horizon.
+    """
+    check_masks(veg, "veg")
+    check_rows(sky, veg.shape[0])
+    return _fraction(veg, _sky(sky, veg.shape[1], veg.device))
+
+
+def hough_input(veg: torch.Tensor, sky: torch.Tensor,
+                params: Params) -> tuple[torch.Tensor, torch.Tensor]:
+    """Section 4: the Hough input and the bushy flag.
+
+    Parameters
+    ----------
+    veg : torch.Tensor
+        ``bool (B, H, W)`` bushy-removed vegetation mask.
+    sky : torch.Tensor
+        ``int (B,)`` horizon rows.
+    params : Params
+        Uses ``bushy_ratio``, ``canny_low``, ``canny_high``.
+
+    Returns
+    -------
+    hough : torch.Tensor
+        ``bool (B, H, W)``: :func:`canny_binary` where ``density > bushy_ratio``, else
+        ``veg`` itself (a copy).
+    bushy : torch.Tensor
+        ``bool (B,)``.
+    """
+    _check_params(params)
+    check_masks(veg, "veg")
+    check_rows(sky, veg.shape[0])
+    bushy = density(veg, sky) > params.bushy_ratio
+    edges = canny_binary(veg, sky, params)
+    sel = bushy.view(-1, 1, 1).view(torch.uint8)
+    out = (_u8(edges) & sel).bitwise_or_(_u8(veg) & (sel ^ 1))
+    return out.view(torch.bool), bushy
+
+
+# ----------------------------------------------------------------------------------------
+# Modules
+# ----------------------------------------------------------------------------------------
+
+class VegetationMask(nn.Module):
+    """Sections 3.2 and 3.4 as a module: raw LAB box mask, then bushy-region removal.
+
+    ``forward(images uint8 (B,3,H,W), color uint8 (B,3), sky int (B,), k=None)`` ->
+    ``veg bool (B,H,W)``; ``k`` defaults to ``params.veg_tol`` for every image (image mode).
+    """
+
+    def __init__(self, params: Params | None = None) -> None:
+        super().__init__()
+        self.params = params if params is not None else Params()
+        _check_params(self.params)
+
+    def forward(self, images: torch.Tensor, color: torch.Tensor, sky: torch.Tensor,
+                k: torch.Tensor | None = None) -> torch.Tensor:
+        check_images(images)
+        if k is None:
+            k = torch.full((images.shape[0],), self.params.veg_tol, dtype=torch.int64,
+                           device=images.device)
+        raw = raw_mask(images, color, k, sky)
+        return remove_bushy(raw, sky, self.params)
+
+
+class HoughInput(nn.Module):
+    """Section 4 as a module: ``forward(veg bool (B,H,W), sky int (B,))`` -> ``(hough, bushy)``."""
+
+    def __init__(self, params: Params | None = None) -> None:
+        super().__init__()
+        self.params = params if params is not None else Params()
+        _check_params(self.params)
+
+    def forward(self, veg: torch.Tensor, sky: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return hough_input(veg, sky, self.params)
