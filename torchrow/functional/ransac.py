@@ -22,8 +22,9 @@ __all__ = ["RowFits", "fit_rows", "validate_rows", "REASON_CODES", "SCORE_BUDGET
 #: Reason codes of :attr:`RowFits.reason`, indices into :data:`torchrow.results.REASONS`.
 REASON_CODES = {r: i for i, r in enumerate(REASONS)}
 
-#: Elements per float64 scoring temporary ``(B, S, T_chunk, P)``: 4M (32 MB each, a few alive).
-SCORE_BUDGET = 1 << 22
+#: Elements per scoring temporary ``(B, S, T_chunk, P)``: 1M (8 MB of float64, a few alive),
+#: small enough to stay in cache between the passes over it.
+SCORE_BUDGET = 1 << 20
 
 
 @dataclass
@@ -96,6 +97,54 @@ def _inliers(px, py, vx, vy, x1, y1, x2, y2, thr: float):
     return pix, vpi
 
 
+def _table(params: Params, device: torch.device) -> torch.Tensor:
+    key = (params.seed, params.ransac_trials, str(device))
+    if key not in _TABLES:
+        _TABLES[key] = torch.tensor(hypothesis_table(params.seed, params.ransac_trials), device=device)
+    return _TABLES[key]
+
+
+_TABLES: dict = {}
+
+#: Relative margin around the inlier threshold inside which a hypothesis through the VP is
+#: re-tested with the spec's exact expression. The fast cross product and the spec's
+#: expression each differ from the real value by a few float64 ulps of the terms' magnitude;
+#: 1e-12 of that magnitude is thousands of times wider.
+MARGIN = 1e-12
+
+#: How many scoring chunks needed the exact fallback (diagnostics for benchmarks).
+FALLBACKS = {"chunks": 0, "total": 0}
+
+
+def _pixel_inliers(pts, px, py, x1, y1, x2, y2, uses_vp, thr: float, bsz: int, s: int, p: int) -> torch.Tensor:
+    """Pixel inliers ``(B, S, T, P)`` of the hypotheses ``(x1, y1) -> (x2, y2)`` ``(B, S, T)``.
+
+    The cross product ``dx*y - dy*x + (dy*x1 - dx*y1)`` is one batched matmul. For two pixel
+    picks every term is a small integer, so any evaluation order (fused or not) is exact and
+    equals the spec's ``(x2-x1)(y-y1) - (y2-y1)(x-x1)``. For picks involving the float VP the
+    matmul may differ from the spec's rounding by a few ulps, so points within
+    :data:`MARGIN` of the threshold are re-tested with the spec's expression (rare: the
+    fallback runs only for chunks that have such a point; it never changes a result).
+    """
+    dx, dy = x2 - x1, y2 - y1
+    lim = thr * torch.sqrt(dx * dx + dy * dy)  # (B, S, T), as in the spec
+    k = dy * x1 - dx * y1
+    coef = torch.stack([dx, -dy, k], dim=3).view(bsz * s, -1, 3)  # (BS, T, 3)
+    cross = torch.bmm(coef, pts).view(bsz, s, -1, p).abs_()  # (B, S, T, P)
+    scale = dx.abs() * (py.abs().amax(2, keepdim=True) + y1.abs()) + dy.abs() * (
+        px.abs().amax(2, keepdim=True) + x1.abs()) + k.abs() + 1.0
+    margin = torch.where(uses_vp, MARGIN * scale, torch.zeros_like(scale))
+    inl = cross < (lim - margin).unsqueeze(3)
+    unsure = (cross < (lim + margin).unsqueeze(3)) != inl
+    if bool(unsure.any()):
+        FALLBACKS["chunks"] += 1
+        FALLBACKS["total"] += int(unsure.sum())
+        exact = (dx.unsqueeze(3) * (py.unsqueeze(2) - y1.unsqueeze(3))
+                 - dy.unsqueeze(3) * (px.unsqueeze(2) - x1.unsqueeze(3))).abs() < lim.unsqueeze(3)
+        inl = torch.where(unsure, exact, inl)
+    return inl
+
+
 def fit_rows(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, present: torch.Tensor,
              vp: torch.Tensor, band: torch.Tensor, params: Params):
     """Steps 7.1-7.5 for every row of every image.
@@ -119,11 +168,15 @@ def fit_rows(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, present:
     px, py, n_keep, v_keep, n = _band_points(veg, theta, rho, band, params)
     p = px.shape[2]
     support = present & (n + n // 2 >= params.ransac_min_points)
-    u = torch.tensor(hypothesis_table(params.seed, params.ransac_trials), device=dev)  # (T, 2)
+    u = _table(params, dev)  # (T, 2)
     t_all = u.shape[0]
     total = (n_keep + v_keep).to(torch.float64)  # (B, S)
     valid_pt = torch.arange(p, device=dev) < n_keep.unsqueeze(2)  # (B, S, P)
     bsz, s = theta.shape
+    # padding points never count: NaN coordinates fail every comparison
+    qx = torch.where(valid_pt, px, torch.full_like(px, float("nan")))
+    qy = torch.where(valid_pt, py, torch.full_like(py, float("nan")))
+    pts = torch.stack([qy, qx, torch.ones_like(qx)], dim=2).view(bsz * s, 3, p)  # (BS, 3, P)
     chunk = max(1, SCORE_BUDGET // max(1, bsz * s * p))
     best_score = torch.full((bsz, s), -2, dtype=torch.int64, device=dev)
     best_t = torch.zeros((bsz, s), dtype=torch.int64, device=dev)
@@ -133,10 +186,14 @@ def fit_rows(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, present:
         i2 = torch.floor(uc[:, 1].view(1, 1, -1) * total.unsqueeze(2)).to(torch.int64)
         nk = n_keep.unsqueeze(2)
         degenerate = (i1 == i2) | ((i1 >= nk) & (i2 >= nk))
+        uses_vp = (i1 >= nk) | (i2 >= nk)
         x1, y1 = _pick(px, py, i1, n_keep, vp)
         x2, y2 = _pick(px, py, i2, n_keep, vp)
-        pix, vpi = _inliers(px, py, vp[:, 0], vp[:, 1], x1, y1, x2, y2, params.ransac_threshold)
-        score = (pix & valid_pt.unsqueeze(2)).sum(dim=3) + vpi.to(torch.int64) * v_keep.unsqueeze(2)
+        pix = _pixel_inliers(pts, px, py, x1, y1, x2, y2, uses_vp, params.ransac_threshold, bsz, s, p)
+        dx, dy = x2 - x1, y2 - y1
+        lim = params.ransac_threshold * torch.sqrt(dx * dx + dy * dy)
+        vpi = (dx * (vp[:, 1].view(-1, 1, 1) - y1) - dy * (vp[:, 0].view(-1, 1, 1) - x1)).abs() < lim
+        score = pix.sum(dim=3) + vpi.to(torch.int64) * v_keep.unsqueeze(2)
         score = score.masked_fill(degenerate, -1)
         carg = torch.argmax(score, dim=2)  # first maximum within the chunk
         cmax = score.gather(2, carg.unsqueeze(2)).squeeze(2)
