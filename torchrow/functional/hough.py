@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from ..params import Params
@@ -22,9 +23,9 @@ from ._checks import check_masks
 __all__ = ["HoughState", "pixel_list", "trig", "rho_table", "line_distance", "accumulate", "votes",
            "excluded_angles", "peak"]
 
-#: List entries processed per chunk when accumulating votes; bounds the ``(n_theta, B, chunk)``
-#: int32 index temporaries to ``180 * B * 2048 * 4`` bytes (~94 MB at B = 64).
-CHUNK = 2048
+#: Pixels per chunk when accumulating votes: bounds the ``(n_theta, chunk)`` int32 index
+#: temporary to ``180 * 65536 * 4`` bytes (47 MB).
+CHUNK = 65536
 
 
 def trig(params: Params, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
@@ -38,15 +39,21 @@ def trig(params: Params, device: torch.device) -> tuple[torch.Tensor, torch.Tens
 
 
 def rho_table(height: int, width: int, params: Params, device: torch.device) -> torch.Tensor:
-    """Accumulator row of every pixel for every angle, ``(n_theta, H*W)`` int16/int32 on
-    ``device``: the shared :func:`torchrow.shared.rho_index_table` (a constant, so voting
-    does no float arithmetic and an exported graph votes exactly)."""
+    """Flat accumulator offset of every pixel for every angle within one image's accumulator,
+    ``j*(2D+1) + rho_index``, as ``(n_theta, H*W)`` int32 on ``device``.
+
+    Built from the shared :func:`torchrow.shared.rho_index_table` (``rint(x*c_j + y*s_j) + D``),
+    a constant, so voting does no float arithmetic and an exported graph votes exactly.
+    720 bytes per pixel: 55 MB at 320x240, 885 MB at 1280x960 (the last two sizes are kept).
+    """
     key = ("rho", height, width, params.theta_step, str(device))
     if key not in _CACHE:
-        if len([k for k in _CACHE if k[0] == "rho"]) >= 4:
-            for k in [k for k in _CACHE if k[0] == "rho"]:
-                del _CACHE[k]
-        _CACHE[key] = torch.from_numpy(rho_index_table(height, width, params.theta_step).copy()).to(device)
+        for k in [k for k in _CACHE if k[0] == "rho"][:-1]:
+            del _CACHE[k]
+        n_rho = 2 * rho_offset(height, width) + 1
+        t = torch.from_numpy(rho_index_table(height, width, params.theta_step).astype(np.int32))
+        t += torch.arange(t.shape[0], dtype=torch.int32).view(-1, 1) * n_rho
+        _CACHE[key] = t.to(device)
     return _CACHE[key]
 
 
@@ -82,31 +89,29 @@ def line_distance(xs: torch.Tensor, ys: torch.Tensor, cos_j: torch.Tensor, sin_j
     return ((xs.to(torch.float64) * cos_j + ys.to(torch.float64) * sin_j) - rho).abs()
 
 
-def accumulate(acc: torch.Tensor, pix: torch.Tensor, weight: torch.Tensor, table: torch.Tensor) -> None:
-    """Add ``weight`` votes of raster pixels ``pix`` into ``acc`` in place.
+def accumulate(acc: torch.Tensor, idx: torch.Tensor, select: torch.Tensor, sign: int,
+               table: torch.Tensor) -> None:
+    """Add ``sign`` votes of the selected list entries into ``acc`` in place.
 
-    ``acc`` int32 ``(B, n_theta, 2D+1)``; ``pix`` int64 ``(B, C)``; ``weight`` int32 ``(B, C)``;
-    ``table`` from :func:`rho_table`. Index order (theta, image, pixel) keeps consecutive
-    writes inside one accumulator row, which is what makes the scatter cache-friendly.
+    ``acc`` int32 ``(B, n_theta, 2D+1)``; ``idx`` int64 ``(B, K)`` raster pixel indices;
+    ``select`` bool ``(B, K)``; ``table`` from :func:`rho_table`. The selected entries of the
+    whole batch are compacted into one list first (stable sort, no ``nonzero``; its length is
+    the loop bound, the one host synchronisation), so padding costs nothing; votes are then
+    added in chunks of :data:`CHUNK` pixels, angle-major so consecutive writes stay in one
+    accumulator row.
     """
     b, n_theta, n_rho = acc.shape
-    c = pix.shape[1]
-    if c == 0 or b == 0:
-        return
-    rows = table.index_select(1, pix.reshape(-1)).view(n_theta, b, c).to(torch.int32)
-    base = (torch.arange(b, device=acc.device, dtype=torch.int32).view(1, b, 1) * n_theta
-            + torch.arange(n_theta, device=acc.device, dtype=torch.int32).view(n_theta, 1, 1)) * n_rho
-    acc.view(-1).index_add_(0, (rows + base).view(-1), weight.unsqueeze(0).expand(n_theta, b, c).reshape(-1))
-
-
-def _vote_list(acc: torch.Tensor, idx: torch.Tensor, count: torch.Tensor, sign: int,
-               table: torch.Tensor) -> None:
-    """Add ``sign`` votes for the first ``count[b]`` entries of ``idx[b]``, chunk by chunk."""
-    n = active_width(count)
+    k = idx.shape[1]
+    flat_sel = select.reshape(b * k)
+    order = torch.sort((~flat_sel).to(torch.uint8), stable=True).indices
+    n = active_width(flat_sel.sum().view(1))
+    flat_acc = acc.view(-1)
+    flat_idx = idx.reshape(b * k)
+    one = torch.full((1,), sign, dtype=torch.int32, device=acc.device)
     for start in range(0, n, CHUNK):
-        sl = idx[:, start:min(start + CHUNK, n)]
-        live = (torch.arange(start, start + sl.shape[1], device=idx.device) < count.unsqueeze(1))
-        accumulate(acc, sl, live.to(torch.int32) * sign, table)
+        sel = order[start:min(start + CHUNK, n)]
+        cells = table.index_select(1, flat_idx[sel]) + ((sel // k).to(torch.int32) * (n_theta * n_rho)).unsqueeze(0)
+        flat_acc.index_add_(0, cells.view(-1), one.expand(cells.numel()))
 
 
 def votes(mask: torch.Tensor, params: Params) -> torch.Tensor:
@@ -119,7 +124,8 @@ def votes(mask: torch.Tensor, params: Params) -> torch.Tensor:
     d = rho_offset(h, w)
     acc = torch.zeros((b, params.n_theta, 2 * d + 1), dtype=torch.int32, device=mask.device)
     idx, count = pixel_list(mask)
-    _vote_list(acc, idx, count, 1, rho_table(h, w, params, mask.device))
+    live = torch.arange(idx.shape[1], device=mask.device) < count.unsqueeze(1)
+    accumulate(acc, idx, live, 1, rho_table(h, w, params, mask.device))
     return acc
 
 
@@ -181,8 +187,8 @@ class HoughState:
         k = active_width(count)
         idx = idx[:, :k]  # entries past the largest count are never mask pixels
         acc = torch.zeros((b, params.n_theta, 2 * d + 1), dtype=torch.int32, device=mask.device)
-        _vote_list(acc, idx, count, 1, table)
         alive = torch.arange(k, device=mask.device) < count.unsqueeze(1)
+        accumulate(acc, idx, alive, 1, table)
         return cls(idx, count, alive, acc, acc.clone(), w, d, table)
 
     def xy(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -204,5 +210,4 @@ class HoughState:
                              rho.to(torch.float64).unsqueeze(1))
         hit = self.alive & (dist <= band / 2) & active.unsqueeze(1)
         self.alive = self.alive & ~hit
-        order = torch.sort((~hit).to(torch.uint8), dim=1, stable=True).indices
-        _vote_list(self.acc, torch.gather(self.idx, 1, order), hit.sum(dim=1), -1, self.table)
+        accumulate(self.acc, self.idx, hit, -1, self.table)

@@ -189,7 +189,9 @@ def fit_rows(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, present:
         uses_vp = (i1 >= nk) | (i2 >= nk)
         x1, y1 = _pick(px, py, i1, n_keep, vp)
         x2, y2 = _pick(px, py, i2, n_keep, vp)
-        pix = _pixel_inliers(pts, px, py, x1, y1, x2, y2, uses_vp, params.ransac_threshold, bsz, s, p)
+        # only real hypotheses through the VP need the margin (degenerate ones are discarded)
+        unsure_ok = uses_vp & ~degenerate & present.unsqueeze(2)
+        pix = _pixel_inliers(pts, px, py, x1, y1, x2, y2, unsure_ok, params.ransac_threshold, bsz, s, p)
         dx, dy = x2 - x1, y2 - y1
         lim = params.ransac_threshold * torch.sqrt(dx * dx + dy * dy)
         vpi = (dx * (vp[:, 1].view(-1, 1, 1) - y1) - dy * (vp[:, 0].view(-1, 1, 1) - x1)).abs() < lim
