@@ -140,18 +140,19 @@ def find_lines(hough_in: torch.Tensor, params: Params) -> LineSearch:
         fill = ~done & (held < n)
         check = ~done & ~fill
 
-        # --- fill: extract one line --------------------------------------------------------
-        th, r_idx, w = peak(state.acc, excluded_angles(theta, valid, params))
-        got = fill & (w > 0)
-        n = torch.where(fill & (w == 0), held, n)  # extraction ran dry: N becomes the count
-        put = got.unsqueeze(1) & (slots == held.unsqueeze(1))
-        rho_new = r_idx - state.d
-        theta = torch.where(put, th.unsqueeze(1), theta)
-        rho = torch.where(put, rho_new.unsqueeze(1), rho)
-        weight = torch.where(put, w.unsqueeze(1), weight)
-        held = held + got.to(torch.int64)
-        if bool(got.any()):
-            state.erase(th, rho_new, got, params)
+        # --- fill: extract one line (skipped when no image needs one; no result changes) ---
+        if bool(fill.any()):
+            th, r_idx, w = peak(state.acc, excluded_angles(theta, valid, params))
+            got = fill & (w > 0)
+            n = torch.where(fill & (w == 0), held, n)  # extraction ran dry: N becomes the count
+            put = got.unsqueeze(1) & (slots == held.unsqueeze(1))
+            rho_new = r_idx - state.d
+            theta = torch.where(put, th.unsqueeze(1), theta)
+            rho = torch.where(put, rho_new.unsqueeze(1), rho)
+            weight = torch.where(put, w.unsqueeze(1), weight)
+            held = held + got.to(torch.int64)
+            if bool(got.any()):
+                state.erase(th, rho_new, got, params)
 
         # --- check: vanishing point and outlier --------------------------------------------
         sol = vanishing_point(theta, rho, weight, valid, params)
