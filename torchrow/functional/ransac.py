@@ -15,6 +15,7 @@ import torch
 from ..params import Params
 from ..results import REASONS
 from ..shared import hypothesis_table
+from . import _exact
 from .hough import active_width, pixel_list, trig
 
 __all__ = ["RowFits", "fit_rows", "validate_rows", "REASON_CODES", "SCORE_BUDGET"]
@@ -90,7 +91,7 @@ def _inliers(px, py, vx, vy, x1, y1, x2, y2, thr: float):
     """Inlier test of pixels ``(B, S, T, P)`` and the VP ``(B, S, T)`` for the lines through
     ``(x1, y1), (x2, y2)`` ``(B, S, T)``: ``|(x2-x1)(y-y1) - (y2-y1)(x-x1)| < thr*sqrt(...)``."""
     dx, dy = x2 - x1, y2 - y1
-    lim = thr * torch.sqrt(dx * dx + dy * dy)
+    lim = thr * _exact.sqrt(dx * dx + dy * dy)
     dx4, dy4, x14, y14, lim4 = (t.unsqueeze(3) for t in (dx, dy, x1, y1, lim))
     pix = (dx4 * (py.unsqueeze(2) - y14) - dy4 * (px.unsqueeze(2) - x14)).abs() < lim4
     vpi = (dx * (vy.view(-1, 1, 1) - y1) - dy * (vx.view(-1, 1, 1) - x1)).abs() < lim
@@ -127,7 +128,7 @@ def _pixel_inliers(pts, px, py, x1, y1, x2, y2, uses_vp, thr: float, bsz: int, s
     fallback runs only for chunks that have such a point; it never changes a result).
     """
     dx, dy = x2 - x1, y2 - y1
-    lim = thr * torch.sqrt(dx * dx + dy * dy)  # (B, S, T), as in the spec
+    lim = thr * _exact.sqrt(dx * dx + dy * dy)  # (B, S, T), as in the spec
     k = dy * x1 - dx * y1
     coef = torch.stack([dx, -dy, k], dim=3).view(bsz * s, -1, 3)  # (BS, T, 3)
     cross = torch.bmm(coef, pts).view(bsz, s, -1, p).abs_()  # (B, S, T, P)
@@ -193,7 +194,7 @@ def fit_rows(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, present:
         unsure_ok = uses_vp & ~degenerate & present.unsqueeze(2)
         pix = _pixel_inliers(pts, px, py, x1, y1, x2, y2, unsure_ok, params.ransac_threshold, bsz, s, p)
         dx, dy = x2 - x1, y2 - y1
-        lim = params.ransac_threshold * torch.sqrt(dx * dx + dy * dy)
+        lim = params.ransac_threshold * _exact.sqrt(dx * dx + dy * dy)
         vpi = (dx * (vp[:, 1].view(-1, 1, 1) - y1) - dy * (vp[:, 0].view(-1, 1, 1) - x1)).abs() < lim
         score = pix.sum(dim=3) + vpi.to(torch.int64) * v_keep.unsqueeze(2)
         score = score.masked_fill(degenerate, -1)

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import torch
 
 from ..params import Params
+from . import _exact
 from .hough import HoughState, excluded_angles, peak, trig
 
 __all__ = ["VPSolution", "vanishing_point", "LineSearch", "find_lines", "max_steps"]
@@ -65,7 +66,7 @@ def vanishing_point(theta: torch.Tensor, rho: torch.Tensor, weight: torch.Tensor
     s2 = z
     for k in range(theta.shape[1]):
         s2 = torch.where(valid[:, k], s2 + (w[:, k] / safe_w) * (res[:, k] * res[:, k]), s2)
-    return VPSolution(x0, y0, ok, res, torch.sqrt(s2))
+    return VPSolution(x0, y0, ok, res, _exact.sqrt(s2))
 
 
 @dataclass
