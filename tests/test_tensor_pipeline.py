@@ -150,3 +150,12 @@ def test_all_crbd_images_equal_reference(detector: CropRowDetector, crbd_dir) ->
     for s in range(0, len(imgs), 64):
         for j, res in enumerate(detector(to_batch(imgs[s:s + 64])).results()):
             assert_same(detect(imgs[s + j]), res, ds.names[s + j])
+
+
+def test_batch_without_any_vegetation(detector: CropRowDetector) -> None:
+    """A batch where no image has a single band pixel (every stage sees empty lists)."""
+    soil = _adversarial()["soil"]
+    got = detector(to_batch([soil, soil[:, ::-1].copy()])).results()
+    assert [r.status for r in got] == ["no_vegetation", "no_vegetation"]
+    for im, res in zip([soil, soil[:, ::-1].copy()], got):
+        assert_same(detect(im), res, "soil")

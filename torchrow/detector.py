@@ -24,7 +24,7 @@ from .functional import sky as fsky
 from .functional import vanishing as fvan
 from .functional import vegetation as fveg
 from .functional._checks import check_images
-from .io import ImageError, load_image, resize_to_width, to_rgb8
+from .io import load_image, resize_to_width, to_rgb8
 from .params import Params
 from .results import REASONS, STATUSES, HoughLine, ImageResult, Row
 

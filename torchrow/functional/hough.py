@@ -191,9 +191,6 @@ class HoughState:
         accumulate(acc, idx, alive, 1, table)
         return cls(idx, count, alive, acc, acc.clone(), w, d, table)
 
-    def xy(self) -> tuple[torch.Tensor, torch.Tensor]:
-        return self.idx % self.width, self.idx // self.width
-
     def reset(self, which: torch.Tensor) -> None:
         """Restore the untouched input and votes for images where ``which`` (bool ``(B,)``)."""
         self.acc = torch.where(which.view(-1, 1, 1), self.acc0, self.acc)
@@ -204,7 +201,7 @@ class HoughState:
         """Step 5.3 for images where ``active``: erase alive pixels within ``hough_band/2`` of
         line ``(theta, rho)`` and remove their votes."""
         cos, sin = trig(params, self.acc.device)
-        xs, ys = self.xy()
+        xs, ys = self.idx % self.width, self.idx // self.width
         band = params.hough_band_px(self.width)
         dist = line_distance(xs, ys, cos[theta].unsqueeze(1), sin[theta].unsqueeze(1),
                              rho.to(torch.float64).unsqueeze(1))

@@ -130,8 +130,9 @@ def _pixel_inliers(pts, px, py, x1, y1, x2, y2, uses_vp, thr: float, bsz: int, s
     dx, dy = x2 - x1, y2 - y1
     lim = thr * _exact.sqrt(dx * dx + dy * dy)  # (B, S, T), as in the spec
     k = dy * x1 - dx * y1
-    coef = torch.stack([dx, -dy, k], dim=3).view(bsz * s, -1, 3)  # (BS, T, 3)
-    cross = torch.bmm(coef, pts).view(bsz, s, -1, p).abs_()  # (B, S, T, P)
+    t = dx.shape[2]
+    coef = torch.stack([dx, -dy, k], dim=3).view(bsz * s, t, 3)  # (BS, T, 3)
+    cross = torch.bmm(coef, pts).view(bsz, s, t, p).abs_()  # (B, S, T, P)
     scale = dx.abs() * (py.abs().amax(2, keepdim=True) + y1.abs()) + dy.abs() * (
         px.abs().amax(2, keepdim=True) + x1.abs()) + k.abs() + 1.0
     margin = torch.where(uses_vp, MARGIN * scale, torch.zeros_like(scale))
@@ -169,6 +170,9 @@ def fit_rows(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, present:
     px, py, n_keep, v_keep, n = _band_points(veg, theta, rho, band, params)
     p = px.shape[2]
     support = present & (n + n // 2 >= params.ransac_min_points)
+    if p == 0:  # no band has a pixel (e.g. an all-soil batch): no row has support
+        z = torch.zeros(theta.shape, dtype=torch.float64, device=dev)
+        return z, z, z, z.clone().fill_(1.0), torch.full_like(theta, -1), torch.zeros_like(present)
     u = _table(params, dev)  # (T, 2)
     t_all = u.shape[0]
     total = (n_keep + v_keep).to(torch.float64)  # (B, S)
