@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
 import subprocess
 import sys
 import time
@@ -71,17 +70,20 @@ def time_reference(imgs: list[np.ndarray]) -> float:
 
 
 def peak_memory(data: Path, bs: int) -> float:
-    """Max RSS (MiB) of a fresh process running one batch of ``bs`` CRBD images."""
+    """Peak RSS (MiB, VmHWM: getrusage's maxrss would carry the parent's over exec) of a fresh
+    process: after a warm-up batch of 1, and after one batch of ``bs`` CRBD images."""
     code = f"""
-import resource, numpy as np, torch
+import numpy as np, torch
+def hwm():
+    return int(open('/proc/self/status').read().split('VmHWM:')[1].split()[0])
 from torchrow.datasets import CRBD
 from torchrow.detector import CropRowDetector
 ds = CRBD({str(data)!r}); imgs = [ds.image(i % len(ds)) for i in range({bs})]
 x = torch.from_numpy(np.stack(imgs)).permute(0, 3, 1, 2).contiguous()
 det = CropRowDetector(); det(x[:1])
-base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+base = hwm()
 det(x)
-print(base / 1024, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+print(base / 1024, hwm() / 1024)
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     return float(out[0]), float(out[1])
@@ -143,8 +145,9 @@ def main() -> None:
     lines += rows + [""]
 
     base, peak = peak_memory(ds.root, 64)
-    lines += [f"Peak memory, one batch of 64 CRBD images: max RSS {peak:.0f} MiB "
-              f"(after a batch of 1: {base:.0f} MiB; includes the memory-mapped LAB table pages touched)."]
+    lines += [f"Peak memory, one batch of 64 CRBD images: peak RSS {peak:.0f} MiB "
+              f"(after a warm-up batch of 1: {base:.0f} MiB; includes the 64 input images, torch itself and "
+              f"the pages of the memory-mapped LAB table that were touched)."]
     print(lines[-1])
     if not args.no_write:
         append_results("Tensor path vs reference" + (" (quick)" if args.quick else ""),
