@@ -81,9 +81,10 @@ def draw_result(rgb: np.ndarray, result: ImageResult, scale: int = 2,
             ex, ey = cx + (vx - cx) * t, cy + (vy - cy) * t
             sx, sy = cx + (vx - cx) * t * 0.85, cy + (vy - cy) * t * 0.85
             cv2.arrowedLine(img, (int(sx), int(sy)), (int(ex), int(ey)), VP_COLOR, 2, cv2.LINE_AA, tipLength=0.4)
-    label = f"{result.status}  rows {sum(r.valid for r in result.rows)}/{len(result.rows)}"
-    cv2.putText(img, label, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
-    cv2.putText(img, label, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+    label = f"{result.status}  valid rows {sum(r.valid for r in result.rows)}/{len(result.rows)}"
+    (tw, th_), base = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)
+    cv2.rectangle(img, (2, 2), (10 + tw, 10 + th_ + base), (0, 0, 0), -1)
+    cv2.putText(img, label, (6, 6 + th_), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
     return img
 
 

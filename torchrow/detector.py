@@ -8,11 +8,11 @@ turns it into the same per-image :class:`~torchrow.results.ImageResult` records 
 
 from __future__ import annotations
 
+import dataclasses
 import time
-from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Iterator, Sequence
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -99,6 +99,12 @@ class BatchResult:
         return out
 
 
+def _cat(parts: list):
+    """Concatenate dataclasses of batched tensors (same type) along the batch dimension."""
+    kind = type(parts[0])
+    return kind(**{f.name: torch.cat([getattr(p, f.name) for p in parts]) for f in dataclasses.fields(kind)})
+
+
 class CropRowDetector(nn.Module):
     """Batched crop-row detector (ALGORITHM.md, image mode), identical to the reference.
 
@@ -170,11 +176,10 @@ class CropRowDetector(nn.Module):
             fit = fransac.fit_rows(veg[sl], ls.theta, ls.rho, present, ls.vp, band[sl], p)
             rows = fransac.validate_rows(*fit, present, h, torch.full_like(band[sl], p.hough_band_px(w)), p)
             parts.append((ls, rows))
-        ls = type(parts[0][0])(*(torch.cat([getattr(q[0], f) for q in parts]) for f in parts[0][0].__dataclass_fields__))
-        rows = type(parts[0][1])(*(torch.cat([getattr(q[1], f) for q in parts]) for f in parts[0][1].__dataclass_fields__))
-        present = rows.present
+        ls = _cat([q[0] for q in parts])
+        rows = _cat([q[1] for q in parts])
         lap("hough+vp+ransac")
-        all_valid = (rows.valid | ~present).all(dim=1)
+        all_valid = (rows.valid | ~rows.present).all(dim=1)
         status = torch.where(all_valid, torch.full((bsz,), STATUS_CODES["ok"], **i64),
                              torch.full((bsz,), STATUS_CODES["invalid"], **i64))
         status = torch.where(ls.has_vp, status, torch.full_like(status, STATUS_CODES["no_vp"]))
@@ -198,38 +203,14 @@ class CropRowDetector(nn.Module):
     def detect(self, images: torch.Tensor | Sequence[np.ndarray | str | Path]) -> BatchResult:
         """Detect rows in a ``uint8 (B, 3, H, W)`` tensor, or a list of same-sized arrays or paths.
 
-        Lists are converted and resized as :func:`torchrow.reference.detect` does. For inputs of
-        different working sizes use :meth:`detect_many`.
+        Lists are converted and resized as :func:`torchrow.reference.detect` does. Inputs of
+        different working sizes go through :func:`torchrow.runner.run`, which groups them.
         """
         if isinstance(images, torch.Tensor):
             return self(images)
         arrays = [self.prepare(im) for im in images]
         if len({a.shape for a in arrays}) > 1:
-            raise ValueError("images of different working sizes: use CropRowDetector.detect_many")
+            raise ValueError("images of different working sizes: use torchrow.runner.run, which groups them")
         if not arrays:
             raise ValueError("detect got an empty list")
         return self(torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).contiguous())
-
-    def detect_many(self, items: Iterable[tuple[str | None, np.ndarray]], batch_size: int = 64
-                    ) -> Iterator[tuple[int, ImageResult]]:
-        """Detect ``(name, working rgb)`` items in batches grouped by working size.
-
-        Yields ``(input index, result)`` as each batch finishes (so not necessarily in input
-        order); a batch is flushed when it reaches ``batch_size`` images of one size.
-        """
-        if batch_size < 1:
-            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-        groups: dict[tuple[int, ...], list[tuple[int, str | None, np.ndarray]]] = defaultdict(list)
-
-        def flush(key):
-            group = groups.pop(key)
-            batch = torch.from_numpy(np.stack([g[2] for g in group])).permute(0, 3, 1, 2).contiguous()
-            for (i, _, _), res in zip(group, self(batch).results([g[1] for g in group])):
-                yield i, res
-
-        for i, (name, rgb) in enumerate(items):
-            groups[rgb.shape].append((i, name, rgb))
-            if len(groups[rgb.shape]) >= batch_size:
-                yield from flush(rgb.shape)
-        for key in list(groups):
-            yield from flush(key)
