@@ -20,10 +20,10 @@ from ..params import Params
 from ..shared import hough_trig, rho_index_table, rho_offset
 from ._checks import check_masks
 
-__all__ = ["HoughState", "pixel_list", "trig", "rho_table", "line_distance", "accumulate", "votes",
+__all__ = ["HoughState", "pixel_list", "compact", "trig", "rho_table", "line_distance", "accumulate", "votes",
            "excluded_angles", "peak"]
 
-#: Pixels per chunk when accumulating votes: bounds the ``(n_theta, chunk)`` int32 index
+#: Pixels per chunk when accumulating votes: bounds the ``(chunk, n_theta)`` int32 index
 #: temporary to ``180 * 65536 * 4`` bytes (47 MB).
 CHUNK = 65536
 
@@ -40,7 +40,7 @@ def trig(params: Params, device: torch.device) -> tuple[torch.Tensor, torch.Tens
 
 def rho_table(height: int, width: int, params: Params, device: torch.device) -> torch.Tensor:
     """Flat accumulator offset of every pixel for every angle within one image's accumulator,
-    ``j*(2D+1) + rho_index``, as ``(n_theta, H*W)`` int32 on ``device``.
+    ``j*(2D+1) + rho_index``, as ``(H*W, n_theta)`` int32 on ``device``.
 
     Built from the shared :func:`torchrow.shared.rho_index_table` (``rint(x*c_j + y*s_j) + D``),
     a constant, so voting does no float arithmetic and an exported graph votes exactly.
@@ -53,7 +53,7 @@ def rho_table(height: int, width: int, params: Params, device: torch.device) -> 
         n_rho = 2 * rho_offset(height, width) + 1
         t = torch.from_numpy(rho_index_table(height, width, params.theta_step).astype(np.int32))
         t += torch.arange(t.shape[0], dtype=torch.int32).view(-1, 1) * n_rho
-        _CACHE[key] = t.to(device)
+        _CACHE[key] = t.T.contiguous().to(device)  # pixel-major: one pixel's cells are one row
     return _CACHE[key]
 
 
@@ -89,28 +89,40 @@ def line_distance(xs: torch.Tensor, ys: torch.Tensor, cos_j: torch.Tensor, sin_j
     return ((xs.to(torch.float64) * cos_j + ys.to(torch.float64) * sin_j) - rho).abs()
 
 
+def compact(select: torch.Tensor) -> tuple[torch.Tensor, int]:
+    """Positions of the True entries of a 1-D bool tensor, in order, without ``nonzero``.
+
+    A prefix sum gives every selected entry its slot; one scatter (no reduction) writes the
+    positions there. Returns ``(positions int64 (n,), n)``; ``n`` is read to the host (the loop
+    bound of the caller).
+    """
+    slot = torch.cumsum(select, 0, dtype=torch.int64) - 1
+    n = int(slot[-1]) + 1 if slot.numel() else 0
+    dest = torch.where(select, slot, torch.full_like(slot, n))
+    out = torch.empty(n + 1, dtype=torch.int64, device=select.device)
+    out.scatter_(0, dest, torch.arange(select.numel(), device=select.device))
+    return out[:n], n
+
+
 def accumulate(acc: torch.Tensor, idx: torch.Tensor, select: torch.Tensor, sign: int,
                table: torch.Tensor) -> None:
     """Add ``sign`` votes of the selected list entries into ``acc`` in place.
 
     ``acc`` int32 ``(B, n_theta, 2D+1)``; ``idx`` int64 ``(B, K)`` raster pixel indices;
     ``select`` bool ``(B, K)``; ``table`` from :func:`rho_table`. The selected entries of the
-    whole batch are compacted into one list first (stable sort, no ``nonzero``; its length is
-    the loop bound, the one host synchronisation), so padding costs nothing; votes are then
-    added in chunks of :data:`CHUNK` pixels, angle-major so consecutive writes stay in one
-    accumulator row.
+    whole batch are compacted into one list first (:func:`compact`; its length is the loop
+    bound, the one host synchronisation), so padding costs nothing; votes are then
+    added in chunks of :data:`CHUNK` pixels, each pixel's 180 cells read as one table row.
     """
     b, n_theta, n_rho = acc.shape
     k = idx.shape[1]
-    flat_sel = select.reshape(b * k)
-    order = torch.sort((~flat_sel).to(torch.uint8), stable=True).indices
-    n = active_width(flat_sel.sum().view(1))
+    order, n = compact(select.reshape(b * k))
     flat_acc = acc.view(-1)
     flat_idx = idx.reshape(b * k)
     one = torch.full((1,), sign, dtype=torch.int32, device=acc.device)
     for start in range(0, n, CHUNK):
         sel = order[start:min(start + CHUNK, n)]
-        cells = table.index_select(1, flat_idx[sel]) + ((sel // k).to(torch.int32) * (n_theta * n_rho)).unsqueeze(0)
+        cells = table.index_select(0, flat_idx[sel]) + ((sel // k).to(torch.int32) * (n_theta * n_rho)).unsqueeze(1)
         flat_acc.index_add_(0, cells.view(-1), one.expand(cells.numel()))
 
 
