@@ -159,3 +159,17 @@ def test_batch_without_any_vegetation(detector: CropRowDetector) -> None:
     assert [r.status for r in got] == ["no_vegetation", "no_vegetation"]
     for im, res in zip([soil, soil[:, ::-1].copy()], got):
         assert_same(detect(im), res, "soil")
+
+
+@pytest.mark.data
+def test_rover_frames_equal_reference(detector: CropRowDetector, data_dir) -> None:
+    """Real 1280x720 rover frames (another working size: 320x180) through both paths."""
+    from torchrow.io import load_image
+
+    frames = sorted((data_dir / "caterra_video").glob("rgb*.jpg"))[::20]
+    if not frames:
+        pytest.skip("caterra_video frames not found")
+    imgs = [load_image(f, 320) for f in frames]
+    assert imgs[0].shape == (180, 320, 3)
+    for f, im, res in zip(frames, imgs, detector(to_batch(imgs)).results()):
+        assert_same(detect(im), res, f.name)
