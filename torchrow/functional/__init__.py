@@ -12,3 +12,7 @@ Conventions shared by every stage module (:mod:`.sky`, :mod:`.color`, :mod:`.veg
   that decides a discrete output is float64 and written exactly as in the spec;
 * results equal the reference's for every image, whatever else shares the batch.
 """
+
+from . import color, hough, ransac, sky, vanishing, vegetation  # noqa: E402
+
+__all__ = ["sky", "color", "vegetation", "hough", "vanishing", "ransac"]
