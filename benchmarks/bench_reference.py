@@ -15,11 +15,10 @@ import argparse
 import json
 import statistics as st
 import time
-from pathlib import Path
 
 import numpy as np
 
-from _common import append_results, environment, data_root  # type: ignore[import-not-found]
+from _common import append_results, data_root  # type: ignore[import-not-found]
 
 from torchrow import ImageResult, Params, Row
 from torchrow.datasets import CRBD

@@ -5,10 +5,9 @@ from __future__ import annotations
 import csv
 import json
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Sequence
 
 import numpy as np
 
@@ -17,7 +16,7 @@ from .io import ImageError
 from .metrics import crda, crda_official, crda_thesis, summarize
 from .params import Params
 from .results import ImageResult
-from .runner import run
+from .runner import _progress, run
 
 __all__ = ["EvalRow", "EvalReport", "evaluate", "score_tmg_files", "SUBSETS"]
 
@@ -117,12 +116,6 @@ def plot_cumulative(series: Sequence[tuple[str, Sequence[float]]], path: Path, t
     plt.close(fig)
 
 
-def _progress(it: Iterable, total: int, desc: str, enabled: bool) -> Iterable:
-    from tqdm.auto import tqdm
-
-    return tqdm(it, total=total, desc=desc, file=sys.stderr, disable=not enabled, unit="img")
-
-
 def evaluate(crbd: CRBD, indices: Sequence[int] | None = None, impl: str = "tensor",
              params: Params | None = None, batch_size: int = 64, device: str | None = None,
              progress: bool = True) -> EvalReport:
@@ -172,7 +165,9 @@ def score_tmg_files(crbd: CRBD, results_dir: Path, ext: str = ".tmg",
     adjacent rows per image row). Returns ``(name, crda sigma 0.1, crda sigma 0.3)``; a missing
     or malformed file scores 0."""
     out = []
-    for i in _progress(range(len(crbd)), len(crbd), "score", progress):
+    bar = _progress(len(crbd), "score", progress)
+    for i in range(len(crbd)):
+        bar.update(1)
         item = crbd[i]
         path = results_dir / f"{item.stem}{ext}"
         gt = item.ground_truth
@@ -185,4 +180,5 @@ def score_tmg_files(crbd: CRBD, results_dir: Path, ext: str = ".tmg",
             print(f"torchrow: warning: {exc}", file=sys.stderr)
             s01 = s03 = 0.0
         out.append((item.name, s01, s03))
+    bar.close()
     return out

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..io import ImageError, resize_to_width, to_rgb8
+from ..io import resize_to_width, to_rgb8
 from ..params import Params
 from ..results import ImageResult
 from .color import vegetation_color

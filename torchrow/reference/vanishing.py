@@ -91,7 +91,6 @@ def find_lines(hough_in: np.ndarray, params: Params) -> LineSearch:
         state = HoughState.start(hough_in, params)
         held: list[HoughLine] = []
         dropped = 0
-        restart = False
         n = _fill(state, held, n, params)
         while True:
             sol = vanishing_point(held, params)
@@ -104,9 +103,7 @@ def find_lines(hough_in: np.ndarray, params: Params) -> LineSearch:
             outliers.append(held.pop(i))
             dropped += 1
             if dropped == params.max_outliers:
-                restart = True
-                break
+                break  # restart from the untouched input with one row fewer
             n = _fill(state, held, n, params)
-        if restart:
-            n -= 1
+        n -= 1
     return LineSearch([], outliers, n, None)
