@@ -173,3 +173,23 @@ def test_rover_frames_equal_reference(detector: CropRowDetector, data_dir) -> No
     assert imgs[0].shape == (180, 320, 3)
     for f, im, res in zip(frames, imgs, detector(to_batch(imgs)).results()):
         assert_same(detect(im), res, f.name)
+
+
+def test_given_vegetation_color_equals_reference(detector: CropRowDetector) -> None:
+    """A fixed colour (calibrated once, or a video's frame 0) replaces clustering in both paths."""
+    images = [render(FieldSpec(seed=s)).image for s in (3, 4)]
+    color = (40, 120, 30)
+    got = detector(to_batch(images), veg_color=torch.tensor(color, dtype=torch.uint8)).results()
+    for i, (im, g) in enumerate(zip(images, got)):
+        ref = detect(im, veg_color=color)
+        assert ref.veg_color == color
+        assert_same(ref, g, f"image {i}")
+    per_image = torch.tensor([color, (0, 255, 0)], dtype=torch.uint8)
+    got = detector(to_batch(images), veg_color=per_image).results()
+    assert_same(detect(images[1], veg_color=(0, 255, 0)), got[1], "per-image colour")
+    with pytest.raises(TypeError, match="uint8"):
+        detector(to_batch(images), veg_color=torch.tensor(color))
+    with pytest.raises(ValueError, match=r"\(3,\) or \(B, 3\)"):
+        detector(to_batch(images), veg_color=torch.zeros(3, 3, dtype=torch.uint8))
+    with pytest.raises(ValueError, match="three integers"):
+        detect(images[0], veg_color=(0, 300, 0))

@@ -99,6 +99,19 @@ class BatchResult:
         return out
 
 
+def _color_override(color: torch.Tensor, batch: int, device: torch.device) -> torch.Tensor:
+    """Validate a given vegetation colour and broadcast it to ``uint8 (B, 3)``."""
+    if not isinstance(color, torch.Tensor):
+        color = torch.as_tensor(color)
+    if color.dtype != torch.uint8:
+        raise TypeError(f"veg_color must be uint8 RGB, got dtype {color.dtype}")
+    if color.shape == (3,):
+        color = color.expand(batch, 3)
+    if color.shape != (batch, 3):
+        raise ValueError(f"veg_color must have shape (3,) or (B, 3) = ({batch}, 3), got {tuple(color.shape)}")
+    return color.to(device).contiguous()
+
+
 def _cat(parts: list):
     """Concatenate dataclasses of batched tensors (same type) along the batch dimension."""
     kind = type(parts[0])
@@ -134,11 +147,14 @@ class CropRowDetector(nn.Module):
         self.chunk = chunk if chunk is not None else (8 if self.device.type == "cpu" else None)
 
     @torch.no_grad()
-    def forward(self, images: torch.Tensor, profile: bool = False) -> BatchResult:
+    def forward(self, images: torch.Tensor, profile: bool = False,
+                veg_color: torch.Tensor | None = None) -> BatchResult:
         """Detect rows in ``uint8 (B, 3, H, W)`` RGB images already at working size.
 
         With ``profile=True`` the result's ``timings`` holds seconds per stage (this adds a
-        device synchronisation after each stage).
+        device synchronisation after each stage). ``veg_color`` (``uint8 (B, 3)`` or ``(3,)``
+        RGB) replaces section 2's per-image colour clustering, e.g. a colour calibrated once
+        for a field, or the frame-0 colour of a video.
         """
         check_images(images)
         p = self.params
@@ -158,7 +174,10 @@ class CropRowDetector(nn.Module):
         i64 = dict(dtype=torch.int64, device=x.device)
         sky = fsky.sky_row(x, p)
         lap("sky")
-        color = fcolor.vegetation_color(x, p)
+        if veg_color is None:
+            color = fcolor.vegetation_color(x, p)
+        else:
+            color = _color_override(veg_color, bsz, x.device)
         lap("color")
         k = torch.full((bsz,), p.veg_tol, **i64)
         veg = fveg.remove_bushy(fveg.raw_mask(x, color, k, sky), sky, p)

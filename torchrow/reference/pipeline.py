@@ -31,7 +31,8 @@ def prepare(image: np.ndarray, params: Params) -> np.ndarray:
     return resize_to_width(to_rgb8(image), params.image_width)
 
 
-def detect(image: np.ndarray, params: Params | None = None, name: str | None = None) -> ImageResult:
+def detect(image: np.ndarray, params: Params | None = None, name: str | None = None,
+           veg_color: tuple[int, int, int] | None = None) -> ImageResult:
     """Detect crop rows in one RGB image, the plain per-image way.
 
     Parameters
@@ -43,6 +44,9 @@ def detect(image: np.ndarray, params: Params | None = None, name: str | None = N
         Constants; ``Params()`` by default.
     name : str, optional
         Stored in the result (e.g. the file name).
+    veg_color : (int, int, int), optional
+        RGB vegetation colour to use instead of section 2's clustering (a colour calibrated
+        once for a field, or a video's frame-0 colour).
 
     Returns
     -------
@@ -53,7 +57,12 @@ def detect(image: np.ndarray, params: Params | None = None, name: str | None = N
     rgb = prepare(image, params)
     h, w = rgb.shape[:2]
     sky = sky_row(rgb, params)
-    color, _ = vegetation_color(rgb, params)
+    if veg_color is None:
+        color, _ = vegetation_color(rgb, params)
+    else:
+        color = tuple(int(c) for c in veg_color)
+        if len(color) != 3 or not all(0 <= c <= 255 for c in color):
+            raise ValueError(f"veg_color must be three integers in [0, 255], got {veg_color!r}")
     k = params.veg_tol
     veg = remove_bushy(raw_mask(rgb, color, k, sky), sky, params)
     res = ImageResult(width=w, height=h, status="no_vp", sky=sky, veg_color=color, k=k, name=name)
