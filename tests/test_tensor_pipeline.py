@@ -193,3 +193,18 @@ def test_given_vegetation_color_equals_reference(detector: CropRowDetector) -> N
         detector(to_batch(images), veg_color=torch.zeros(3, 3, dtype=torch.uint8))
     with pytest.raises(ValueError, match="three integers"):
         detect(images[0], veg_color=(0, 300, 0))
+
+
+def test_worker_threads_do_not_change_results() -> None:
+    """Chunks run concurrently on single-threaded workers; the records and the caller's
+    thread count are unchanged."""
+    cases = _adversarial()
+    batch = to_batch(list(cases.values()))
+    serial = CropRowDetector(chunk=2, workers=1)(batch).results()
+    threads = torch.get_num_threads()
+    parallel = CropRowDetector(chunk=2, workers=3)(batch).results()
+    assert torch.get_num_threads() == threads
+    for a, b in zip(serial, parallel):
+        assert a.to_record() == b.to_record()
+    with pytest.raises(ValueError, match="workers"):
+        CropRowDetector(workers=0)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -112,6 +113,15 @@ def _color_override(color: torch.Tensor, batch: int, device: torch.device) -> to
     return color.to(device).contiguous()
 
 
+def _cat_results(parts: list[BatchResult]) -> BatchResult:
+    """Concatenate the results of consecutive chunks of one batch."""
+    first = parts[0]
+    fields = {f.name: (torch.cat([getattr(q, f.name) for q in parts])
+                       if isinstance(getattr(first, f.name), torch.Tensor) else getattr(first, f.name))
+              for f in dataclasses.fields(BatchResult)}
+    return BatchResult(**fields)
+
+
 def _cat(parts: list):
     """Concatenate dataclasses of batched tensors (same type) along the batch dimension."""
     kind = type(parts[0])
@@ -136,15 +146,24 @@ class CropRowDetector(nn.Module):
     """
 
     def __init__(self, params: Params | None = None, device: str | torch.device | None = None,
-                 chunk: int | None = None) -> None:
+                 chunk: int | None = None, workers: int | None = None) -> None:
         super().__init__()
         self.params = params or Params()
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         if chunk is not None and chunk < 1:
             raise ValueError(f"chunk must be None or >= 1, got {chunk}")
+        if workers is not None and workers < 1:
+            raise ValueError(f"workers must be None or >= 1, got {workers}")
         # Hough/VP/RANSAC keep per-image accumulators of ~0.6 MB: on a CPU, groups of 8 images
         # stay in cache (measured 1.5x faster per image than 64 at once); a GPU takes all.
         self.chunk = chunk if chunk is not None else (8 if self.device.type == "cpu" else None)
+        # Most of the work is many small ops (sorts, cumsums, scatters, argmax over one
+        # chunk) that torch runs on one thread, so on a CPU whole chunks run concurrently on
+        # single-threaded workers instead (measured 1.5x the images/s of 2 intra-op threads
+        # on 2 cores). Results never depend on it: chunks are independent.
+        if workers is None:
+            workers = torch.get_num_threads() if self.device.type == "cpu" else 1
+        self.workers = workers
 
     @torch.no_grad()
     def forward(self, images: torch.Tensor, profile: bool = False,
@@ -152,11 +171,50 @@ class CropRowDetector(nn.Module):
         """Detect rows in ``uint8 (B, 3, H, W)`` RGB images already at working size.
 
         With ``profile=True`` the result's ``timings`` holds seconds per stage (this adds a
-        device synchronisation after each stage). ``veg_color`` (``uint8 (B, 3)`` or ``(3,)``
-        RGB) replaces section 2's per-image colour clustering, e.g. a colour calibrated once
-        for a field, or the frame-0 colour of a video.
+        device synchronisation after each stage, and runs the chunks one after the other).
+        ``veg_color`` (``uint8 (B, 3)`` or ``(3,)`` RGB) replaces section 2's per-image colour
+        clustering, e.g. a colour calibrated once for a field, or the frame-0 colour of a
+        video.
+
+        On a CPU with ``workers > 1`` and more than one chunk, chunks of ``chunk`` images run
+        in a thread pool with one torch thread each (the global intra-op thread count is
+        restored afterwards). Peak memory: about 90 MB per chunk of 8 images at 320x240 in
+        flight, plus the LAB table pages touched (a shared read-only memory map).
         """
         check_images(images)
+        bsz = images.shape[0]
+        color = None if veg_color is None else _color_override(veg_color, bsz, self.device)
+        step = self.chunk or max(bsz, 1)
+        if profile or self.workers <= 1 or bsz <= step or self.device.type != "cpu":
+            return self._forward(images, profile, color)
+        self._warm(images.shape[2], images.shape[3])
+        starts = range(0, bsz, step)
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            with ThreadPoolExecutor(max_workers=min(self.workers, len(starts))) as pool:
+                parts = list(pool.map(lambda s0: self._worker(
+                    images[s0:s0 + step], None if color is None else color[s0:s0 + step]), starts))
+        finally:
+            torch.set_num_threads(threads)
+        return _cat_results(parts)
+
+    def _warm(self, height: int, width: int) -> None:
+        """Build the shared constant tables once, before worker threads read them."""
+        from .functional import hough as fhough
+        from .shared import lab_table_torch
+        fhough.trig(self.params, self.device)
+        fhough.rho_table(height, width, self.params, self.device)
+        fransac._table(self.params, self.device)
+        lab_table_torch(self.device)
+
+    def _worker(self, images: torch.Tensor, veg_color: torch.Tensor | None) -> BatchResult:
+        # Thread count (OpenMP's is per thread) and grad mode are thread-local settings.
+        torch.set_num_threads(1)
+        with torch.no_grad():
+            return self._forward(images, False, veg_color)
+
+    def _forward(self, images: torch.Tensor, profile: bool, veg_color: torch.Tensor | None) -> BatchResult:
         p = self.params
         x = images.to(self.device)
         bsz, _, h, w = x.shape
@@ -174,10 +232,7 @@ class CropRowDetector(nn.Module):
         i64 = dict(dtype=torch.int64, device=x.device)
         sky = fsky.sky_row(x, p)
         lap("sky")
-        if veg_color is None:
-            color = fcolor.vegetation_color(x, p)
-        else:
-            color = _color_override(veg_color, bsz, x.device)
+        color = fcolor.vegetation_color(x, p) if veg_color is None else veg_color.to(x.device)
         lap("color")
         k = torch.full((bsz,), p.veg_tol, **i64)
         veg = fveg.remove_bushy(fveg.raw_mask(x, color, k, sky), sky, p)

@@ -49,7 +49,7 @@ def rho_table(height: int, width: int, params: Params, device: torch.device) -> 
     key = ("rho", height, width, params.theta_step, str(device))
     if key not in _CACHE:
         for k in [k for k in _CACHE if k[0] == "rho"][:-1]:
-            del _CACHE[k]
+            _CACHE.pop(k, None)  # another thread may have dropped it already
         n_rho = 2 * rho_offset(height, width) + 1
         t = torch.from_numpy(rho_index_table(height, width, params.theta_step).astype(np.int32))
         t += torch.arange(t.shape[0], dtype=torch.int32).view(-1, 1) * n_rho
