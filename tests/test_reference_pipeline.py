@@ -33,7 +33,7 @@ def crbd_image(crbd_dir: Path, number: int) -> np.ndarray:
 def check_invariants(res: ImageResult, params: Params = P) -> None:
     """What every result must satisfy whatever the image (section 9)."""
     assert res.status in STATUSES and res.status != "error"
-    h, w = res.height, res.width
+    h = res.height
     assert 0 <= res.sky <= h / 2
     assert len(res.veg_color) == 3 and all(0 <= c <= 255 for c in res.veg_color)
     if res.status in ("ok", "invalid"):

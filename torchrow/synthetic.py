@@ -650,14 +650,16 @@ def _plants(spec: FieldSpec, geo: _Geometry, img: np.ndarray, drawn: range | Non
         aspect = 0.4 + 0.45 * cu[:, 3]
         ang = 180.0 * cu[:, 2]
         col = _green(base, cn[:, 1:5], spec.color_jitter)
-        depth_l += [ui]; x_l += [x]; y_l += [v]; ax_l += [r]; ay_l += [r * aspect]
-        ang_l += [ang]; col_l += [col]
+        for acc, item in ((depth_l, ui), (x_l, x), (y_l, v), (ax_l, r), (ay_l, r * aspect), (ang_l, ang),
+                          (col_l, col)):
+            acc.append(item)
         # a second leaf on most clumps big enough to show it
         two = (cu[:, 4] < 0.6) & (r > 2.0)
         r2 = (r * (0.5 + 0.4 * cu[:, 6]))[two]
-        depth_l += [ui[two] - 1e-9]; x_l += [x[two]]; y_l += [v[two]]; ax_l += [r2]
-        ay_l += [r2 * aspect[two] * 0.9]; ang_l += [ang[two] + 50.0 + 80.0 * cu[two, 5]]
-        col_l += [np.clip(col[two] + np.array([4.0, 8.0, 2.0]), 0, 255)]
+        for acc, item in ((depth_l, ui[two] - 1e-9), (x_l, x[two]), (y_l, v[two]), (ax_l, r2),
+                          (ay_l, r2 * aspect[two] * 0.9), (ang_l, ang[two] + 50.0 + 80.0 * cu[two, 5]),
+                          (col_l, np.clip(col[two] + np.array([4.0, 8.0, 2.0]), 0, 255))):
+            acc.append(item)
     if weeds:
         jj = np.concatenate([w[0] for w in weeds]).astype(np.float64)
         wu = np.concatenate([w[1] for w in weeds])
@@ -678,9 +680,10 @@ def _plants(spec: FieldSpec, geo: _Geometry, img: np.ndarray, drawn: range | Non
             cx = xw[sel] + wn[sel, 2 * m] * rw[sel] * 0.8
             cy = v[sel] + wn[sel, 2 * m + 1] * rw[sel] * 0.5
             on = (cx + rr >= -1) & (cx - rr <= W) & (cy - rr <= H) & (cy + rr >= -1)
-            depth_l += [ui[sel][on]]; x_l += [cx[on]]; y_l += [cy[on]]; ax_l += [rr[on]]
-            ay_l += [rr[on] * (0.35 + 0.55 * wu[sel, 4 + m][on])]
-            ang_l += [180.0 * wu[sel, 7 + m][on]]; col_l += [col[sel][on]]
+            for acc, item in ((depth_l, ui[sel][on]), (x_l, cx[on]), (y_l, cy[on]), (ax_l, rr[on]),
+                              (ay_l, rr[on] * (0.35 + 0.55 * wu[sel, 4 + m][on])),
+                              (ang_l, 180.0 * wu[sel, 7 + m][on]), (col_l, col[sel][on])):
+                acc.append(item)
     if depth_l:
         _draw_ellipses(img, *(np.concatenate(a) for a in
                               (depth_l, x_l, y_l, ax_l, ay_l, ang_l, col_l)))
