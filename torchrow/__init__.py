@@ -5,7 +5,8 @@ from .results import HoughLine, ImageResult, Row
 
 __version__ = "0.1.0"
 
-__all__ = ["Params", "ImageResult", "Row", "HoughLine", "CropRowDetector", "BatchResult", "__version__"]
+__all__ = ["Params", "ImageResult", "Row", "HoughLine", "CropRowDetector", "BatchResult", "Tracker",
+           "__version__"]
 
 
 def __getattr__(name: str):
@@ -14,4 +15,8 @@ def __getattr__(name: str):
         from . import detector
 
         return getattr(detector, name)
+    if name == "Tracker":
+        from . import tracker
+
+        return tracker.Tracker
     raise AttributeError(f"module 'torchrow' has no attribute {name!r}")

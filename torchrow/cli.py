@@ -1,4 +1,4 @@
-"""Command line: ``torchrow detect | eval | score | demo`` (also ``python -m torchrow``).
+"""Command line: ``torchrow detect | eval | score | demo | video`` (also ``python -m torchrow``).
 
 Errors in arguments or paths print one line (``torchrow: error: ...``) and exit with 2; a
 file that cannot be read inside a run gets an ``error`` record and the run goes on.
@@ -175,6 +175,167 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _open_sources(raw: Sequence[str]):
+    from .io import ImageError
+    from .video import open_source
+
+    out = []
+    for r in raw:
+        try:
+            out.append(open_source(r))
+        except (FileNotFoundError, ImageError) as exc:
+            raise CLIError(str(exc)) from None
+    return out
+
+
+def _first_size(src, width: int) -> tuple[int, int] | None:
+    """Working (H, W) of a source's first readable frame (None if none is readable)."""
+    from .video import load_item
+
+    for item in src:
+        got = load_item(item, width)
+        if got.rgb is not None:
+            return got.rgb.shape[:2]
+    return None
+
+
+class _Annotator:
+    """Writes annotated frames: one video per source (``OUT.mp4``) or PNGs in a folder."""
+
+    VIDEO = (".mp4", ".avi", ".mov", ".mkv", ".m4v")
+
+    def __init__(self, target: str | None, sources: list, fps: float = 10.0) -> None:
+        self.target = Path(target) if target else None
+        self.is_video = self.target is not None and self.target.suffix.lower() in self.VIDEO
+        self.writers: dict[int, object] = {}
+        self.size: dict[int, tuple[int, int]] = {}
+        self.fps = fps
+        stems: list[str] = []
+        for i, s in enumerate(sources):
+            stem = s.path.stem or f"source{i}"
+            stems.append(stem if stem not in stems else f"{stem}_{i}")
+        self.stems = stems
+        self.n = len(sources)
+        if self.target is not None:
+            folder = self.target.parent if self.is_video else self.target
+            if self.is_video and not folder.exists():
+                raise CLIError(f"folder of --annotate does not exist: {folder}")
+            folder.mkdir(parents=True, exist_ok=True)
+
+    def _video_path(self, i: int) -> Path:
+        assert self.target is not None
+        if self.n == 1:
+            return self.target
+        return self.target.with_name(f"{self.target.stem}_{self.stems[i]}{self.target.suffix}")
+
+    def write(self, i: int, res, rgb) -> None:
+        import cv2
+
+        from .annotate import save_rgb
+        from .video import draw_frame, error_frame
+
+        if self.target is None:
+            return
+        if rgb is not None:
+            img = draw_frame(rgb, res)
+            self.size.setdefault(i, (rgb.shape[1], rgb.shape[0]))
+        elif i in self.size:
+            img = error_frame(*self.size[i], f"frame {res.frame}: {res.error}")
+        else:
+            return
+        if not self.is_video:
+            save_rgb(self.target / f"{self.stems[i]}_{res.frame:05d}.png", img)
+            return
+        if i not in self.writers:
+            path = self._video_path(i)
+            fourcc = cv2.VideoWriter_fourcc(*("mp4v" if path.suffix.lower() in (".mp4", ".m4v", ".mov") else "MJPG"))
+            vw = cv2.VideoWriter(str(path), fourcc, self.fps, (img.shape[1], img.shape[0]))
+            if not vw.isOpened():
+                raise CLIError(f"cannot write video {path}")
+            self.writers[i] = vw
+        self.writers[i].write(cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+
+    def close(self) -> None:
+        for vw in self.writers.values():
+            vw.release()
+
+
+def cmd_video(args: argparse.Namespace) -> int:
+    from .runner import _progress
+    from .video import central_jumps, plot_tracks
+
+    params = _parse_params(args.param)
+    if args.hough_every is not None:
+        if args.hough_every < 1:
+            raise CLIError(f"--every must be >= 1, got {args.hough_every}")
+        params = params.replace(hough_every=args.hough_every)
+    if args.fov is not None and not 0 < args.fov < 180:
+        raise CLIError(f"--fov must lie in (0, 180) degrees, got {args.fov}")
+    device = _check_device(args.device)
+    sources = _open_sources(args.sources)
+    out = Path(args.out)
+    if out.parent and not out.parent.exists():
+        raise CLIError(f"output folder does not exist: {out.parent}")
+    plot = Path(args.plot) if args.plot else out.with_suffix(".png")
+    ann = _Annotator(args.annotate, sources)
+    names = [s.name for s in sources]
+    if args.impl == "reference":
+        from .reference import Tracker as RefTracker
+
+        ref = RefTracker(params, hfov_deg=args.fov)
+        runs = [(lambda i=i: ((i, r, rgb) for r, rgb in ref.track_iter(sources[i], names[i])))
+                for i in range(len(sources))]
+    else:
+        from .tracker import Tracker
+
+        tracker = Tracker(params, device=device, hfov_deg=args.fov)
+        groups: dict[object, list[int]] = {}
+        for i, s in enumerate(sources):  # one working size per batch
+            groups.setdefault(_first_size(s, params.video_width), []).append(i)
+        batches = [g[j:j + args.batch_size] for g in groups.values() for j in range(0, len(g), args.batch_size)]
+
+        def run_batch(batch: list[int]):
+            for b, r, rgb in tracker.track_iter([sources[i] for i in batch], [names[i] for i in batch]):
+                yield batch[b], r, rgb
+
+        runs = [(lambda batch=batch: run_batch(batch)) for batch in batches]
+    by_source: dict[str, list[dict]] = {n: [] for n in names}
+    counts: dict[str, int] = {}
+    total = sum(s.length for s in sources)
+    bar = _progress(total, "video", not args.quiet)
+    bar.unit = "frame"
+    try:
+        with open(out, "w") as fh:
+            for run in runs:
+                for i, res, rgb in run():
+                    rec = res.to_record()
+                    fh.write(json.dumps(rec) + "\n")
+                    by_source[names[i]].append(rec)
+                    counts[res.status] = counts.get(res.status, 0) + 1
+                    ann.write(i, res, rgb)
+                    bar.update(1)
+    finally:
+        bar.close()
+        ann.close()
+    for recs in by_source.values():
+        recs.sort(key=lambda r: r["frame"])
+    plot_tracks(by_source, plot)
+    n = sum(counts.values())
+    summary = ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
+    print(f"torchrow: {n} frame(s) of {len(sources)} source(s) -> {out} ({summary}); plot {plot}", file=sys.stderr)
+    for src, recs in by_source.items():
+        jumps = central_jumps(recs)
+        hough = sum(1 for r in recs if r.get("hough_ran"))
+
+        def worst(key: str) -> str:
+            return f"{max(jumps[key]):.1f} px" if jumps[key] else "n/a"
+
+        print(f"  {src}: Hough on {hough} of {len(recs)} frames; largest move of the central row at the "
+              f"bottom: {worst('tracked')} into a tracked frame, {worst('hough')} into a Hough frame",
+              file=sys.stderr)
+    return 0
+
+
 def _fmt_vp(vp) -> str:
     return "none" if vp is None else f"({vp[0]:.1f}, {vp[1]:.1f})"
 
@@ -219,6 +380,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ext", default=".tmg", help="result file extension (default .tmg)")
     common(p)
     p.set_defaults(func=cmd_score)
+
+    p = sub.add_parser("video", help="track rows through frame sequences (ALGORITHM.md section 8)",
+                       description="Track crop rows through folders of frames (sorted by name) or video files; "
+                                   "several sources are tracked as a batch of sequences. Writes one JSON record "
+                                   "per frame and a PNG plot of rows and steering signals over time.")
+    p.add_argument("sources", nargs="+", metavar="SOURCE", help="folder of frames or video file")
+    p.add_argument("--out", required=True, help="JSONL output file (plot next to it, .png)")
+    p.add_argument("--annotate", metavar="OUT.mp4|DIR", help="annotated video (per source) or folder of PNGs")
+    p.add_argument("--every", dest="hough_every", type=int, default=None, metavar="K",
+                   help="run the Hough stage every K frames (default: Params.hough_every = 5)")
+    p.add_argument("--fov", type=float, default=None, metavar="DEG",
+                   help="horizontal field of view of the frames, for heading_rad (null without it)")
+    p.add_argument("--plot", default=None, help="plot file (default: --out with suffix .png)")
+    p.add_argument("--impl", choices=("tensor", "reference"), default="tensor",
+                   help="batched tensor tracker (default) or the per-sequence reference")
+    p.add_argument("--batch-size", type=int, default=8, help="sequences per batch for --impl tensor")
+    p.add_argument("--device", default=None, help="torch device for --impl tensor (cpu, cuda, cuda:1)")
+    common(p)
+    p.set_defaults(func=cmd_video)
 
     p = sub.add_parser("demo", help="detect rows on a built-in synthetic field (no data needed)")
     p.add_argument("--out", default="torchrow-demo.png", help="annotated image (default torchrow-demo.png)")

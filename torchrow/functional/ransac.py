@@ -43,8 +43,12 @@ class RowFits:
 
 
 def _band_points(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, band: torch.Tensor,
-                 params: Params):
+                 params: Params, track: tuple[torch.Tensor, torch.Tensor] | None = None):
     """Steps 7 (band) and 7.2 (subsample): the kept pixels of every row, row-major.
+
+    With ``track = (a, b)`` (float64 ``(B, S)``, video mode) the band is around the row
+    ``x = a*y + b`` instead of the Hough line: ``((x - a*y) - b)**2 <= (band/2)**2 * (1 + a*a)``,
+    the expression of :func:`torchrow.reference.ransac.track_band_points`.
 
     Returns ``px, py`` float64 ``(B, S, P)``, ``n_keep`` and ``v_keep`` int64 ``(B, S)`` and
     ``n`` (pixels in the band before subsampling).
@@ -55,10 +59,17 @@ def _band_points(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, band
     idx = idx[:, :k]
     live = torch.arange(k, device=veg.device) < count.unsqueeze(1)  # (B, K)
     xs, ys = idx % w, idx // w
-    cos, sin = trig(params, veg.device)
-    dist = ((xs.to(torch.float64).unsqueeze(1) * cos[theta].unsqueeze(2)
-             + ys.to(torch.float64).unsqueeze(1) * sin[theta].unsqueeze(2)) - rho.to(torch.float64).unsqueeze(2)).abs()
-    member = (dist <= (band.to(torch.float64) / 2).view(-1, 1, 1)) & live.unsqueeze(1)  # (B, S, K)
+    if track is None:
+        cos, sin = trig(params, veg.device)
+        dist = ((xs.to(torch.float64).unsqueeze(1) * cos[theta].unsqueeze(2)
+                 + ys.to(torch.float64).unsqueeze(1) * sin[theta].unsqueeze(2))
+                - rho.to(torch.float64).unsqueeze(2)).abs()
+        member = (dist <= (band.to(torch.float64) / 2).view(-1, 1, 1)) & live.unsqueeze(1)  # (B, S, K)
+    else:
+        ta, tb = (t.to(torch.float64).unsqueeze(2) for t in track)  # (B, S, 1)
+        r = (xs.to(torch.float64).unsqueeze(1) - ta * ys.to(torch.float64).unsqueeze(1)) - tb
+        half = (band.to(torch.float64) / 2).view(-1, 1, 1)
+        member = (r * r <= (half * half) * (1.0 + ta * ta)) & live.unsqueeze(1)  # (B, S, K)
     n = member.sum(dim=2)
     v = n // 2
     sub = n + v > params.ransac_max_points
@@ -148,7 +159,8 @@ def _pixel_inliers(pts, px, py, x1, y1, x2, y2, uses_vp, thr: float, bsz: int, s
 
 
 def fit_rows(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, present: torch.Tensor,
-             vp: torch.Tensor, band: torch.Tensor, params: Params):
+             vp: torch.Tensor, band: torch.Tensor, params: Params,
+             track: tuple[torch.Tensor, torch.Tensor] | None = None):
     """Steps 7.1-7.5 for every row of every image.
 
     Parameters
@@ -157,6 +169,8 @@ def fit_rows(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, present:
     theta, rho : int64 (B, S) held Hough lines; ``present`` bool (B, S) marks them.
     vp : float64 (B, 2) vanishing point (rows of images without one must not be present).
     band : int64 (B,) RANSAC band width (px) per image.
+    track : optional ``(a, b)`` float64 (B, S): video mode, the band is around the previous
+        frame's row ``x = a*y + b`` (see :func:`_band_points`); ``theta``/``rho`` are ignored.
 
     Returns
     -------
@@ -167,7 +181,7 @@ def fit_rows(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, present:
     scoring chunks of :data:`SCORE_BUDGET` float64 elements.
     """
     dev = veg.device
-    px, py, n_keep, v_keep, n = _band_points(veg, theta, rho, band, params)
+    px, py, n_keep, v_keep, n = _band_points(veg, theta, rho, band, params, track)
     p = px.shape[2]
     support = present & (n + n // 2 >= params.ransac_min_points)
     if p == 0:  # no band has a pixel (e.g. an all-soil batch): no row has support

@@ -7,5 +7,6 @@ One module per stage, named as in the tensor path: :mod:`.sky` (section 1), :mod
 
 from . import color, hough, ransac, sky, vanishing, vegetation
 from .pipeline import detect, prepare
+from .tracker import Tracker, TrackerState
 
-__all__ = ["detect", "prepare", "sky", "color", "vegetation", "hough", "vanishing", "ransac"]
+__all__ = ["detect", "prepare", "Tracker", "TrackerState", "sky", "color", "vegetation", "hough", "vanishing", "ransac"]

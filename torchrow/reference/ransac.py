@@ -11,7 +11,8 @@ from ..params import Params
 from ..results import HoughLine, Row
 from ..shared import hough_trig, hypothesis_table, subsample_key
 
-__all__ = ["RowFit", "band_points", "subsample", "score_hypotheses", "refit", "fit_row", "validate_rows"]
+__all__ = ["RowFit", "band_points", "track_band_points", "subsample", "score_hypotheses", "refit", "fit_row",
+           "fit_tracked_row", "validate_rows"]
 
 
 @dataclass(frozen=True)
@@ -42,6 +43,25 @@ def band_points(veg: np.ndarray, theta_index: int, rho: float, band: int,
     c, s = hough_trig(params.theta_step)
     ys, xs = np.nonzero(veg)  # row-major already
     keep = np.abs((xs * c[theta_index] + ys * s[theta_index]) - rho) <= band / 2
+    return xs[keep].astype(np.int64), ys[keep].astype(np.int64)
+
+
+def track_band_points(veg: np.ndarray, a: float, b: float, band: int,
+                      params: Params) -> tuple[np.ndarray, np.ndarray]:
+    """Video mode (section 8): pixels of ``veg`` within ``band/2`` of the row ``x = a*y + b``.
+
+    Membership is the orthogonal distance to the row, squared so no square root decides it:
+    ``((x - a*y) - b)**2 <= (band/2)**2 * (1 + a*a)`` (float64, in this operation order; the
+    tensor path evaluates the identical expression). Orthogonal, not horizontal, distance:
+    the band then has the same width for slanted outer rows as for the central one, as the
+    thick line the thesis code drew around the previous row, and as the Hough-line band of
+    section 7. Returns ``(xs, ys)`` int64 arrays, row-major (y, then x).
+    """
+    ys, xs = np.nonzero(veg)  # row-major already
+    a64, b64 = np.float64(a), np.float64(b)
+    r = (xs.astype(np.float64) - a64 * ys.astype(np.float64)) - b64
+    half = np.float64(band) / 2
+    keep = r * r <= (half * half) * (np.float64(1.0) + a64 * a64)
     return xs[keep].astype(np.int64), ys[keep].astype(np.int64)
 
 
@@ -116,8 +136,24 @@ def refit(px: np.ndarray, py: np.ndarray, pw: np.ndarray) -> tuple[float, float,
 def fit_row(veg: np.ndarray, line: HoughLine, vp: tuple[float, float], band: int,
             params: Params) -> RowFit | None:
     """Steps 7.1-7.5 for one held line; ``None`` when the band lacks support."""
-    h, w = veg.shape
     xs, ys = band_points(veg, line.theta_index, line.rho, band, params)
+    return _fit_points(xs, ys, veg.shape[1], vp, params)
+
+
+def fit_tracked_row(veg: np.ndarray, a: float, b: float, vp: tuple[float, float], band: int,
+                    params: Params) -> RowFit | None:
+    """Steps 7.1-7.5 for one previous-frame row ``x = a*y + b`` (video mode, section 8).
+
+    The band is :func:`track_band_points`; everything after it (VP weight ``v = n // 2``,
+    subsampling, hypotheses, refit) is :func:`fit_row`'s. ``None`` when the band lacks support.
+    """
+    xs, ys = track_band_points(veg, a, b, band, params)
+    return _fit_points(xs, ys, veg.shape[1], vp, params)
+
+
+def _fit_points(xs: np.ndarray, ys: np.ndarray, w: int, vp: tuple[float, float],
+                params: Params) -> RowFit | None:
+    """Steps 7.1-7.5 on the band pixels ``(xs, ys)`` (row-major) of an image ``w`` wide."""
     n = xs.size
     if n + n // 2 < params.ransac_min_points:
         return None

@@ -1,0 +1,334 @@
+"""Batched video-mode row tracker (ALGORITHM.md section 8): B sequences in lock-step.
+
+The rules are those of :mod:`torchrow.reference.tracker` (read its docstring); this module
+runs them on ``B`` independent sequences at once:
+
+* :func:`init_state` fixes sky, vegetation colour and ``info0`` from each sequence's frame 0;
+* :func:`segment` runs section 3 (adaptive ``k``, bushy-region removal) on any number of
+  frames in one call; it depends only on the frame-0 values, never on the tracking state,
+  so a chunk of frames of every sequence is segmented at once;
+* :func:`advance` moves every *active* sequence one frame forward: tracked RANSAC for the
+  sequences that may track, then the Hough stage (sections 4-7) for those that must run it
+  (frame 0, previous frame not ``ok``, K frames since the last Hough run) or redo an
+  invalid tracked frame. Inactive sequences (ended, or an unreadable frame) keep their state.
+
+Every choice between the tracked and the Hough result is a ``torch.where`` on per-sequence
+masks; stages whose mask is empty for the whole batch are skipped (a batch-wide early exit
+that changes no result). Sequences that do not need a stage get an empty mask for it, so
+they cost little and never influence the others.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ..params import Params
+from . import color as fcolor
+from . import ransac as fransac
+from . import sky as fsky
+from . import vanishing as fvan
+from . import vegetation as fveg
+from ._checks import check_images
+
+__all__ = ["TrackerState", "TrackStep", "init_state", "merge_state", "segment", "advance", "coverage",
+           "STATUS_OK", "STATUS_INVALID", "STATUS_NO_VP", "STATUS_NO_VEGETATION"]
+
+# codes into torchrow.results.STATUSES
+STATUS_OK, STATUS_INVALID, STATUS_NO_VP, STATUS_NO_VEGETATION = 0, 1, 2, 3
+
+
+@dataclass
+class TrackerState:
+    """Tracking state of ``B`` sequences (the tensor twin of the reference's TrackerState).
+
+    Attributes
+    ----------
+    sky : int64 (B,)
+        Horizon rows fixed on frame 0.
+    veg_color : uint8 (B, 3)
+        Vegetation RGB fixed on frame 0.
+    info0 : float64 (B,)
+        Raw-mask fraction at ``k = video_k_start`` on frame 0, below the horizon.
+    ready : bool (B,)
+        Frame 0 has been seen (the three fields above are set).
+    frames : int64 (B,)
+        Frames processed so far.
+    age : int64 (B,)
+        Frames processed since the last Hough frame (that frame counts 1).
+    prev_valid : bool (B,)
+        The last processed frame had status ``ok``.
+    vp : float64 (B, 2)
+        Vanishing point of the last Hough run (``has_vp`` bool (B,) says whether it has one).
+    row_a, row_b : float64 (B, S)
+        Rows ``x = a*y + b`` of the last processed frame, ``S = params.n_rows`` slots,
+        ``row_present`` bool (B, S) marks the used ones.
+    """
+
+    sky: torch.Tensor
+    veg_color: torch.Tensor
+    info0: torch.Tensor
+    ready: torch.Tensor
+    frames: torch.Tensor
+    age: torch.Tensor
+    prev_valid: torch.Tensor
+    vp: torch.Tensor
+    has_vp: torch.Tensor
+    row_a: torch.Tensor
+    row_b: torch.Tensor
+    row_present: torch.Tensor
+
+    @classmethod
+    def empty(cls, batch: int, params: Params, device: torch.device | str = "cpu") -> "TrackerState":
+        """State of ``batch`` sequences that have not seen a frame yet."""
+        dev = torch.device(device)
+        i64 = dict(dtype=torch.int64, device=dev)
+        f64 = dict(dtype=torch.float64, device=dev)
+        s = params.n_rows
+        return cls(sky=torch.zeros(batch, **i64), veg_color=torch.zeros((batch, 3), dtype=torch.uint8, device=dev),
+                   info0=torch.zeros(batch, **f64), ready=torch.zeros(batch, dtype=torch.bool, device=dev),
+                   frames=torch.zeros(batch, **i64), age=torch.zeros(batch, **i64),
+                   prev_valid=torch.zeros(batch, dtype=torch.bool, device=dev),
+                   vp=torch.zeros((batch, 2), **f64), has_vp=torch.zeros(batch, dtype=torch.bool, device=dev),
+                   row_a=torch.zeros((batch, s), **f64), row_b=torch.zeros((batch, s), **f64),
+                   row_present=torch.zeros((batch, s), dtype=torch.bool, device=dev))
+
+    def __len__(self) -> int:
+        return int(self.sky.shape[0])
+
+    def select(self, index: torch.Tensor | slice) -> "TrackerState":
+        """The state of some sequences (index along the batch dimension)."""
+        return TrackerState(**{f.name: getattr(self, f.name)[index] for f in dataclasses.fields(self)})
+
+
+def merge_state(old: TrackerState, new: TrackerState, mask: torch.Tensor) -> TrackerState:
+    """``new`` where ``mask`` (bool (B,)), ``old`` elsewhere, field by field."""
+    out = {}
+    for f in dataclasses.fields(old):
+        a, b = getattr(old, f.name), getattr(new, f.name)
+        m = mask.view(-1, *([1] * (a.dim() - 1)))
+        out[f.name] = torch.where(m, b, a)
+    return TrackerState(**out)
+
+
+@dataclass
+class TrackStep:
+    """One lock-step frame of ``B`` sequences; rows (B, S), everything else (B,) unless said.
+
+    ``status`` int64 code into :data:`torchrow.results.STATUSES`; ``k`` int64; ``bushy``
+    bool; ``n_rows`` int64; Hough lines ``hough_*`` (B, S) with ``hough_valid`` and dropped
+    outliers ``out_*`` (B, O) with ``out_valid`` (all invalid on tracked frames); ``vp``
+    float64 (B, 2) with ``has_vp``; rows ``row_a``/``row_b`` float64, ``row_valid``,
+    ``row_reason`` (code into REASONS), ``row_hypothesis``, ``row_present``; ``hough_ran``,
+    ``hough_redo`` bool; ``confidence`` float64 in [0, 1]; ``active`` bool (sequences that
+    processed a frame in this step; the other entries are meaningless for the rest).
+    """
+
+    status: torch.Tensor
+    k: torch.Tensor
+    bushy: torch.Tensor
+    n_rows: torch.Tensor
+    hough_theta: torch.Tensor
+    hough_rho: torch.Tensor
+    hough_weight: torch.Tensor
+    hough_valid: torch.Tensor
+    out_theta: torch.Tensor
+    out_rho: torch.Tensor
+    out_weight: torch.Tensor
+    out_valid: torch.Tensor
+    vp: torch.Tensor
+    has_vp: torch.Tensor
+    row_a: torch.Tensor
+    row_b: torch.Tensor
+    row_valid: torch.Tensor
+    row_reason: torch.Tensor
+    row_hypothesis: torch.Tensor
+    row_present: torch.Tensor
+    hough_ran: torch.Tensor
+    hough_redo: torch.Tensor
+    confidence: torch.Tensor
+    active: torch.Tensor
+
+
+def init_state(frames: torch.Tensor, params: Params) -> TrackerState:
+    """State of ``B`` sequences from their frame 0, ``uint8 (B, 3, H, W)`` at working size.
+
+    Sky (section 1), vegetation colour (section 2) and ``info0`` = :func:`raw_fraction` of
+    the raw mask at ``k = video_k_start`` (section 3.3).
+    """
+    check_images(frames, "frames")
+    b = frames.shape[0]
+    sky = fsky.sky_row(frames, params).to(torch.int64)
+    color = fcolor.vegetation_color(frames, params)
+    k0 = torch.full((b,), params.video_k_start, dtype=torch.int64, device=frames.device)
+    info0 = fveg.raw_fraction(fveg.raw_mask(frames, color, k0, sky), sky)
+    st = TrackerState.empty(b, params, frames.device)
+    st.sky, st.veg_color, st.info0 = sky, color, info0.to(torch.float64)
+    st.ready = torch.ones(b, dtype=torch.bool, device=frames.device)
+    return st
+
+
+def segment(frames: torch.Tensor, sky: torch.Tensor, color: torch.Tensor, info0: torch.Tensor,
+            params: Params) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Section 3 with adaptive ``k`` on ``N`` frames (any mix of sequences) in one call.
+
+    Parameters
+    ----------
+    frames : uint8 (N, 3, H, W)
+    sky, color, info0 : int64 (N,), uint8 (N, 3), float64 (N,)
+        Frame-0 values of each frame's sequence.
+
+    Returns
+    -------
+    veg : bool (N, H, W)
+        Bushy-removed vegetation mask.
+    k : int64 (N,)
+        Adaptive LAB half-width.
+    bushy : bool (N,)
+        ``density > bushy_ratio`` (section 4).
+    """
+    k, raw = fveg.adapt_k(frames, color, sky, info0, params)
+    veg = fveg.remove_bushy(raw, sky, params)
+    bushy = fveg.density(veg, sky) > params.bushy_ratio
+    return veg, k, bushy
+
+
+def coverage(veg: torch.Tensor, a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor, sky: torch.Tensor,
+             half_band: float) -> torch.Tensor:
+    """Per-row coverage of :func:`torchrow.steering.row_coverage`, batched: float64 (B, S).
+
+    ``veg`` bool (B, H, W); rows ``x = a*y + b`` (B, S) with ``valid``; ``sky`` int64 (B,).
+    A row ``y >= sky`` counts when a column ``x`` has ``veg`` and
+    ``abs(x - (a*y + b)) <= half_band`` (float64, same order as the reference); invalid
+    rows get 0.
+    """
+    bsz, h, w = veg.shape
+    s = a.shape[1]
+    dev = veg.device
+    ys = torch.arange(h, device=dev)
+    yf = ys.to(torch.float64).view(1, 1, h)
+    aa = torch.where(valid, a, torch.zeros_like(a)).unsqueeze(2)
+    bb = torch.where(valid, b, torch.zeros_like(b)).unsqueeze(2)
+    xc = aa * yf + bb  # (B, S, H)
+    reach = int(math.ceil(half_band)) + 1
+    base = torch.floor(xc.clamp(-reach - 1, w + reach)).to(torch.int64)
+    flat = veg.reshape(bsz, h * w)
+    hit = torch.zeros((bsz, s, h), dtype=torch.bool, device=dev)
+    for d in range(-reach, reach + 1):  # static window of columns around the row
+        xs = base + d
+        inside = (xs >= 0) & (xs < w)
+        near = (xs.to(torch.float64) - xc).abs() <= half_band
+        idx = (ys.view(1, 1, h) * w + xs.clamp(0, w - 1)).reshape(bsz, s * h)
+        on = torch.gather(flat, 1, idx).view(bsz, s, h)
+        hit |= inside & near & on
+    below = ys.view(1, 1, h) >= sky.view(-1, 1, 1)
+    count = (hit & below).sum(2)
+    rows_below = (h - sky.clamp(0, h)).view(-1, 1)
+    cov = count.to(torch.float64) / rows_below.clamp(min=1).to(torch.float64)
+    cov = torch.where(rows_below > 0, cov, torch.zeros_like(cov))
+    return torch.where(valid, cov, torch.zeros_like(cov))
+
+
+def _where(mask: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    return torch.where(mask.view(-1, *([1] * (a.dim() - 1))), a, b)
+
+
+def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: torch.Tensor,
+            state: TrackerState, params: Params) -> tuple[TrackStep, TrackerState]:
+    """Move every active sequence one frame forward (section 8).
+
+    Parameters
+    ----------
+    veg : bool (B, H, W)
+        This frame's segmentation (:func:`segment`) of every sequence.
+    k, bushy : int64 (B,), bool (B,)
+        From :func:`segment`.
+    active : bool (B,)
+        Sequences that have a (readable) frame at this step; they must be ``ready``.
+    state : TrackerState
+        State after the previous frame (not modified).
+    params : Params
+
+    Returns
+    -------
+    (TrackStep, TrackerState)
+        This frame's outputs and the new state (inactive sequences keep theirs).
+    """
+    p = params
+    bsz, h, w = veg.shape
+    dev = veg.device
+    i64 = dict(dtype=torch.int64, device=dev)
+    s = p.n_rows
+    o = max(p.n_rows - 1, 1) * p.max_outliers
+    sky = state.sky
+    has_veg = veg.flatten(1).any(dim=1)
+    hough_band = torch.full((bsz,), p.hough_band_px(w), **i64)
+    need = active & (~state.prev_valid | (state.age >= p.hough_every))
+    trk = active & ~need
+
+    # --- tracked frames: bands around the previous rows, VP of the last Hough run ---------
+    zeros_rows = torch.zeros((bsz, s), **i64)
+    if bool(trk.any()):
+        present_t = state.row_present & trk.unsqueeze(1)
+        veg_t = veg & trk.view(-1, 1, 1)  # other sequences' pixels only widen the temporaries
+        fit = fransac.fit_rows(veg_t, zeros_rows, zeros_rows, present_t, state.vp,
+                               torch.full((bsz,), p.track_band, **i64), p, track=(state.row_a, state.row_b))
+        rows_t = fransac.validate_rows(*fit, present_t, h, hough_band, p)
+        ok_t = (rows_t.valid | ~rows_t.present).all(dim=1) & has_veg
+    else:
+        nan = torch.full((bsz, s), float("nan"), dtype=torch.float64, device=dev)
+        f = torch.zeros((bsz, s), dtype=torch.bool, device=dev)
+        rows_t = fransac.RowFits(nan, nan.clone(), f, zeros_rows, torch.full_like(zeros_rows, -1), f.clone())
+        ok_t = torch.zeros(bsz, dtype=torch.bool, device=dev)
+    redo = trk & ~ok_t
+    use_h = need | redo
+
+    # --- Hough frames: sections 4-7 as in image mode ------------------------------------
+    if bool(use_h.any()):
+        veg_h = veg & use_h.view(-1, 1, 1)
+        hin, _ = fveg.hough_input(veg_h, sky, p)
+        ls = fvan.find_lines(hin, p)
+        present_h = ls.valid & ls.has_vp.unsqueeze(1) & use_h.unsqueeze(1)
+        band = torch.where(bushy, torch.full((bsz,), p.ransac_band_px(w, True), **i64),
+                           torch.full((bsz,), p.ransac_band_px(w, False), **i64))
+        fit = fransac.fit_rows(veg_h, ls.theta, ls.rho, present_h, ls.vp, band, p)
+        rows_h = fransac.validate_rows(*fit, present_h, h, hough_band, p)
+    else:
+        z = torch.zeros((bsz, s), **i64)
+        zo = torch.zeros((bsz, o), **i64)
+        fb = torch.zeros(bsz, dtype=torch.bool, device=dev)
+        ls = fvan.LineSearch(z, z, z, z.bool(), zo, zo, zo, zo.bool(), torch.zeros(bsz, **i64),
+                             torch.zeros((bsz, 2), dtype=torch.float64, device=dev), fb)
+        rows_h = rows_t
+    all_valid_h = (rows_h.valid | ~rows_h.present).all(dim=1)
+    status_h = torch.where(all_valid_h, torch.full((bsz,), STATUS_OK, **i64), torch.full((bsz,), STATUS_INVALID, **i64))
+    status_h = torch.where(ls.has_vp, status_h, torch.full_like(status_h, STATUS_NO_VP))
+    status_h = torch.where(has_veg, status_h, torch.full_like(status_h, STATUS_NO_VEGETATION))
+
+    # --- this frame's outputs: the Hough result where it ran, else the tracked one --------
+    status = torch.where(use_h, status_h, torch.full_like(status_h, STATUS_OK))
+    rows = fransac.RowFits(*(_where(use_h, getattr(rows_h, f.name), getattr(rows_t, f.name))
+                             for f in dataclasses.fields(fransac.RowFits)))
+    vp = _where(use_h, ls.vp, state.vp)
+    has_vp = torch.where(use_h, ls.has_vp, state.has_vp)
+    n_rows = torch.where(use_h, ls.n_rows, state.row_present.sum(1))
+    hv = ls.valid & use_h.unsqueeze(1)
+    ov = ls.out_valid & use_h.unsqueeze(1)
+    cov = coverage(veg, rows.a, rows.b, rows.valid, sky, p.track_band / 2)
+    conf = (cov.sum(1) / p.n_rows).clamp(max=1.0)
+    step = TrackStep(status=status, k=k, bushy=bushy, n_rows=n_rows, hough_theta=ls.theta, hough_rho=ls.rho,
+                     hough_weight=ls.weight, hough_valid=hv, out_theta=ls.out_theta, out_rho=ls.out_rho,
+                     out_weight=ls.out_weight, out_valid=ov, vp=vp, has_vp=has_vp, row_a=rows.a, row_b=rows.b,
+                     row_valid=rows.valid, row_reason=rows.reason, row_hypothesis=rows.hypothesis,
+                     row_present=rows.present, hough_ran=use_h & active, hough_redo=redo, confidence=conf,
+                     active=active)
+
+    # --- the next state ----------------------------------------------------------------
+    new = dataclasses.replace(
+        state, frames=state.frames + 1, age=torch.where(use_h, torch.ones_like(state.age), state.age + 1),
+        prev_valid=status == STATUS_OK, vp=vp, has_vp=has_vp, row_a=rows.a, row_b=rows.b,
+        row_present=rows.present)
+    return step, merge_state(state, new, active)

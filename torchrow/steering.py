@@ -1,0 +1,197 @@
+"""Video-mode outputs shared by both trackers: steering signals, confidence, per-frame result.
+
+Definitions (one place; :mod:`torchrow.reference.tracker` and :mod:`torchrow.functional.tracker`
+both use them). Pixel coordinates are those of the working image (``x`` = column, ``y`` =
+row, origin at the top-left pixel); ``W``, ``H`` = working size; the image centre is
+``x = W/2``, the convention of CRBD's ground truth and of :mod:`torchrow.synthetic`.
+
+=================  =====================================================================
+signal             definition, unit, sign
+=================  =====================================================================
+``heading_px``     ``vp_x - W/2`` (px): the vanishing point's horizontal offset from the
+                   image centre. Image convention: positive = the rows head to the
+                   **right** of the optical axis. ``None`` without a vanishing point.
+``heading_rad``    ``atan((W/2 - vp_x) / f)`` (rad) with ``f = (W/2) / tan(hfov/2)``
+                   from the horizontal field of view: the yaw error in REP 103 sign,
+                   positive = the robot must turn **left** (counter-clockwise seen from
+                   above) to point along the rows. Note the sign is opposite to
+                   ``heading_px``. ``None`` without a field of view or vanishing point.
+``lateral_px``     ``x_c(H-1) - W/2`` (px): x of the central row on the bottom image row
+                   minus the image centre. Image convention: positive = the central row
+                   is **right** of the image centre (the robot must move right to sit on
+                   it). The central row is the valid row whose bottom x is nearest
+                   ``W/2`` (first on ties). ``None`` without a valid row.
+``lateral_frac``   ``lateral_px / d`` (dimensionless, same sign), ``d`` = the local row
+                   spacing on the bottom image row: the mean distance from the central
+                   row to its valid neighbour rows (one or two, in bottom-x order).
+                   ``None`` with fewer than two valid rows.
+``confidence``     in ``[0, 1]``: the supported fraction of the requested rows,
+                   ``sum(coverage_i over valid rows i) / params.n_rows``, where
+                   ``coverage_i`` is the fraction of image rows ``y = sky .. H-1`` on
+                   which the vegetation mask has a pixel within ``track_band/2``
+                   horizontally of the row (``abs(x - (a*y + b)) <= track_band/2``,
+                   float64). 1 = all requested rows found, valid and covered with
+                   vegetation from the horizon to the bottom; invalid or missing rows
+                   count 0. 0 for frames without rows.
+=================  =====================================================================
+
+A controller wanting "turn towards the rows and onto the central row" uses, e.g.,
+``yaw_rate = k1 * heading_rad - k2 * lateral_frac`` and trusts it in proportion to
+``confidence``. The central row can switch to its neighbour when the robot is half a row
+spacing off, so ``lateral_frac`` lives in about ``[-0.5, 0.5]`` and jumps by 1 there.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+from .results import ImageResult, Row
+
+__all__ = ["FrameResult", "Steering", "steering", "focal_from_fov", "row_coverage", "confidence"]
+
+
+@dataclass(frozen=True)
+class Steering:
+    """The four steering signals of one frame (module docstring: definitions and signs)."""
+
+    heading_px: float | None = None
+    heading_rad: float | None = None
+    lateral_px: float | None = None
+    lateral_frac: float | None = None
+
+
+def focal_from_fov(width: int, hfov_deg: float) -> float:
+    """Pinhole focal length (px) of a ``width``-pixel image with horizontal FOV ``hfov_deg``."""
+    if not (0 < hfov_deg < 180):
+        raise ValueError(f"horizontal field of view must lie in (0, 180) degrees, got {hfov_deg!r}")
+    return (width / 2) / math.tan(math.radians(hfov_deg) / 2)
+
+
+def steering(rows: Sequence[Row], vp: tuple[float, float] | None, width: int, height: int,
+             hfov_deg: float | None = None) -> Steering:
+    """Steering signals of one frame from its rows and vanishing point.
+
+    Parameters
+    ----------
+    rows : sequence of Row
+        Fitted rows ``x = a*y + b`` (px); only valid rows are used.
+    vp : (float, float) or None
+        Vanishing point (px).
+    width, height : int
+        Working image size ``W``, ``H``.
+    hfov_deg : float, optional
+        Horizontal field of view (degrees) of the working image, for ``heading_rad``.
+
+    Returns
+    -------
+    Steering
+        Signals as defined in the module docstring (``None`` where undefined).
+    """
+    centre = width / 2
+    heading_px = heading_rad = lateral_px = lateral_frac = None
+    if vp is not None and math.isfinite(vp[0]):
+        heading_px = float(vp[0] - centre)
+        if hfov_deg is not None:
+            heading_rad = math.atan2(-heading_px, focal_from_fov(width, hfov_deg))
+    bottoms = sorted(r.a * (height - 1) + r.b for r in rows if r.valid)
+    if bottoms:
+        # min() keeps the first of equal distances, the order being bottom x
+        c = min(range(len(bottoms)), key=lambda i: abs(bottoms[i] - centre))
+        lateral_px = float(bottoms[c] - centre)
+        gaps = [bottoms[c] - bottoms[c - 1]] if c > 0 else []
+        gaps += [bottoms[c + 1] - bottoms[c]] if c + 1 < len(bottoms) else []
+        if gaps:
+            spacing = sum(gaps) / len(gaps)
+            lateral_frac = lateral_px / spacing if spacing > 0 else None
+    return Steering(heading_px, heading_rad, lateral_px, lateral_frac)
+
+
+def row_coverage(veg: np.ndarray, a: float, b: float, sky: int, half_band: float) -> float:
+    """Fraction of image rows ``y = sky .. H-1`` with a vegetation pixel near the row.
+
+    A row ``y`` counts when some column ``x`` has ``veg[y, x]`` and
+    ``abs(x - (a*y + b)) <= half_band`` (float64, this operation order; the tensor tracker
+    evaluates the same expression). ``veg`` is ``bool (H, W)``; 0 when no row lies below
+    the horizon.
+    """
+    h, w = veg.shape
+    if sky >= h:
+        return 0.0
+    ys = np.arange(sky, h, dtype=np.int64)
+    xc = np.float64(a) * ys.astype(np.float64) + np.float64(b)
+    reach = int(math.ceil(half_band)) + 1
+    base = np.floor(np.clip(xc, -reach - 1, w + reach)).astype(np.int64)
+    hit = np.zeros(ys.size, bool)
+    for d in range(-reach, reach + 1):
+        xs = base + d
+        inside = (xs >= 0) & (xs < w)
+        near = np.abs(xs.astype(np.float64) - xc) <= np.float64(half_band)
+        hit |= inside & near & veg[ys, np.clip(xs, 0, w - 1)]
+    return float(hit.sum()) / ys.size
+
+
+def confidence(veg: np.ndarray | None, rows: Sequence[Row], sky: int, n_requested: int,
+               half_band: float) -> float:
+    """``sum(row_coverage of valid rows) / n_requested`` in ``[0, 1]`` (module docstring)."""
+    if veg is None or n_requested < 1:
+        return 0.0
+    total = sum(row_coverage(veg, r.a, r.b, sky, half_band) for r in rows if r.valid)
+    return min(1.0, total / n_requested)
+
+
+@dataclass
+class FrameResult(ImageResult):
+    """One video frame: an :class:`ImageResult` plus tracking outputs and steering signals.
+
+    ``frame`` is the 0-based index in its sequence, ``source`` names the sequence, ``hough_ran``
+    says whether the Hough stage (sections 4-6) ran on this frame (frame 0, after an invalid
+    frame, every ``hough_every`` frames, or as the redo of an invalid tracked frame), and
+    ``hough_redo`` whether it ran as such a redo. Tracked frames report the vanishing point
+    of the last Hough run, no Hough lines, and ``n_rows`` = number of rows tracked.
+    """
+
+    source: str | None = None
+    frame: int = 0
+    hough_ran: bool = False
+    hough_redo: bool = False
+    confidence: float = 0.0
+    heading_px: float | None = None
+    heading_rad: float | None = None
+    lateral_px: float | None = None
+    lateral_frac: float | None = None
+
+    def to_record(self) -> dict[str, Any]:
+        """``torchrow detect``'s record keys plus ``source``, ``frame``, ``hough_ran``,
+        ``hough_redo``, ``confidence``, ``heading_px``, ``heading_rad``, ``lateral_px``,
+        ``lateral_frac`` (``None`` -> JSON null)."""
+        rec = {"source": self.source, "frame": int(self.frame)}
+        rec.update(super().to_record())
+
+        def num(v: float | None) -> float | None:
+            return None if v is None or not math.isfinite(v) else float(v)
+
+        rec.update(hough_ran=bool(self.hough_ran), hough_redo=bool(self.hough_redo),
+                   confidence=float(self.confidence), heading_px=num(self.heading_px),
+                   heading_rad=num(self.heading_rad), lateral_px=num(self.lateral_px),
+                   lateral_frac=num(self.lateral_frac))
+        return rec
+
+    @classmethod
+    def build(cls, base: ImageResult, *, source: str | None, frame: int, hough_ran: bool,
+              hough_redo: bool, confidence: float, hfov_deg: float | None) -> "FrameResult":
+        """Wrap a detection with its tracking flags and the steering signals of its rows."""
+        st = steering(base.rows, base.vp, base.width, base.height, hfov_deg) \
+            if base.status in ("ok", "invalid") else Steering()
+        fields = {k: getattr(base, k) for k in ImageResult.__dataclass_fields__}
+        return cls(**fields, source=source, frame=frame, hough_ran=hough_ran, hough_redo=hough_redo,
+                   confidence=confidence, heading_px=st.heading_px, heading_rad=st.heading_rad,
+                   lateral_px=st.lateral_px, lateral_frac=st.lateral_frac)
+
+    @classmethod
+    def failed_frame(cls, source: str | None, frame: int, name: str | None, error: str) -> "FrameResult":
+        """Record of a frame that could not be read (status ``error``; the tracker skipped it)."""
+        return cls(width=0, height=0, status="error", name=name, error=error, source=source, frame=frame)

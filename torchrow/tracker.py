@@ -1,0 +1,287 @@
+"""The batched video-mode tracker: ``torchrow.Tracker`` (ALGORITHM.md section 8).
+
+A thin :class:`torch.nn.Module` over :mod:`torchrow.functional.tracker`. ``B`` independent
+sequences advance in lock-step; :meth:`Tracker.track_iter` segments a chunk of frames of
+every sequence in one batched call, then advances the RANSAC/Hough steps frame by frame,
+masking sequences that have ended or whose frame is unreadable. Results equal
+:class:`torchrow.reference.Tracker`'s frame by frame.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Iterable, Iterator, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from .detector import BatchResult
+from .functional import tracker as ftrack
+from .functional._checks import check_images
+from .functional.tracker import TrackerState, TrackStep
+from .io import load_image, resize_to_width, to_rgb8
+from .params import Params
+from .steering import FrameResult
+from .video import load_item
+
+__all__ = ["Tracker", "TrackerState", "TrackStep"]
+
+
+class Tracker(nn.Module):
+    """Batched row tracker, identical to :class:`torchrow.reference.Tracker` frame by frame.
+
+    Parameters
+    ----------
+    params : Params, optional
+        Constants; frames are resized to ``params.video_width``, K = ``params.hough_every``.
+    device : str or torch.device, optional
+        Where the stages run (default CPU).
+    hfov_deg : float, optional
+        Horizontal field of view (degrees) for ``heading_rad``.
+    chunk : int
+        Frames per sequence segmented in one batched call by :meth:`track_iter`.
+
+    Examples
+    --------
+    Robot loop, B = 1 camera::
+
+        tracker = torchrow.Tracker(hfov_deg=87)
+        state = None
+        while True:
+            frame = camera.read()                              # (H, W, 3) uint8 RGB
+            (result,), state = tracker.step([frame], state)    # FrameResult, TrackerState
+            controller.update(result.heading_rad, result.lateral_frac, result.confidence)
+
+    Offline, several sequences of different lengths::
+
+        results = tracker.track([frames_a, frames_b])          # list of lists of FrameResult
+    """
+
+    def __init__(self, params: Params | None = None, device: str | torch.device | None = None,
+                 hfov_deg: float | None = None, chunk: int = 8) -> None:
+        super().__init__()
+        self.params = params or Params()
+        self.device = torch.device(device) if device is not None else torch.device("cpu")
+        self.hfov_deg = hfov_deg
+        if chunk < 1:
+            raise ValueError(f"chunk must be >= 1, got {chunk}")
+        self.chunk = chunk
+
+    # -- tensors in, tensors out ----------------------------------------------------------
+    @torch.no_grad()
+    def forward(self, frames: torch.Tensor, state: TrackerState | None = None,
+                active: torch.Tensor | None = None) -> tuple[TrackStep, TrackerState]:
+        """One lock-step frame of ``B`` sequences.
+
+        Parameters
+        ----------
+        frames : torch.Tensor
+            ``uint8 (B, 3, H, W)`` RGB at working size (``params.video_width`` wide).
+        state : TrackerState, optional
+            From the previous call; ``None`` starts ``B`` new sequences.
+        active : torch.Tensor, optional
+            ``bool (B,)``: sequences that have a frame now (default all); the others keep
+            their state. An active sequence that has not seen a frame yet takes this one
+            as its frame 0.
+
+        Returns
+        -------
+        (TrackStep, TrackerState)
+        """
+        check_images(frames, "frames")
+        x = frames.to(self.device)
+        bsz = x.shape[0]
+        if state is None:
+            state = TrackerState.empty(bsz, self.params, self.device)
+        if len(state) != bsz:
+            raise ValueError(f"state holds {len(state)} sequences, frames {bsz}")
+        act = torch.ones(bsz, dtype=torch.bool, device=self.device) if active is None else active.to(self.device)
+        state = self._start(x, state, act)
+        veg, k, bushy = ftrack.segment(x, state.sky, state.veg_color, state.info0, self.params)
+        return ftrack.advance(veg, k, bushy, act, state, self.params)
+
+    def _start(self, frames: torch.Tensor, state: TrackerState, active: torch.Tensor) -> TrackerState:
+        """Initialise the active sequences that have not seen a frame yet from ``frames``."""
+        new = active & ~state.ready
+        if not bool(new.any()):
+            return state
+        idx = torch.nonzero(new).view(-1)  # composition, not a stage: only which inputs to init
+        init = ftrack.init_state(frames.index_select(0, idx), self.params)
+        full = TrackerState.empty(len(state), self.params, self.device)
+        for name in ("sky", "veg_color", "info0", "ready"):
+            getattr(full, name).index_copy_(0, idx, getattr(init, name))
+        return ftrack.merge_state(state, full, new)
+
+    # -- records ----------------------------------------------------------------------------
+    def results(self, step: TrackStep, state: TrackerState, width: int, height: int,
+                names: Sequence[str | None] | None = None, sources: Sequence[str | None] | None = None,
+                indices: Sequence[int] | None = None) -> list[FrameResult | None]:
+        """Per-sequence :class:`FrameResult` of a step (``None`` for inactive sequences).
+
+        ``state`` is any state of these sequences after frame 0 (for sky and colour);
+        ``indices`` default to the frame count of ``state`` minus one.
+        """
+        batch = BatchResult(
+            width=width, height=height, status=step.status, sky=state.sky, veg_color=state.veg_color, k=step.k,
+            bushy=step.bushy, n_rows=step.n_rows, hough_theta=step.hough_theta, hough_rho=step.hough_rho,
+            hough_weight=step.hough_weight, hough_valid=step.hough_valid, out_theta=step.out_theta,
+            out_rho=step.out_rho, out_weight=step.out_weight, out_valid=step.out_valid, vp=step.vp,
+            has_vp=step.has_vp, row_a=step.row_a, row_b=step.row_b, row_valid=step.row_valid,
+            row_reason=step.row_reason, row_hypothesis=step.row_hypothesis, row_present=step.row_present,
+            theta_step=self.params.theta_step)
+        base = batch.results(names)
+        active = step.active.cpu().tolist()
+        ran, redo = step.hough_ran.cpu().tolist(), step.hough_redo.cpu().tolist()
+        conf = step.confidence.cpu().tolist()
+        idx = indices if indices is not None else (state.frames - 1).cpu().tolist()
+        out: list[FrameResult | None] = []
+        for b, r in enumerate(base):
+            if not active[b]:
+                out.append(None)
+                continue
+            out.append(FrameResult.build(r, source=None if sources is None else sources[b], frame=int(idx[b]),
+                                         hough_ran=ran[b], hough_redo=redo[b], confidence=conf[b],
+                                         hfov_deg=self.hfov_deg))
+        return out
+
+    # -- arrays in, records out -------------------------------------------------------------
+    def prepare(self, frame: np.ndarray | str | Path) -> np.ndarray:
+        """Load a path or convert an array; resize to ``params.video_width``."""
+        if isinstance(frame, (str, Path)):
+            return load_image(frame, self.params.video_width)
+        return resize_to_width(to_rgb8(frame), self.params.video_width)
+
+    def step(self, frames: Sequence[np.ndarray] | torch.Tensor, state: TrackerState | None = None,
+             names: Sequence[str | None] | None = None) -> tuple[list[FrameResult], TrackerState]:
+        """One frame of each of ``B`` sequences (the robot's loop): records and the new state.
+
+        ``frames``: ``B`` RGB arrays (any size, resized to the working width, all of one
+        working size) or a ``uint8 (B, 3, H, W)`` tensor already at working size.
+        """
+        if isinstance(frames, torch.Tensor):
+            x = frames
+        else:
+            arrays = [self.prepare(f) for f in frames]
+            if len({a.shape for a in arrays}) != 1:
+                raise ValueError(f"frames of different working sizes: {sorted({a.shape for a in arrays})}")
+            x = torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).contiguous()
+        stepped, new = self(x, state)
+        res = self.results(stepped, new, x.shape[3], x.shape[2], names)
+        return [r for r in res if r is not None], new
+
+    def track_iter(self, sequences: Sequence[Iterable[object]], sources: Sequence[str | None] | None = None
+                   ) -> Iterator[tuple[int, FrameResult, np.ndarray | None]]:
+        """Track ``B`` sequences in lock-step, lazily.
+
+        Parameters
+        ----------
+        sequences : sequence of iterables
+            One iterable of items per sequence (frames or ``(name, frame)``, see
+            :mod:`torchrow.video`); lengths may differ.
+        sources : sequence of str, optional
+            Sequence names stored in the records.
+
+        Yields
+        ------
+        (sequence index, FrameResult, working RGB or None)
+            In lock-step order: frame ``t`` of every sequence before frame ``t + 1``. Every
+            item gets a record: unreadable frames, and frames whose working size differs from
+            the batch's (the first loaded frame's), get ``error`` records and are skipped.
+        """
+        p = self.params
+        bsz = len(sequences)
+        iters = [iter(s) for s in sequences]
+        alive = [True] * bsz
+        next_index = [0] * bsz
+        state = TrackerState.empty(bsz, p, self.device)
+        ready = [False] * bsz
+        size: tuple[int, int] | None = None
+        srcs = list(sources) if sources is not None else [None] * bsz
+        while any(alive):
+            # pull up to `chunk` items of every sequence
+            got: list[list] = [[] for _ in range(bsz)]
+            for b in range(bsz):
+                while alive[b] and len(got[b]) < self.chunk:
+                    try:
+                        item = next(iters[b])
+                    except StopIteration:
+                        alive[b] = False
+                        break
+                    fr = load_item(item, p.video_width)
+                    if fr.rgb is not None:
+                        if size is None:
+                            size = fr.rgb.shape[:2]
+                        elif fr.rgb.shape[:2] != size:
+                            fr.error = (f"frame of working size {fr.rgb.shape[1]}x{fr.rgb.shape[0]} in a batch of "
+                                        f"{size[1]}x{size[0]}")
+                            fr.rgb = None
+                    got[b].append((next_index[b], fr))
+                    next_index[b] += 1
+            t_max = max((len(g) for g in got), default=0)
+            if t_max == 0:
+                break
+            if size is None:  # nothing readable in this chunk: only error records
+                for t in range(t_max):
+                    for b in range(bsz):
+                        if t < len(got[b]):
+                            i, fr = got[b][t]
+                            yield b, FrameResult.failed_frame(srcs[b], i, fr.name, fr.error or "unreadable"), None
+                continue
+            h, w = size
+            # frame 0 of sequences starting in this chunk: their first readable frame
+            starts = []
+            for b in range(bsz):
+                if not ready[b]:
+                    first = next((fr.rgb for _, fr in got[b] if fr.rgb is not None), None)
+                    if first is not None:
+                        starts.append((b, first))
+                        ready[b] = True
+            if starts:
+                idx = torch.tensor([b for b, _ in starts], dtype=torch.int64, device=self.device)
+                x0 = torch.from_numpy(np.stack([f for _, f in starts])).permute(0, 3, 1, 2).contiguous()
+                state = self._start(torch.zeros((bsz, 3, h, w), dtype=torch.uint8).index_copy_(
+                    0, idx.cpu(), x0).to(self.device), state,
+                    torch.zeros(bsz, dtype=torch.bool, device=self.device).index_fill_(0, idx, True))
+            # segment every readable frame of the chunk in one call
+            where = [(b, t) for t in range(t_max) for b in range(bsz)
+                     if t < len(got[b]) and got[b][t][1].rgb is not None]
+            veg = torch.zeros((bsz, t_max, h, w), dtype=torch.bool, device=self.device)
+            kk = torch.zeros((bsz, t_max), dtype=torch.int64, device=self.device)
+            bushy = torch.zeros((bsz, t_max), dtype=torch.bool, device=self.device)
+            if where:
+                seq = torch.tensor([b for b, _ in where], dtype=torch.int64, device=self.device)
+                x = torch.from_numpy(np.stack([got[b][t][1].rgb for b, t in where])).permute(0, 3, 1, 2)
+                v, k1, b1 = ftrack.segment(x.contiguous().to(self.device), state.sky[seq], state.veg_color[seq],
+                                           state.info0[seq], p)
+                flat = seq * t_max + torch.tensor([t for _, t in where], dtype=torch.int64, device=self.device)
+                veg.view(bsz * t_max, h, w)[flat] = v
+                kk.view(-1)[flat] = k1
+                bushy.view(-1)[flat] = b1
+            # advance frame by frame in lock-step
+            for t in range(t_max):
+                act_list = [t < len(got[b]) and got[b][t][1].rgb is not None for b in range(bsz)]
+                if any(act_list):
+                    act = torch.tensor(act_list, dtype=torch.bool, device=self.device)
+                    stepped, state = ftrack.advance(veg[:, t], kk[:, t], bushy[:, t], act, state, p)
+                    names = [got[b][t][1].name if t < len(got[b]) else None for b in range(bsz)]
+                    idxs = [got[b][t][0] if t < len(got[b]) else 0 for b in range(bsz)]
+                    recs = self.results(stepped, state, w, h, names, srcs, idxs)
+                else:
+                    recs = [None] * bsz
+                for b in range(bsz):
+                    if t >= len(got[b]):
+                        continue
+                    i, fr = got[b][t]
+                    if recs[b] is not None:
+                        yield b, recs[b], fr.rgb
+                    else:
+                        yield b, FrameResult.failed_frame(srcs[b], i, fr.name, fr.error or "unreadable frame"), None
+
+    def track(self, sequences: Sequence[Iterable[object]], sources: Sequence[str | None] | None = None
+              ) -> list[list[FrameResult]]:
+        """Track ``B`` sequences; one list of records per sequence, in frame order."""
+        out: list[list[FrameResult]] = [[] for _ in sequences]
+        for b, res, _ in self.track_iter(sequences, sources):
+            out[b].append(res)
+        return out

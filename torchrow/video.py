@@ -1,0 +1,260 @@
+"""Frame sources for video mode: folders of frames, video files, and the frame-item format.
+
+A *sequence* handed to a tracker's ``track``/``track_iter`` is any iterable of *items*. An
+item is a frame or ``(name, frame)``; a frame is an ``(H, W, 3)`` uint8 RGB array, a
+callable returning one (it may raise :class:`~torchrow.io.ImageError` or ``OSError``), or
+``None`` (unreadable). Unreadable frames become ``error`` records and the tracker skips them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+
+from .io import IMAGE_EXTENSIONS, ImageError, load_image, resize_to_width, to_rgb8
+
+__all__ = ["LoadedFrame", "load_item", "VIDEO_EXTENSIONS", "FrameSource", "open_source"]
+
+VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
+
+
+@dataclass
+class LoadedFrame:
+    """One item after loading: working-size RGB or the reason it is missing."""
+
+    name: str | None
+    rgb: np.ndarray | None
+    error: str | None = None
+
+
+def load_item(item: object, width: int) -> LoadedFrame:
+    """Load and resize one sequence item (module docstring) to the working ``width``."""
+    name = None
+    if isinstance(item, tuple) and len(item) == 2 and (item[0] is None or isinstance(item[0], str)):
+        name, item = item
+    try:
+        if item is None:
+            return LoadedFrame(name, None, "unreadable frame")
+        frame = item() if callable(item) else item
+        if not isinstance(frame, np.ndarray):
+            raise ImageError(f"expected a numpy array (H, W, 3), got {type(frame).__name__}")
+        return LoadedFrame(name, resize_to_width(to_rgb8(frame), width))
+    except (ImageError, OSError) as exc:
+        return LoadedFrame(name, None, str(exc))
+
+
+@dataclass
+class FrameSource:
+    """A named sequence of frame items: a folder of images (sorted by name) or a video file.
+
+    Iterating yields ``(name, loader)`` items; ``length`` is the number of frames (a video's
+    frame count as its container reports it, which may be approximate).
+    """
+
+    path: Path
+    kind: str  # "folder" or "video"
+    files: list[Path]
+    length: int
+
+    @property
+    def name(self) -> str:
+        return str(self.path)
+
+    def __iter__(self) -> Iterator[tuple[str, Callable[[], np.ndarray]]]:
+        if self.kind == "folder":
+            for f in self.files:
+                yield f.name, (lambda f=f: load_image(f))
+            return
+        import cv2
+
+        cap = cv2.VideoCapture(str(self.path))
+        try:
+            i = 0
+            while True:
+                ok, bgr = cap.read()
+                if not ok:
+                    break
+                rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+                yield f"{i:06d}", (lambda rgb=rgb: rgb)
+                i += 1
+        finally:
+            cap.release()
+
+
+def open_source(path: str | Path) -> FrameSource:
+    """A folder holding image files, or a video file readable by OpenCV.
+
+    Raises
+    ------
+    FileNotFoundError
+        If the path does not exist.
+    ImageError
+        If a folder holds no images or a video cannot be opened.
+    """
+    p = Path(path)
+    if p.is_dir():
+        files = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_EXTENSIONS)
+        if not files:
+            raise ImageError(f"no images ({', '.join(IMAGE_EXTENSIONS)}) in folder {p}")
+        return FrameSource(p, "folder", files, len(files))
+    if not p.exists():
+        raise FileNotFoundError(f"no such file or folder: {p}")
+    import cv2
+
+    cap = cv2.VideoCapture(str(p))
+    try:
+        if not cap.isOpened():
+            raise ImageError(f"cannot open video: {p}")
+        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+    finally:
+        cap.release()
+    return FrameSource(p, "video", [], max(n, 0))
+
+
+# ----------------------------------------------------------------------------------------
+# summaries, pictures and plots of tracked sequences
+# ----------------------------------------------------------------------------------------
+
+def _bottoms(rec: dict) -> list[float | None]:
+    """Bottom-row x of every row slot of a record (None for invalid rows)."""
+    h = rec.get("height") or 0
+    return [r["a"] * (h - 1) + r["b"] if r["valid"] and r["a"] is not None else None for r in rec.get("rows", [])]
+
+
+def central_jumps(records: list[dict]) -> dict[str, list[float]]:
+    """How far the central row moves between consecutive frames of one source (px).
+
+    ``records`` are one source's records in frame order. For consecutive frames ``t-1, t``
+    with valid rows, let ``c`` be the central row of frame ``t-1`` (valid row whose bottom x
+    is nearest ``W/2``) and ``x`` its bottom x:
+
+    * ``"tracked"``: frame ``t`` is tracked, so its row slot ``c`` is the continuation of
+      that row; the jump is ``|x_c(t) - x|``.
+    * ``"hough"``: frame ``t`` ran Hough (rows found afresh); the jump is the distance from
+      ``x`` to the nearest valid row of frame ``t``.
+    * ``"lateral"``: ``|lateral_px(t) - lateral_px(t-1)|``, which also counts a switch of the
+      central row to its neighbour when the camera is about half a row spacing off.
+    """
+    out: dict[str, list[float]] = {"tracked": [], "hough": [], "lateral": []}
+    for prev, cur in zip(records, records[1:]):
+        if cur.get("frame") != prev.get("frame", -2) + 1:
+            continue
+        if prev.get("lateral_px") is not None and cur.get("lateral_px") is not None:
+            out["lateral"].append(abs(cur["lateral_px"] - prev["lateral_px"]))
+        pb, cb = _bottoms(prev), _bottoms(cur)
+        valid_p = [(abs(x - prev["width"] / 2), i, x) for i, x in enumerate(pb) if x is not None]
+        valid_c = [x for x in cb if x is not None]
+        if not valid_p or not valid_c:
+            continue
+        _, c, x = min(valid_p)
+        if not cur.get("hough_ran"):
+            if c < len(cb) and cb[c] is not None:
+                out["tracked"].append(abs(cb[c] - x))
+        else:
+            out["hough"].append(min(abs(v - x) for v in valid_c))
+    return out
+
+
+HOUGH_MARK = (255, 80, 0)
+
+
+def draw_frame(rgb: np.ndarray, result, scale: int = 2) -> np.ndarray:
+    """Annotated frame: :func:`torchrow.annotate.draw_result` plus a Hough-frame marker, the
+    steering signals as text, and the central row's bottom x with the lateral offset drawn
+    as an arrow from the image centre. ``(H, W, 3)`` uint8 -> ``(scale*H, scale*W, 3)``."""
+    import cv2
+
+    from .annotate import draw_result
+
+    img = draw_result(rgb, result, scale)
+    h, w = img.shape[:2]
+    font = cv2.FONT_HERSHEY_SIMPLEX
+
+    def fmt(v, unit, prec=1):
+        return "-" if v is None else f"{v:+.{prec}f}{unit}"
+
+    lines = [f"frame {result.frame}  k {result.k}  conf {result.confidence:.2f}",
+             f"heading {fmt(result.heading_px, ' px')} / {fmt(result.heading_rad, ' rad', 3)}",
+             f"lateral {fmt(result.lateral_px, ' px')} / {fmt(result.lateral_frac, '', 2)} rows"]
+    y = 30
+    for text in lines:
+        (tw, th), base = cv2.getTextSize(text, font, 0.5, 1)
+        cv2.rectangle(img, (2, y - th - 3), (8 + tw, y + base), (0, 0, 0), -1)
+        cv2.putText(img, text, (5, y), font, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+        y += th + base + 6
+    if result.hough_ran:
+        label = "HOUGH (redo)" if result.hough_redo else "HOUGH"
+        (tw, th), base = cv2.getTextSize(label, font, 0.6, 2)
+        cv2.rectangle(img, (w - tw - 14, 2), (w - 2, th + base + 10), HOUGH_MARK, -1)
+        cv2.putText(img, label, (w - tw - 8, th + 6), font, 0.6, (255, 255, 255), 2, cv2.LINE_AA)
+    cx = int(round(result.width / 2 * scale))
+    cv2.line(img, (cx, h - 1), (cx, h - 25), (255, 255, 255), 1, cv2.LINE_AA)
+    if result.lateral_px is not None:
+        xr = int(round((result.width / 2 + result.lateral_px) * scale))
+        cv2.arrowedLine(img, (cx, h - 12), (xr, h - 12), (255, 255, 0), 2, cv2.LINE_AA, tipLength=0.2)
+    return img
+
+
+def error_frame(width: int, height: int, text: str, scale: int = 2) -> np.ndarray:
+    """A dark picture saying why a frame is missing (keeps an annotated video's timing)."""
+    import cv2
+
+    img = np.full((height * scale, width * scale, 3), 40, np.uint8)
+    cv2.putText(img, text[:80], (8, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 90, 90), 1, cv2.LINE_AA)
+    return img
+
+
+def plot_tracks(records_by_source: dict[str, list[dict]], path: str | Path) -> None:
+    """PNG: per source, the valid rows' bottom x over time (central row highlighted, Hough
+    frames marked), then ``heading_px``, ``lateral_px`` and ``confidence`` over time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = max(len(records_by_source), 1)
+    fig, axes = plt.subplots(2 * n, 1, figsize=(9, 5.2 * n), squeeze=False)
+    for i, (src, recs) in enumerate(records_by_source.items()):
+        ax, ax2 = axes[2 * i, 0], axes[2 * i + 1, 0]
+        fx, bx = [], []
+        for r in recs:
+            h = r.get("height") or 0
+            for row in r.get("rows", []):
+                if row["valid"] and row["a"] is not None:
+                    fx.append(r["frame"])
+                    bx.append(row["a"] * (h - 1) + row["b"])
+        ax.scatter(fx, bx, s=6, c="tab:green", label="valid rows (x at bottom row)")
+        cen = [(r["frame"], r["lateral_px"] + r["width"] / 2) for r in recs if r.get("lateral_px") is not None]
+        if cen:
+            ax.plot(*zip(*cen), c="tab:blue", lw=1.2, label="central row")
+        hf = [r["frame"] for r in recs if r.get("hough_ran")]
+        for j, f in enumerate(hf):
+            ax.axvline(f, c="tab:orange", lw=0.6, alpha=0.6, label="Hough frame" if j == 0 else None)
+        err = [r["frame"] for r in recs if r.get("status") == "error"]
+        if err:
+            ax.scatter(err, [0] * len(err), marker="x", c="red", label="unreadable frame")
+        ax.set_title(f"{src}: rows ({len(hf)} Hough frames of {len(recs)})", fontsize=9)
+        ax.set_ylabel("x at bottom row (px)")
+        ax.legend(fontsize=7, loc="upper right")
+        for key, color in (("heading_px", "tab:purple"), ("lateral_px", "tab:blue")):
+            pts = [(r["frame"], r[key]) for r in recs if r.get(key) is not None]
+            if pts:
+                ax2.plot(*zip(*pts), c=color, lw=1.2, label=key)
+        ax2.axhline(0, c="k", lw=0.5)
+        ax2.set_ylabel("px (image convention)")
+        ax2.set_xlabel("frame")
+        ax3 = ax2.twinx()
+        conf = [(r["frame"], r["confidence"]) for r in recs if r.get("confidence") is not None and r["status"] != "error"]
+        if conf:
+            ax3.plot(*zip(*conf), c="tab:gray", lw=0.8, ls="--", label="confidence")
+        ax3.set_ylim(0, 1.05)
+        ax3.set_ylabel("confidence")
+        h1, l1 = ax2.get_legend_handles_labels()
+        h2, l2 = ax3.get_legend_handles_labels()
+        ax2.legend(h1 + h2, l1 + l2, fontsize=7, loc="upper right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
