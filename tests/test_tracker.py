@@ -268,3 +268,22 @@ def test_caterra_first_frames_parity(data_dir) -> None:
     for r, g in zip(ref, got):
         assert_same_frame(r, g, f"caterra {r.name}")
     assert sum(r.hough_ran for r in ref) >= 4
+
+
+def test_single_pass_adaptive_k_equals_the_stage_function() -> None:
+    """functional.tracker.adapt_k (per-pixel smallest k + histogram) == vegetation.adapt_k."""
+    from torchrow.functional import tracker as ftrack
+    from torchrow.functional import vegetation as fveg
+
+    rng = np.random.default_rng(1)
+    imgs = [frames_of(1, seed=s)[0].image[::3, ::3] for s in range(3)]
+    imgs.append(rng.integers(0, 256, imgs[0].shape, dtype=np.uint8))
+    imgs.append(np.full(imgs[0].shape, (84, 136, 52), np.uint8))  # every pixel at distance 0
+    x = torch.from_numpy(np.stack(imgs)).permute(0, 3, 1, 2).contiguous()
+    color = torch.tensor([[94, 154, 54], [84, 136, 52], [60, 90, 40], [120, 130, 90], [84, 136, 52]], dtype=torch.uint8)
+    sky = torch.tensor([0, 7, 59, 60, 0])
+    for info in ([0.02] * 5, list(rng.random(5) * 0.4), [0.0] * 5, [1e-4] * 5, [1.0] * 5):
+        info0 = torch.tensor(info, dtype=torch.float64)
+        k1, r1 = fveg.adapt_k(x, color, sky, info0, P320)
+        k2, r2 = ftrack.adapt_k(x, color, sky, info0, P320)
+        assert torch.equal(k1, k2) and torch.equal(r1, r2), info
