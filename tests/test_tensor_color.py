@@ -310,6 +310,16 @@ def test_large_batch_and_int64_key_paths(monkeypatch: pytest.MonkeyPatch) -> Non
         assert torch.equal(a, b)
 
 
+@settings(deadline=None, max_examples=40, suppress_health_check=[HealthCheck.too_slow])
+@given(st.integers(1, 6), st.integers(1, 9), st.integers(1, 9), st.integers(1, 256), st.integers(0, 2**31 - 1))
+def test_distinct_colors_sync_and_static_paths_agree(b: int, h: int, w: int, levels: int, seed: int) -> None:
+    """The compacted second sort (``sync=True``, default) equals the static all-pixel one."""
+    rng = np.random.default_rng(seed)
+    batch = torch.from_numpy(rng.integers(0, levels, (b, 3, h, w), dtype=np.int64).astype(np.uint8))
+    for a, c in zip(fc.distinct_colors(batch, sync=True), fc.distinct_colors(batch, sync=False)):
+        assert torch.equal(a, c)
+
+
 def test_non_contiguous_input() -> None:
     rng = np.random.default_rng(9)
     hwc = torch.from_numpy(rng.integers(0, 5, (3, 6, 7, 3), dtype=np.uint8) * 50)

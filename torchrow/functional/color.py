@@ -124,12 +124,17 @@ def unpack_codes(codes: torch.Tensor) -> torch.Tensor:
     return torch.stack([(c >> 16) & 255, (c >> 8) & 255, c & 255], dim=-1).to(torch.uint8)
 
 
-def distinct_colors(images: torch.Tensor) -> DistinctColors:
+def distinct_colors(images: torch.Tensor, *, sync: bool = True) -> DistinctColors:
     """Distinct colours of ``uint8 (B, 3, H, W)`` RGB images in walk order (section 2).
 
     Walk order: count descending, ties by first appearance in raster order, exactly as
-    :func:`torchrow.reference.color.distinct_colors`. Padded to the static width ``N = H*W``;
-    no host sync. Use :func:`trim_colors` to drop the common padding (a host sync).
+    :func:`torchrow.reference.color.distinct_colors`. Padded to the static width ``N = H*W``.
+    Use :func:`trim_colors` to drop the common padding (a host sync).
+
+    With ``sync=True`` (default) one host sync reads the batch's number of distinct colours
+    ``R`` so that the second sort below runs on the ``R`` colours only (about a fifth of the
+    pixels on CRBD) instead of on every pixel; ``sync=False`` keeps static shapes throughout
+    (for tracing). Both give identical results (tested).
 
     Two stable sorts over the whole batch flattened to one dimension (measured 2-3x faster
     than row-wise sorts of a ``(B, HW)`` tensor on the CPU), with int32 keys when they fit:
@@ -162,11 +167,14 @@ def distinct_colors(images: torch.Tensor) -> DistinctColors:
     start = torch.empty(m, dtype=torch.bool, device=dev)  # first pixel of each colour (sorted order)
     start[0] = True
     torch.ne(sv[1:], sv[:-1], out=start[1:])
-    del sv
     run = torch.cumsum(start, dim=0)
     run -= 1
+    if sync:
+        del sv
+        return _walk_order_compact(codes, si, start, run, b, hw)
     count = torch.bincount(run, minlength=m)[run]  # count of every sorted pixel's colour
     del run
+    del sv
     # Second key, per pixel in raster order: first pixels image*(HW+2) + (HW - count), all
     # others image*(HW+2) + HW + 1.
     key = torch.arange(b, device=dev, dtype=i64).mul_(hw + 2).add_(hw + 1).view(b, 1).expand(b, hw)
@@ -182,6 +190,39 @@ def distinct_colors(images: torch.Tensor) -> DistinctColors:
     out_counts = torch.where(valid, hw - r, 0)
     out_codes = torch.where(valid, codes.reshape(m)[order].view(b, hw).to(i64), -1)
     return DistinctColors(out_codes, out_counts, valid)
+
+
+def _walk_order_compact(codes: torch.Tensor, si: torch.Tensor, start: torch.Tensor, run: torch.Tensor,
+                        b: int, hw: int) -> DistinctColors:
+    """Walk order from the runs of the first sort, sorting only the ``R`` distinct colours.
+
+    ``si`` int64 ``(B*HW,)`` raster indices (``image*HW + pixel``) in the first sort's
+    order, ``start`` bool marks each colour's first pixel there (stability: its first
+    appearance in raster order), ``run`` int64 the colour's run index. The runs are compacted
+    with one scatter (host sync: ``R``), then sorted by the unique key
+    ``(image, HW - count, first pixel)``, which is walk order image by image.
+    """
+    dev = si.device
+    i64 = torch.int64
+    r = int(run[-1]) + 1  # host sync: distinct colours in the batch
+    first = torch.empty(r + 1, dtype=i64, device=dev)
+    first.scatter_(0, torch.where(start, run, r), si)  # run starts are unique; the rest -> dump
+    first = first[:r]
+    cnt = torch.bincount(run, minlength=r)
+    img = torch.div(first, hw, rounding_mode="floor")
+    pos = first - img * hw
+    key = (img * (hw + 1) + (hw - cnt)) * hw + pos  # < 2**63 for B*HW < 2**31 (checked by caller)
+    order = torch.sort(key).indices  # keys are unique: no stability needed
+    img, cnt, first = img[order], cnt[order], first[order]
+    per_image = torch.bincount(img, minlength=b)
+    offset = torch.cumsum(per_image, 0) - per_image
+    slot = img * hw + (torch.arange(r, device=dev) - offset[img])  # rank within its image
+    out_codes = torch.full((b * hw,), -1, dtype=i64, device=dev)
+    out_counts = torch.zeros(b * hw, dtype=i64, device=dev)
+    out_codes[slot] = codes.reshape(-1)[first].to(i64)
+    out_counts[slot] = cnt
+    valid = (torch.arange(hw, device=dev) < per_image.unsqueeze(1))
+    return DistinctColors(out_codes.view(b, hw), out_counts.view(b, hw), valid)
 
 
 def trim_colors(colors: DistinctColors) -> DistinctColors:
@@ -369,7 +410,7 @@ def kept_clusters(clusters: ColorClusters, params: Params) -> KeptClusters:
 
 
 def _vegetation_clusters(images: torch.Tensor, params: Params, early_exit: bool) -> KeptClusters:
-    colors = distinct_colors(images)
+    colors = distinct_colors(images, sync=early_exit)
     if early_exit:
         colors = trim_colors(colors)
     clusters = cluster_colors(*colors, params, early_exit=early_exit)
