@@ -16,7 +16,13 @@ __all__ = ["sqrt"]
 
 
 def sqrt(x: torch.Tensor) -> torch.Tensor:
-    """IEEE correctly rounded square root of a float64 tensor (same device, same shape)."""
+    """IEEE correctly rounded square root of a float64 tensor (same device, same shape).
+
+    While exporting (``torch.export``/ONNX) this is plain ``torch.sqrt``: the exported ``Sqrt``
+    runs in the graph's runtime (onnxruntime's is IEEE correctly rounded).
+    """
+    if torch.compiler.is_exporting():
+        return torch.sqrt(x)
     if x.device.type == "cpu" and x.dtype == torch.float64 and not x.requires_grad:
         return torch.from_numpy(np.sqrt(x.contiguous().numpy()))
     return torch.sqrt(x)

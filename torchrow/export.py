@@ -1,0 +1,331 @@
+"""ONNX export of the image-mode detector and an onnxruntime runner (issue 6, part 1).
+
+:func:`to_onnx` exports :class:`torchrow.functional.static.StaticDetector` (a static-shape,
+scatter-free formulation of ALGORITHM.md sections 1 and 3-7) with torch's dynamo-based
+exporter (``torch.onnx.export(..., dynamo=True)``, opset 18 by default) for one working
+size and batch size. :class:`OnnxDetector` runs such a model in onnxruntime and returns the
+same :class:`~torchrow.detector.BatchResult` / records as :class:`~torchrow.detector.CropRowDetector`.
+
+What runs where:
+
+* host, before the graph: section 2 (vegetation colour: colour clustering has data-dependent
+  shapes) with :func:`torchrow.functional.color.vegetation_color`, and the colour's LAB from
+  the shared table (graph input ``veg_lab``, float64 ``(B, 3)``);
+* graph: sky, LAB box, bushy removal, Canny, Hough votes and the line search with outliers
+  and restarts, vanishing point, RANSAC band points, scoring and the weighted moments of
+  the best hypothesis' inliers;
+* host, after the graph: the principal direction (``atan2``, ``cos``, ``sin``: ONNX has no
+  ``Atan2``, onnxruntime's ``Atan`` is float32-only) and the row validity of 7.6 on ``B x
+  n_rows`` numbers (:func:`torchrow.functional.static.finish_rows`).
+
+Graph inputs: ``images`` uint8 ``(B, 3, H, W)`` RGB, ``veg_lab`` float64 ``(B, 3)``.
+Outputs: :data:`torchrow.functional.static.GRAPH_OUTPUTS`.
+
+onnxruntime's CPU kernels lack many small integer types (e.g. ``Add`` on uint8, ``Where`` on
+bool), which the exporter emits as torch computed them; :func:`legalize` widens such nodes to
+int32 (values never overflow: every such tensor in the detector holds small counts or
+0/1 masks), which TensorRT needs too.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from .detector import STATUS_CODES, BatchResult
+from .params import Params
+
+__all__ = ["to_onnx", "OnnxDetector", "legalize", "op_counts", "model_info", "FORBIDDEN_OPS", "DEFAULT_OPSET"]
+
+DEFAULT_OPSET = 18
+
+#: Ops the graph must not contain: scatters with a reduction (TensorRT has none), and any
+#: op whose output shape depends on data.
+FORBIDDEN_OPS = ("NonZero", "Unique", "Loop", "If", "Scan", "ScatterElements_reduction", "ScatterND_reduction")
+
+# Elementwise/compute ops whose small-integer and bool inputs are widened to int32. Pure
+# data movement (Reshape, Slice, Gather, Concat, Expand, ScatterND, ...) keeps its type.
+_LOGICAL = {"And", "Or", "Not", "Xor"}
+_MOVE = {"Reshape", "Slice", "Gather", "GatherElements", "Concat", "Expand", "ScatterND", "ScatterElements",
+         "Transpose", "Squeeze", "Unsqueeze", "Identity", "Cast", "Shape", "Size", "Flatten", "Split",
+         "Constant", "ConstantOfShape", "Pad"}
+
+
+def _ort():
+    try:
+        import onnxruntime as ort
+    except ImportError:  # pragma: no cover - depends on the environment
+        raise ImportError("onnxruntime is not installed: pip install 'torchrow[onnx]'") from None
+    return ort
+
+
+def _narrow_types():
+    from onnx import TensorProto as T
+
+    return {T.BOOL, T.UINT8, T.INT8, T.INT16, T.UINT16}
+
+
+def legalize(model):
+    """Widen small-integer/bool inputs of compute nodes to int32 (in place; returns the model).
+
+    For each node that is neither data movement nor a logical op, every input of type
+    bool/uint8/int8/int16/uint16 (except ``Where``'s condition) is cast to int32, and each such
+    output is computed in int32 and cast back to its type. Node names are made unique.
+    """
+    import onnx
+    from onnx import TensorProto, helper
+
+    inferred = onnx.shape_inference.infer_shapes(model)
+    types = {v.name: v.type.tensor_type.elem_type
+             for v in list(inferred.graph.value_info) + list(inferred.graph.input) + list(inferred.graph.output)}
+    types.update({i.name: i.data_type for i in model.graph.initializer})
+    narrow = _narrow_types()
+    out_nodes = []
+    for i, node in enumerate(model.graph.node):
+        node.name = f"n{i}_{node.op_type}"
+        if node.op_type in _MOVE or node.op_type in _LOGICAL:
+            out_nodes.append(node)
+            continue
+        pre, post = [], []
+        for k, name in enumerate(node.input):
+            if not name or types.get(name) not in narrow or (node.op_type == "Where" and k == 0):
+                continue
+            if node.op_type in ("Equal",) and types.get(name) == TensorProto.BOOL:
+                continue
+            wide = f"{name}__i32_{i}_{k}"
+            pre.append(helper.make_node("Cast", [name], [wide], to=TensorProto.INT32, name=f"{wide}_cast"))
+            node.input[k] = wide
+        if pre:
+            for k, name in enumerate(node.output):
+                if types.get(name) in narrow:
+                    wide = f"{name}__i32"
+                    post.append(helper.make_node("Cast", [wide], [name], to=types[name], name=f"{wide}_cast"))
+                    node.output[k] = wide
+        out_nodes += pre + [node] + post
+    del model.graph.node[:]
+    model.graph.node.extend(out_nodes)
+    return model
+
+
+def op_counts(model) -> Counter:
+    """``Counter`` of op types in the main graph; scatters with a reduction counted as
+    ``<Op>_reduction``."""
+    c: Counter = Counter()
+    for node in model.graph.node:
+        name = node.op_type
+        if name in ("ScatterElements", "ScatterND"):
+            red = [a for a in node.attribute if a.name == "reduction"]
+            if red and red[0].s.decode() not in ("", "none"):
+                name += "_reduction"
+        c[name] += 1
+    return c
+
+
+def _check_shape(height: int, width: int, batch: int, opset: int) -> None:
+    for name, v, lo in (("height", height, 1), ("width", width, 1), ("batch", batch, 1), ("opset", opset, 18)):
+        if not isinstance(v, int) or isinstance(v, bool) or v < lo:
+            raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
+
+
+def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 1, params: Params | None = None,
+            opset: int = DEFAULT_OPSET, optimize: bool = True) -> Path:
+    """Export the image-mode detector as a static-shape ONNX graph.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output ``.onnx`` file (its folder must exist).
+    height, width : int
+        Working size of the images the graph takes (CRBD: 240 x 320).
+    batch : int
+        Static batch size ``B``.
+    params : Params, optional
+        Detector constants, baked into the graph (stored in the model's metadata).
+    opset : int
+        ONNX opset, 18 or newer (default 18).
+
+    Returns
+    -------
+    Path
+        ``path``. The model has inputs ``images`` uint8 ``(B, 3, H, W)`` and ``veg_lab``
+        float64 ``(B, 3)`` and the outputs :data:`torchrow.functional.static.GRAPH_OUTPUTS`.
+    """
+    import json
+    import warnings
+
+    import onnx
+
+    from .functional.static import GRAPH_OUTPUTS, StaticDetector
+
+    _check_shape(height, width, batch, opset)
+    params = params or Params()
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise FileNotFoundError(f"output folder does not exist: {path.parent}")
+    module = StaticDetector(height, width, params).eval()
+    images = torch.zeros((batch, 3, height, width), dtype=torch.uint8)
+    veg_lab = torch.zeros((batch, 3), dtype=torch.float64)
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")
+        ep = torch.export.export(module, (images, veg_lab), strict=False)
+        # bool <-> uint8/int8 reinterpretations in the vegetation stage only ever hold 0/1,
+        # whose bit patterns equal their cast values: export them as Cast.
+        ep = ep.run_decompositions({torch.ops.aten.view.dtype: _view_as_cast})
+        prog = torch.onnx.export(ep, dynamo=True, opset_version=opset, input_names=["images", "veg_lab"],
+                                 output_names=list(GRAPH_OUTPUTS), verbose=False, optimize=optimize)
+    model = legalize(prog.model_proto)
+    meta = {"torchrow_format": "1", "height": str(height), "width": str(width), "batch": str(batch),
+            "params": json.dumps(_params_dict(params)), "exporter": f"torch.onnx dynamo, torch {torch.__version__}",
+            "opset": str(opset)}
+    for k, v in meta.items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = k, v
+    onnx.save(model, str(path))
+    return path
+
+
+def _view_as_cast(x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    return x.to(dtype)
+
+
+def _params_dict(params: Params) -> dict:
+    import dataclasses
+
+    return {f.name: getattr(params, f.name) for f in dataclasses.fields(params)}
+
+
+def model_info(path: str | Path) -> dict:
+    """Size (bytes), static shape, params, exporter and op counts of an exported model."""
+    import json
+
+    import onnx
+
+    path = Path(path)
+    model = onnx.load(str(path))
+    meta = {p.key: p.value for p in model.metadata_props}
+    if meta.get("torchrow_format") != "1":
+        raise ValueError(f"{path} is not a torchrow ONNX detector (no torchrow metadata)")
+    raw = json.loads(meta["params"])
+    raw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in raw.items()}
+    return {"size": path.stat().st_size, "height": int(meta["height"]), "width": int(meta["width"]),
+            "batch": int(meta["batch"]), "params": Params(**raw), "exporter": meta.get("exporter", ""),
+            "opset": int(meta.get("opset", 0)), "ops": op_counts(model)}
+
+
+class OnnxDetector:
+    """Run an exported detector in onnxruntime; results equal :class:`CropRowDetector`'s.
+
+    Parameters
+    ----------
+    model_path : str or Path
+        A model written by :func:`to_onnx`.
+    threads : int, optional
+        onnxruntime intra-op threads (default: onnxruntime's choice).
+
+    Notes
+    -----
+    Graph optimisations are limited to onnxruntime's *basic* level (constant folding and
+    redundant-node removal); the extended levels may fuse float64 multiply-adds, which would
+    change the rounding the spec prescribes.
+    """
+
+    def __init__(self, model_path: str | Path, threads: int | None = None) -> None:
+        ort = _ort()
+        path = Path(model_path)
+        if not path.is_file():
+            raise FileNotFoundError(f"ONNX model not found: {path}")
+        info = model_info(path)
+        self.path = path
+        self.height, self.width, self.batch = info["height"], info["width"], info["batch"]
+        self.params: Params = info["params"]
+        so = ort.SessionOptions()
+        so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_BASIC
+        if threads:
+            so.intra_op_num_threads = int(threads)
+        self.session = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+
+    def __call__(self, images: torch.Tensor, veg_color: torch.Tensor | None = None) -> BatchResult:
+        """Detect rows in ``uint8 (N, 3, H, W)`` images (any ``N``; run in batches of the
+        model's ``B``, the last one padded). ``veg_color`` ``uint8 (N, 3)`` or ``(3,)``
+        replaces the per-image colour clustering, as for :class:`CropRowDetector`."""
+        from .detector import _color_override
+        from .functional import color as fcolor
+        from .functional._checks import check_images
+        from .shared import lab_table_torch, pack_rgb
+
+        check_images(images)
+        n, _, h, w = images.shape
+        if (h, w) != (self.height, self.width):
+            raise ValueError(f"the model {self.path.name} takes {self.width}x{self.height} images, "
+                             f"got {w}x{h} (export one with --width {w} --height {h})")
+        images = images.cpu().contiguous()
+        if veg_color is None:
+            color = fcolor.vegetation_color(images, self.params) if n else torch.zeros((0, 3), dtype=torch.uint8)
+        else:
+            color = _color_override(veg_color, n, torch.device("cpu"))
+        lab = lab_table_torch("cpu")[torch.from_numpy(pack_rgb(color.numpy()))].clone()
+        parts = []
+        for s0 in range(0, max(n, 1), self.batch):
+            x = images[s0:s0 + self.batch]
+            c = lab[s0:s0 + self.batch]
+            m = x.shape[0]
+            if m < self.batch:  # pad the last batch by repeating an image (or zeros)
+                fill = self.batch - m
+                x = torch.cat([x, torch.zeros((fill, 3, h, w), dtype=torch.uint8)])
+                c = torch.cat([c, torch.zeros((fill, 3), dtype=torch.float64)])
+            outs = self.session.run(None, {"images": x.numpy(), "veg_lab": c.numpy()})
+            parts.append(self._result([torch.from_numpy(o[:m]) for o in outs], color[s0:s0 + m]))
+        return _concat(parts)
+
+    def _result(self, outs: list[torch.Tensor], color: torch.Tensor) -> BatchResult:
+        from .functional.static import GRAPH_OUTPUTS, finish_rows
+
+        o = dict(zip(GRAPH_OUTPUTS, outs))
+        p = self.params
+        b = color.shape[0]
+        rows = finish_rows(o["fit_cx"], o["fit_cy"], o["fit_sxx"], o["fit_syy"], o["fit_sxy"], o["row_hypothesis"],
+                           o["row_support"], o["row_present"], self.height, self.width, p)
+        all_valid = (rows.valid | ~rows.present).all(dim=1)
+        i64 = dict(dtype=torch.int64)
+        status = torch.where(all_valid, torch.full((b,), STATUS_CODES["ok"], **i64),
+                             torch.full((b,), STATUS_CODES["invalid"], **i64))
+        status = torch.where(o["has_vp"], status, torch.full_like(status, STATUS_CODES["no_vp"]))
+        status = torch.where(o["has_veg"], status, torch.full_like(status, STATUS_CODES["no_vegetation"]))
+        return BatchResult(
+            width=self.width, height=self.height, status=status, sky=o["sky"], veg_color=color,
+            k=torch.full((b,), p.veg_tol, **i64), bushy=o["bushy"], n_rows=o["n_rows"],
+            hough_theta=o["hough_theta"], hough_rho=o["hough_rho"], hough_weight=o["hough_weight"],
+            hough_valid=o["hough_valid"], out_theta=o["out_theta"], out_rho=o["out_rho"],
+            out_weight=o["out_weight"], out_valid=o["out_valid"], vp=o["vp"], has_vp=o["has_vp"],
+            row_a=rows.a, row_b=rows.b, row_valid=rows.valid, row_reason=rows.reason,
+            row_hypothesis=rows.hypothesis, row_present=rows.present, theta_step=p.theta_step)
+
+    def detect(self, images: Sequence[np.ndarray]) -> BatchResult:
+        """Detect rows in a list of same-sized working-size RGB arrays ``(H, W, 3)``."""
+        x = torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2).contiguous()
+        return self(x)
+
+
+def _concat(parts: list[BatchResult]) -> BatchResult:
+    """Concatenate batch results of one working size along the batch dimension."""
+    import dataclasses
+
+    if len(parts) == 1:
+        return parts[0]
+    fields = {}
+    for f in dataclasses.fields(BatchResult):
+        vals = [getattr(q, f.name) for q in parts]
+        fields[f.name] = torch.cat(vals) if isinstance(vals[0], torch.Tensor) else vals[0]
+    return BatchResult(**fields)
+
+
+def export_and_time(path: str | Path, **kwargs) -> tuple[Path, float]:
+    """:func:`to_onnx` and the seconds it took."""
+    t0 = time.perf_counter()
+    out = to_onnx(path, **kwargs)
+    return out, time.perf_counter() - t0

@@ -1,0 +1,409 @@
+"""Static-shape, scatter-free formulation of the image-mode detector, for ONNX export.
+
+Same results as :class:`torchrow.detector.CropRowDetector` (ALGORITHM.md sections 1 and 3-7),
+written so that ``torch.onnx.export(..., dynamo=True)`` gives a graph whose every shape is
+fixed by ``(B, H, W)`` and the parameters alone:
+
+* **LAB** (section 3) is computed in the graph in float64 (:func:`lab`), not gathered from the
+  400 MB shared table. Its values are not always bit-identical to the table (the table comes
+  from kornia's BLAS ``einsum``), but the box decisions are: ``scripts``/tests check all
+  2**24 colours (see :func:`torchrow.export.check_lab`). The vegetation colour's own LAB
+  ``c`` is a graph **input** read from the shared table on the host, so ``c - k`` and
+  ``c + k`` are the reference's bits.
+* **Hough voting** (section 5) has no scatter: for every pickable angle a constant
+  permutation lists the pixels sorted by their rho index (from the shared
+  :func:`torchrow.shared.rho_index_table`), so the votes of one rho cell are a run of that
+  order. Votes = differences of the prefix sum of the gathered mask at the runs' constant
+  ends (``Gather``, ``CumSum``, ``GatherElements``, ``Sub``). TensorRT cannot take
+  ``ScatterElements``/``ScatterND`` with a reduction, which a scatter-add vote would need;
+  this formulation is also exact (integer counts, no float in the graph decides a vote).
+  The alive (not yet erased) mask is re-voted at every step of the line search.
+* **Line search** (sections 5-6) runs all :func:`~torchrow.functional.vanishing.max_steps`
+  steps with masks (no early exit).
+* **RANSAC band points** (section 7) keep a static ``P = max(ransac_max_points,
+  ransac_subsample)`` points per row (``TopK`` with a static ``k``) and score every
+  hypothesis with the spec's exact expression (no matmul, no data-dependent fallback).
+* The last lines of 7.5 (``atan2``/``cos``/``sin`` of the principal direction) and the row
+  validity of 7.6 run on the host (:func:`finish_rows`): ONNX has no ``Atan2`` and
+  onnxruntime's CPU ``Atan`` is float32-only. The graph returns the weighted centroid and
+  scatter moments of each row's inliers instead.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..params import Params
+from ..shared import hough_trig, hypothesis_table, rho_index_table, rho_offset
+from . import _exact
+from . import ransac as fransac
+from . import sky as fsky
+from . import vegetation as fveg
+from .hough import excluded_angles
+from .vanishing import _drop, max_steps, vanishing_point
+
+__all__ = ["lab", "LINEAR_RGB", "VoteTables", "vote_tables", "votes", "StaticDetector", "finish_rows",
+           "GRAPH_OUTPUTS"]
+
+# kornia.color.rgb_to_lab constants (sRGB D65), in the order kornia applies them.
+_XYZ = ((0.412453, 0.357580, 0.180423), (0.212671, 0.715160, 0.072169), (0.019334, 0.119193, 0.950227))
+_WHITE = (0.95047, 1.0, 1.08883)
+_LAB_EPS = 0.008856
+
+
+@functools.lru_cache(maxsize=1)
+def _linear_lut() -> np.ndarray:
+    """sRGB -> linear RGB of the 256 byte values (kornia's formula, float64), ``(256,)``."""
+    import kornia
+
+    v = torch.arange(256, dtype=torch.float64) / 255.0
+    return kornia.color.rgb_to_linear_rgb(v.view(1, 1, 1, 256).expand(1, 3, 1, 256))[0, 0, 0].numpy().copy()
+
+
+LINEAR_RGB = _linear_lut
+
+
+def lab(images: torch.Tensor, lut: torch.Tensor | None = None) -> torch.Tensor:
+    """CIE LAB (D65) of ``uint8 (B, 3, H, W)`` RGB as float64 ``(B, 3, H, W)``, in the graph.
+
+    kornia's ``rgb_to_lab`` written out element-wise: a 256-entry linearisation table, the
+    XYZ matrix as ``(k0*r + k1*g) + k2*b``, white-point division, the cube root branch and
+    ``L = 116*y - 16``, ``a = 500*(x - y)``, ``b = 200*(y - z)``. Values may differ from the
+    shared table by an ulp; the decisions of the vegetation box do not (checked on all
+    2**24 colours by :func:`torchrow.export.check_lab`).
+    """
+    if lut is None:
+        lut = torch.from_numpy(_linear_lut()).to(images.device)
+    lin = lut[images.to(torch.int64)]  # (B, 3, H, W)
+    r, g, b = lin[:, 0], lin[:, 1], lin[:, 2]
+    f = []
+    for row, white in zip(_XYZ, _WHITE):
+        t = (row[0] * r + row[1] * g) + row[2] * b
+        t = t / white
+        f.append(torch.where(t > _LAB_EPS, torch.pow(t.clamp(min=_LAB_EPS), 1 / 3.0), 7.787 * t + 4.0 / 29.0))
+    x, y, z = f
+    return torch.stack([(116.0 * y) - 16.0, 500.0 * (x - y), 200.0 * (y - z)], dim=1)
+
+
+def raw_mask(images: torch.Tensor, veg_lab: torch.Tensor, k: float, sky: torch.Tensor,
+             lut: torch.Tensor | None = None) -> torch.Tensor:
+    """Section 3.2 with the colour's LAB ``veg_lab`` float64 ``(B, 3)`` given: bool ``(B, H, W)``."""
+    lo = (veg_lab - k).view(-1, 3, 1, 1)
+    hi = (veg_lab + k).view(-1, 3, 1, 1)
+    v = lab(images, lut)
+    inside = ((lo <= v) & (v <= hi)).all(dim=1)
+    h = images.shape[2]
+    below = torch.arange(h, device=images.device).view(1, h, 1) >= sky.view(-1, 1, 1)
+    return inside & below
+
+
+@dataclass
+class VoteTables:
+    """Constant tables of the scatter-free vote, for one working size.
+
+    ``angles`` int64 ``(A,)``: the pickable angle indices (``|j*step - 90| >= horizontal_excl``;
+    the others are never peaks, so they are never voted). ``order`` int32 ``(A*H*W,)``: per
+    angle, the raster pixel indices sorted by rho index (stable), concatenated.
+    ``ends`` int64 ``(A, 2D+1)``: per angle and rho index ``r``, the number of pixels whose
+    rho index is ``<= r``. ``n_rho = 2D+1``, ``d = D``.
+    """
+
+    angles: torch.Tensor
+    order: torch.Tensor
+    ends: torch.Tensor
+    n_rho: int
+    d: int
+
+
+@functools.lru_cache(maxsize=2)
+def _vote_arrays(height: int, width: int, theta_step: int, horizontal_excl: int):
+    idx = rho_index_table(height, width, theta_step)  # (n_theta, HW)
+    n_theta = idx.shape[0]
+    angles = np.array([j for j in range(n_theta) if abs(j * theta_step - 90) >= horizontal_excl], dtype=np.int64)
+    d = rho_offset(height, width)
+    n_rho = 2 * d + 1
+    sub = idx[angles].astype(np.int64)
+    order = np.argsort(sub, axis=1, kind="stable")
+    ends = np.stack([np.cumsum(np.bincount(s, minlength=n_rho)) for s in sub])
+    return angles, order.reshape(-1).astype(np.int32), ends.astype(np.int64), n_rho, d
+
+
+def vote_tables(height: int, width: int, params: Params, device: torch.device | str = "cpu") -> VoteTables:
+    """The :class:`VoteTables` of a ``width x height`` working size (cached)."""
+    angles, order, ends, n_rho, d = _vote_arrays(height, width, params.theta_step, params.horizontal_excl)
+    dev = torch.device(device)
+    return VoteTables(torch.from_numpy(angles).to(dev), torch.from_numpy(order).to(dev),
+                      torch.from_numpy(ends).to(dev), n_rho, d)
+
+
+def votes(alive: torch.Tensor, tables: VoteTables) -> torch.Tensor:
+    """Hough votes of the pickable angles: bool ``(B, H*W)`` -> int32 ``(B, A, 2D+1)``.
+
+    No scatter: gather the mask in each angle's rho order, prefix-sum it, read the sums at
+    the constant run ends, difference along rho.
+    """
+    b, hw = alive.shape
+    n_ang = tables.angles.shape[0]
+    g = torch.index_select(alive.to(torch.int32), 1, tables.order).view(b, n_ang, hw)
+    cs = torch.cumsum(g, dim=2, dtype=torch.int32)
+    ends = tables.ends.unsqueeze(0).expand(b, n_ang, tables.n_rho)
+    upto = torch.gather(cs, 2, (ends - 1).clamp(min=0))
+    upto = torch.where(ends > 0, upto, torch.zeros_like(upto))
+    return upto - torch.cat([torch.zeros_like(upto[:, :, :1]), upto[:, :, :-1]], dim=2)
+
+
+def _peak(acc: torch.Tensor, excluded: torch.Tensor, angles: torch.Tensor, n_theta: int):
+    """:func:`torchrow.functional.hough.peak` over the pickable angles ``angles`` only."""
+    colarg = torch.argmax(acc, dim=2)  # first maximum: the smallest rho index
+    colmax = acc.gather(2, colarg.unsqueeze(2)).squeeze(2).to(torch.int64)
+    colmax = torch.where(excluded, torch.zeros_like(colmax), colmax)
+    best = colmax.max(dim=1, keepdim=True).values
+    key = colarg * n_theta + angles.view(1, -1)
+    key = torch.where(colmax != best, torch.full_like(key, torch.iinfo(torch.int64).max), key)
+    flat = key.min(dim=1).values
+    return flat % n_theta, flat // n_theta, best.squeeze(1)
+
+
+#: Names of the exported graph's outputs, in order (see :class:`StaticDetector`).
+GRAPH_OUTPUTS = ("sky", "bushy", "has_veg", "n_rows", "hough_theta", "hough_rho", "hough_weight", "hough_valid",
+                 "out_theta", "out_rho", "out_weight", "out_valid", "vp", "has_vp", "fit_cx", "fit_cy",
+                 "fit_sxx", "fit_syy", "fit_sxy", "row_hypothesis", "row_support", "row_present")
+
+
+class StaticDetector(nn.Module):
+    """The exportable image-mode detector for one static working size ``width x height``.
+
+    ``forward(images uint8 (B, 3, H, W), veg_lab float64 (B, 3))`` -> the tuple of
+    :data:`GRAPH_OUTPUTS`: ``sky``/``n_rows`` int64 ``(B,)``, ``bushy``/``has_veg``/``has_vp``
+    bool ``(B,)``; Hough lines int64 ``(B, n_rows)`` + bool valid; dropped outliers int64
+    ``(B, O)`` + bool valid; ``vp`` float64 ``(B, 2)``; per row ``(B, n_rows)``: weighted
+    inlier centroid ``fit_cx/fit_cy`` and scatter ``fit_sxx/fit_syy/fit_sxy`` (float64),
+    ``row_hypothesis`` int64 (best hypothesis), ``row_support``/``row_present`` bool.
+    ``veg_lab`` is the LAB of the vegetation colour (ALGORITHM.md section 2, computed on the
+    host). :func:`finish_rows` turns the fits into rows.
+
+    Parameters
+    ----------
+    height, width : int
+        The working size the graph is built for.
+    params : Params, optional
+    score_chunks : int
+        The RANSAC hypotheses are scored in this many static chunks (bounds memory).
+    """
+
+    def __init__(self, height: int = 240, width: int = 320, params: Params | None = None,
+                 score_chunks: int = 4) -> None:
+        super().__init__()
+        self.params = params or Params()
+        self.height, self.width = int(height), int(width)
+        self.score_chunks = int(score_chunks)
+        t = vote_tables(self.height, self.width, self.params)
+        self.n_rho, self.d = t.n_rho, t.d
+        self.register_buffer("angles", t.angles, persistent=False)
+        self.register_buffer("order", t.order, persistent=False)
+        self.register_buffer("ends", t.ends, persistent=False)
+        c, s = hough_trig(self.params.theta_step)
+        self.register_buffer("cos", torch.tensor(c), persistent=False)
+        self.register_buffer("sin", torch.tensor(s), persistent=False)
+        ys, xs = np.divmod(np.arange(self.height * self.width, dtype=np.int64), self.width)
+        self.register_buffer("xs", torch.from_numpy(xs.astype(np.float64)), persistent=False)
+        self.register_buffer("ys", torch.from_numpy(ys.astype(np.float64)), persistent=False)
+        self.register_buffer("lut", torch.from_numpy(_linear_lut().copy()), persistent=False)
+        self.register_buffer("u", torch.from_numpy(hypothesis_table(self.params.seed, self.params.ransac_trials).copy()),
+                             persistent=False)
+
+    # -- sections 5-6 ---------------------------------------------------------------------
+    def find_lines(self, hin: torch.Tensor):
+        p = self.params
+        dev = hin.device
+        bsz = hin.shape[0]
+        s_max = p.n_rows
+        o_max = max(p.n_rows - 1, 1) * p.max_outliers
+        tables = VoteTables(self.angles, self.order, self.ends, self.n_rho, self.d)
+        alive0 = hin.reshape(bsz, -1)
+        alive = alive0
+        i64 = dict(dtype=torch.int64, device=dev)
+        theta = torch.zeros((bsz, s_max), **i64)
+        rho = torch.zeros((bsz, s_max), **i64)
+        weight = torch.zeros((bsz, s_max), **i64)
+        held = torch.zeros(bsz, **i64)
+        out = torch.zeros((bsz, o_max, 3), **i64)
+        n_out = torch.zeros(bsz, **i64)
+        n = torch.full((bsz,), p.n_rows, **i64)
+        dropped = torch.zeros(bsz, **i64)
+        done = n < 2
+        vp = torch.zeros((bsz, 2), dtype=torch.float64, device=dev)
+        has_vp = torch.zeros(bsz, dtype=torch.bool, device=dev)
+        slots = torch.arange(s_max, device=dev).unsqueeze(0)
+        half_band = p.hough_band_px(self.width) / 2
+        for _ in range(max_steps(p)):  # static bound, no early exit (ALGORITHM.md)
+            valid = slots < held.unsqueeze(1)
+            fill = ~done & (held < n)
+            check = ~done & ~fill
+            excl = excluded_angles(theta, valid, p).index_select(1, self.angles)
+            th, r_idx, w = _peak(votes(alive, tables), excl, self.angles, p.n_theta)
+            got = fill & (w > 0)
+            n = torch.where(fill & (w == 0), held, n)
+            put = got.unsqueeze(1) & (slots == held.unsqueeze(1))
+            rho_new = r_idx - self.d
+            theta = torch.where(put, th.unsqueeze(1), theta)
+            rho = torch.where(put, rho_new.unsqueeze(1), rho)
+            weight = torch.where(put, w.unsqueeze(1), weight)
+            held = held + got.to(torch.int64)
+            # step 5.3: erase within hough_band/2 of the new line (spec's expression and order)
+            dist = ((self.xs.unsqueeze(0) * self.cos[th].unsqueeze(1) + self.ys.unsqueeze(0) * self.sin[th].unsqueeze(1))
+                    - rho_new.to(torch.float64).unsqueeze(1)).abs()
+            alive = alive & ~((dist <= half_band) & got.unsqueeze(1))
+
+            sol = vanishing_point(theta, rho, weight, valid, p)
+            no_vp = check & ~sol.ok
+            err = torch.where(valid, sol.residuals.abs(), torch.full_like(sol.residuals, -1.0))
+            i = torch.argmax(err, dim=1)
+            e_i = err.gather(1, i.unsqueeze(1)).squeeze(1)
+            is_out = (e_i > p.outlier_ratio * sol.spread) & (e_i > p.outlier_min_px)
+            finish = check & sol.ok & ~is_out
+            vp = torch.where(finish.unsqueeze(1), torch.stack([sol.x, sol.y], 1), vp)
+            has_vp = has_vp | finish
+            drop = check & sol.ok & is_out
+            rec = torch.stack([theta.gather(1, i.unsqueeze(1)).squeeze(1), rho.gather(1, i.unsqueeze(1)).squeeze(1),
+                               weight.gather(1, i.unsqueeze(1)).squeeze(1)], 1)
+            o_slot = (torch.arange(o_max, device=dev).unsqueeze(0) == n_out.unsqueeze(1)) & drop.unsqueeze(1)
+            out = torch.where(o_slot.unsqueeze(-1), rec.unsqueeze(1), out)
+            n_out = n_out + drop.to(torch.int64)
+            theta, rho, weight = _drop(theta, i, drop), _drop(rho, i, drop), _drop(weight, i, drop)
+            held = held - drop.to(torch.int64)
+            dropped = dropped + drop.to(torch.int64)
+            restart = drop & (dropped == p.max_outliers)
+            n = n - restart.to(torch.int64)
+            held = torch.where(restart, torch.zeros_like(held), held)
+            dropped = torch.where(restart, torch.zeros_like(dropped), dropped)
+            alive = torch.where(restart.unsqueeze(1), alive0, alive)
+            done = done | no_vp | finish | (restart & (n < 2))
+        valid = slots < held.unsqueeze(1)
+        out_valid = torch.arange(o_max, device=dev).unsqueeze(0) < n_out.unsqueeze(1)
+        return theta, rho, weight, valid, out, out_valid, n, vp, has_vp
+
+    # -- section 7 ------------------------------------------------------------------------
+    def band_points(self, veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, band: torch.Tensor):
+        """Steps 7 and 7.2 with a static ``P``: kept points ``px, py`` float64 ``(B, S, P)``
+        (row-major, padding at the end), ``n_keep``, ``v_keep``, ``n`` int64 ``(B, S)``."""
+        p = self.params
+        bsz = veg.shape[0]
+        hw = self.height * self.width
+        flat = veg.reshape(bsz, 1, hw)
+        dist = ((self.xs.view(1, 1, -1) * self.cos[theta].unsqueeze(2)
+                 + self.ys.view(1, 1, -1) * self.sin[theta].unsqueeze(2)) - rho.to(torch.float64).unsqueeze(2)).abs()
+        member = (dist <= (band.to(torch.float64) / 2).view(-1, 1, 1)) & flat  # (B, S, HW)
+        n = member.sum(dim=2)
+        v = n // 2
+        sub = n + v > p.ransac_max_points
+        n_keep = torch.where(sub, (p.ransac_subsample * n) // torch.clamp(n + v, min=1), n)
+        v_keep = torch.where(sub, p.ransac_subsample - n_keep, v)
+        lin = torch.arange(hw, device=veg.device, dtype=torch.int64).view(1, 1, hw)
+        key = torch.where(sub.unsqueeze(2), (lin * p.subsample_hash) & 0xFFFFFFFF, lin)
+        big = torch.iinfo(torch.int64).max
+        key = torch.where(member, key, torch.full_like(key, big))
+        pp = min(hw, max(p.ransac_max_points, p.ransac_subsample))
+        sel = torch.topk(key, pp, dim=2, largest=False, sorted=True).indices
+        rank_ok = torch.arange(pp, device=veg.device) < n_keep.unsqueeze(2)
+        chosen = torch.where(rank_ok, sel, torch.full_like(sel, big))  # sel is the raster index itself
+        chosen = torch.topk(chosen, pp, dim=2, largest=False, sorted=True).values  # row-major, padding last
+        chosen = torch.where(chosen == big, torch.zeros_like(chosen), chosen)
+        return (chosen % self.width).to(torch.float64), (chosen // self.width).to(torch.float64), n_keep, v_keep, n
+
+    def fit_rows(self, veg, theta, rho, present, vp, band):
+        """Steps 7.1-7.5 up to the weighted moments of the best hypothesis' inliers."""
+        p = self.params
+        dev = veg.device
+        px, py, n_keep, v_keep, n = self.band_points(veg, theta, rho, band)
+        pp = px.shape[2]
+        support = present & (n + n // 2 >= p.ransac_min_points)
+        total = (n_keep + v_keep).to(torch.float64)
+        valid_pt = torch.arange(pp, device=dev) < n_keep.unsqueeze(2)
+        nan = torch.full_like(px, float("nan"))
+        qx = torch.where(valid_pt, px, nan).unsqueeze(2)  # (B, S, 1, P); padding fails every test
+        qy = torch.where(valid_pt, py, nan).unsqueeze(2)
+        vx, vy = vp[:, 0].view(-1, 1, 1), vp[:, 1].view(-1, 1, 1)
+        t_all = self.u.shape[0]
+        step = -(-t_all // max(1, self.score_chunks))
+        best_score = torch.full(theta.shape, -2, dtype=torch.int64, device=dev)
+        best_t = torch.zeros(theta.shape, dtype=torch.int64, device=dev)
+        nk = n_keep.unsqueeze(2)
+        for t0 in range(0, t_all, step):
+            uc = self.u[t0:t0 + step]
+            i1 = torch.floor(uc[:, 0].view(1, 1, -1) * total.unsqueeze(2)).to(torch.int64)
+            i2 = torch.floor(uc[:, 1].view(1, 1, -1) * total.unsqueeze(2)).to(torch.int64)
+            degenerate = (i1 == i2) | ((i1 >= nk) & (i2 >= nk))
+            x1, y1 = fransac._pick(px, py, i1, n_keep, vp)
+            x2, y2 = fransac._pick(px, py, i2, n_keep, vp)
+            dx, dy = x2 - x1, y2 - y1
+            lim = p.ransac_threshold * _exact.sqrt(dx * dx + dy * dy)
+            pix = (dx.unsqueeze(3) * (qy - y1.unsqueeze(3)) - dy.unsqueeze(3) * (qx - x1.unsqueeze(3))).abs() \
+                < lim.unsqueeze(3)
+            vpi = (dx * (vy - y1) - dy * (vx - x1)).abs() < lim
+            score = pix.sum(dim=3) + vpi.to(torch.int64) * v_keep.unsqueeze(2)
+            score = torch.where(degenerate, torch.full_like(score, -1), score)
+            carg = torch.argmax(score, dim=2)
+            cmax = score.gather(2, carg.unsqueeze(2)).squeeze(2)
+            better = cmax > best_score
+            best_score = torch.where(better, cmax, best_score)
+            best_t = torch.where(better, carg + t0, best_t)
+        support = support & (best_score >= 0)
+        ub = self.u[best_t]
+        i1 = torch.floor(ub[..., 0] * total).to(torch.int64).unsqueeze(2)
+        i2 = torch.floor(ub[..., 1] * total).to(torch.int64).unsqueeze(2)
+        x1, y1 = fransac._pick(px, py, i1, n_keep, vp)
+        x2, y2 = fransac._pick(px, py, i2, n_keep, vp)
+        pix, vpi = fransac._inliers(px, py, vp[:, 0], vp[:, 1], x1, y1, x2, y2, p.ransac_threshold)
+        wpix = (pix.squeeze(2) & valid_pt).to(torch.float64)
+        wvp = vpi.squeeze(2).to(torch.float64) * v_keep.to(torch.float64)
+        vx, vy = vp[:, 0].view(-1, 1), vp[:, 1].view(-1, 1)
+        wsum = wpix.sum(2) + wvp
+        safe = torch.where(wsum > 0, wsum, torch.ones_like(wsum))
+        cx = ((wpix * px).sum(2) + wvp * vx) / safe
+        cy = ((wpix * py).sum(2) + wvp * vy) / safe
+        ex, ey = px - cx.unsqueeze(2), py - cy.unsqueeze(2)
+        evx, evy = vx - cx, vy - cy
+        sxx = (wpix * ex * ex).sum(2) + wvp * evx * evx
+        syy = (wpix * ey * ey).sum(2) + wvp * evy * evy
+        sxy = (wpix * ex * ey).sum(2) + wvp * evx * evy
+        hyp = torch.where(support, best_t, torch.full_like(best_t, -1))
+        return cx, cy, sxx, syy, sxy, hyp, support
+
+    def forward(self, images: torch.Tensor, veg_lab: torch.Tensor):
+        p = self.params
+        bsz, _, h, w = images.shape
+        if (h, w) != (self.height, self.width):
+            raise ValueError(f"StaticDetector built for {self.width}x{self.height}, got images {w}x{h}")
+        sky = fsky.sky_row(images, p)
+        raw = raw_mask(images, veg_lab.to(torch.float64), float(p.veg_tol), sky, self.lut)
+        veg = fveg.remove_bushy(raw, sky, p)
+        has_veg = veg.flatten(1).any(dim=1)
+        hin, bushy = fveg.hough_input(veg, sky, p)
+        theta, rho, weight, valid, out, out_valid, n, vp, has_vp = self.find_lines(hin)
+        band = torch.where(bushy, torch.full_like(n, p.ransac_band_px(w, True)),
+                           torch.full_like(n, p.ransac_band_px(w, False)))
+        present = valid & has_vp.unsqueeze(1)
+        cx, cy, sxx, syy, sxy, hyp, support = self.fit_rows(veg, theta, rho, present, vp, band)
+        return (sky, bushy, has_veg, n, theta, rho, weight, valid, out[..., 0], out[..., 1], out[..., 2],
+                out_valid, vp, has_vp, cx, cy, sxx, syy, sxy, hyp, support, present)
+
+
+def finish_rows(cx, cy, sxx, syy, sxy, hyp, support, present, height: int, width: int,
+                params: Params) -> fransac.RowFits:
+    """Host side of 7.5-7.6: principal direction from the moments, then validity.
+
+    Inputs are the graph's float64/int64/bool ``(B, S)`` fit outputs (torch tensors); the
+    direction is computed exactly as :func:`torchrow.functional.ransac.fit_rows` does.
+    """
+    phi = 0.5 * torch.atan2(2.0 * sxy, sxx - syy)
+    dx, dy = torch.cos(phi), torch.sin(phi)
+    flip = (dy < 0) | ((dy == 0) & (dx < 0))
+    dx, dy = torch.where(flip, -dx, dx), torch.where(flip, -dy, dy)
+    band = torch.full(support.shape[:1], params.hough_band_px(width), dtype=torch.int64)
+    return fransac.validate_rows(cx, cy, dx, dy, hyp, support, present, height, band, params)
