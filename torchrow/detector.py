@@ -232,7 +232,12 @@ class CropRowDetector(nn.Module):
         i64 = dict(dtype=torch.int64, device=x.device)
         sky = fsky.sky_row(x, p)
         lap("sky")
-        color = fcolor.vegetation_color(x, p) if veg_color is None else veg_color.to(x.device)
+        if veg_color is None:
+            # a GPU sorts and clusters the whole batch at once; a CPU in cache-sized chunks
+            chunk_pixels = fcolor.DEFAULT_CHUNK_PIXELS if x.device.type == "cpu" else None
+            color = fcolor.vegetation_color(x, p, chunk_pixels=chunk_pixels)
+        else:
+            color = veg_color.to(x.device)
         lap("color")
         k = torch.full((bsz,), p.veg_tol, **i64)
         veg = fveg.remove_bushy(fveg.raw_mask(x, color, k, sky), sky, p)

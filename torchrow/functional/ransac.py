@@ -26,6 +26,9 @@ REASON_CODES = {r: i for i, r in enumerate(REASONS)}
 #: Elements per scoring temporary ``(B, S, T_chunk, P)``: 1M (8 MB of float64, a few alive),
 #: small enough to stay in cache between the passes over it.
 SCORE_BUDGET = 1 << 20
+#: The same bound on an accelerator, where one launch should cover many hypotheses:
+#: 2**27 elements (1 GiB of float64) scores a batch of 1024 images in ~30 chunks.
+DEVICE_SCORE_BUDGET = 1 << 27
 
 
 @dataclass
@@ -196,7 +199,8 @@ def fit_rows(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, present:
     qx = torch.where(valid_pt, px, torch.full_like(px, float("nan")))
     qy = torch.where(valid_pt, py, torch.full_like(py, float("nan")))
     pts = torch.stack([qy, qx, torch.ones_like(qx)], dim=2).view(bsz * s, 3, p)  # (BS, 3, P)
-    chunk = max(1, SCORE_BUDGET // max(1, bsz * s * p))
+    budget = SCORE_BUDGET if dev.type == "cpu" else DEVICE_SCORE_BUDGET
+    chunk = max(1, budget // max(1, bsz * s * p))
     best_score = torch.full((bsz, s), -2, dtype=torch.int64, device=dev)
     best_t = torch.zeros((bsz, s), dtype=torch.int64, device=dev)
     for t0 in range(0, t_all, chunk):
@@ -210,11 +214,12 @@ def fit_rows(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, present:
         x2, y2 = _pick(px, py, i2, n_keep, vp)
         # only real hypotheses through the VP need the margin (degenerate ones are discarded)
         unsure_ok = uses_vp & ~degenerate & present.unsqueeze(2)
-        pix = _pixel_inliers(pts, px, py, x1, y1, x2, y2, unsure_ok, params.ransac_threshold, bsz, s, p)
+        counts = _pixel_inliers(pts, px, py, x1, y1, x2, y2, unsure_ok, params.ransac_threshold,
+                                bsz, s, p).sum(dim=3)
         dx, dy = x2 - x1, y2 - y1
         lim = params.ransac_threshold * _exact.sqrt(dx * dx + dy * dy)
         vpi = (dx * (vp[:, 1].view(-1, 1, 1) - y1) - dy * (vp[:, 0].view(-1, 1, 1) - x1)).abs() < lim
-        score = pix.sum(dim=3) + vpi.to(torch.int64) * v_keep.unsqueeze(2)
+        score = counts + vpi.to(torch.int64) * v_keep.unsqueeze(2)
         score = score.masked_fill(degenerate, -1)
         carg = torch.argmax(score, dim=2)  # first maximum within the chunk
         cmax = score.gather(2, carg.unsqueeze(2)).squeeze(2)
