@@ -197,35 +197,29 @@ def segment(frames: torch.Tensor, sky: torch.Tensor, color: torch.Tensor, info0:
     return veg, k, bushy
 
 
-def _inside_at(lab: torch.Tensor, c: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
-    """Section 3.2's box test ``all(c - k <= lab <= c + k)`` with a per-pixel ``k``.
-
-    ``lab`` float64 (n, P, 3), ``c`` float64 (n, 1, 3), ``k`` float64 (n, P) -> bool (n, P);
-    the same float64 operations as :func:`torchrow.functional.vegetation.raw_mask`.
-    """
-    ok = None
-    for ch in range(3):
-        v, cc = lab[..., ch], c[..., ch]
-        t = ((cc - k) <= v) & (v <= (cc + k))
-        ok = t if ok is None else ok & t
-    assert ok is not None
-    return ok
-
-
 def _min_k(lab: torch.Tensor, c: torch.Tensor, k_min: int, k_max: int) -> torch.Tensor:
     """Smallest integer ``k`` in ``[k_min, k_max]`` whose box holds each pixel (``k_max + 1``: none).
 
-    The box test is monotone in ``k`` (``fl(c - k)`` cannot grow, ``fl(c + k)`` cannot
-    shrink as ``k`` grows), so the raw mask at any ``k`` is ``min_k <= k``. The guess
-    ``g = ceil(max |lab - c|)`` is within one of the answer (the float64 rounding of the test
-    is ~1e-14, far below 1), which two exact tests settle: ``g - 1`` if its box holds, else
-    ``g`` if its box holds, else ``g + 1``.
+    ``lab`` float64 (n, 3, P) (channel-major), ``c`` float64 (n, 3) -> int64 (n, P).
+    Section 3.2's test ``c - k <= lab <= c + k`` is monotone in ``k`` (``fl(c - k)`` cannot
+    grow and ``fl(c + k)`` cannot shrink as ``k`` grows), so per channel the smallest
+    admitting ``k`` is a binary search of ``lab`` in the exact bounds ``fl(c + k)``
+    (ascending) and ``-fl(c - k)`` (ascending; negation is exact) of every ``k``: the same
+    float64 comparisons as :func:`torchrow.functional.vegetation.raw_mask`, without a pass per
+    ``k``. The raw mask at any ``k`` is then ``min_k <= k``.
     """
-    g = torch.ceil((lab - c).abs().amax(dim=-1)).clamp(k_min, k_max + 1)
-    lower = (g - 1 >= k_min) & _inside_at(lab, c, g - 1)
-    at_g = (g <= k_max) & _inside_at(lab, c, g)
-    out = torch.where(lower, g - 1, torch.where(at_g, g, (g + 1).clamp(max=k_max + 1)))
-    return out.to(torch.int64)
+    n, _, p = lab.shape
+    ks = torch.arange(k_min, k_max + 1, device=lab.device, dtype=torch.float64)
+    out = torch.zeros((n, p), dtype=torch.int64, device=lab.device)
+    for ch in range(3):
+        cc = c[:, ch:ch + 1]  # (n, 1)
+        hi = cc + ks  # (n, K) ascending: v <= c + k
+        neg_lo = -(cc - ks)  # (n, K) ascending: c - k <= v  <=>  -(c - k) >= -v
+        v = lab[:, ch].contiguous()
+        j_hi = torch.searchsorted(hi, v, side="left")  # first k with c + k >= v
+        j_lo = torch.searchsorted(neg_lo, -v, side="left")  # first k with -(c - k) >= -v
+        out = torch.maximum(out, torch.maximum(j_hi, j_lo))
+    return out + k_min
 
 
 def adapt_k(images: torch.Tensor, color: torch.Tensor, sky: torch.Tensor, info0: torch.Tensor,
@@ -234,7 +228,7 @@ def adapt_k(images: torch.Tensor, color: torch.Tensor, sky: torch.Tensor, info0:
     :func:`torchrow.functional.vegetation.adapt_k` (a test checks it).
 
     Instead of one box test per ``k`` of ``[video_k_min, video_k_max]``, each pixel's smallest
-    admitting ``k`` is found (:func:`_min_k`); the raw fraction at every ``k`` is then a
+    admitting ``k`` is found by binary search in the exact bounds (:func:`_min_k`); the raw fraction at every ``k`` is then a
     cumulative histogram, and the raw mask at the chosen ``k`` a comparison. Same inputs and
     outputs as the stage function: ``uint8 (B, 3, H, W)``, ``uint8 (B, 3)``, ``int (B,)``,
     ``float64 (B,)`` -> ``k`` int64 (B,), raw mask bool (B, H, W).
@@ -252,8 +246,8 @@ def adapt_k(images: torch.Tensor, color: torch.Tensor, sky: torch.Tensor, info0:
     step = max(1, (1 << 18) // max(h * w, 1))  # bounded temporaries, as the stage functions
     for b0 in range(0, b, step):
         chunk = images[b0:b0 + step]
-        lab = table.index_select(0, fveg._pack(chunk)).view(chunk.shape[0], h * w, 3)
-        kstar[b0:b0 + step] = _min_k(lab, c[b0:b0 + step], k_min, k_max)
+        lab = table.index_select(0, fveg._pack(chunk)).view(chunk.shape[0], h * w, 3).transpose(1, 2)
+        kstar[b0:b0 + step] = _min_k(lab, c[b0:b0 + step].view(-1, 3), k_min, k_max)
     # counts[b, j] = pixels below the horizon with kstar == k_min + j (j = n_k: never inside)
     lin = torch.arange(b, device=dev).view(-1, 1) * (n_k + 1) + (kstar - k_min)
     hist = torch.bincount(lin[below], minlength=b * (n_k + 1)).view(b, n_k + 1)
