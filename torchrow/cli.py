@@ -82,7 +82,21 @@ def cmd_detect(args: argparse.Namespace) -> int:
 
     params = _parse_params(args.param)
     device = _check_device(args.device)
+    model = _check_model(args)
     paths = _collect_images(args.inputs)
+    if model is not None:
+        from .export import model_info
+
+        info = model_info(model)
+        params = info["params"]
+        try:
+            first = load_image(paths[0], params.image_width)
+        except Exception:  # an unreadable first file gets its error record later
+            first = None
+        if first is not None and first.shape[:2] != (info["height"], info["width"]):
+            raise CLIError(f"model {model} takes {info['width']}x{info['height']} images; {paths[0].name} is "
+                           f"{first.shape[1]}x{first.shape[0]} at working width {params.image_width} "
+                           f"(export a model with --width {first.shape[1]} --height {first.shape[0]})")
     out = Path(args.out)
     if out.parent and not out.parent.exists():
         raise CLIError(f"output folder does not exist: {out.parent}")
@@ -92,7 +106,8 @@ def cmd_detect(args: argparse.Namespace) -> int:
     counts: dict[str, int] = {}
     items = [(p.name, (lambda p=p: load_image(p, params.image_width))) for p in paths]
     with open(out, "w") as fh:
-        for i, rgb, res, _ in run(items, args.impl, params, args.batch_size, device, progress=not args.quiet):
+        for i, rgb, res, _ in run(items, args.impl, params, args.batch_size, device, progress=not args.quiet,
+                                  model=model):
             path = paths[i]
             fh.write(json.dumps(res.to_record()) + "\n")
             fh.flush()
@@ -101,6 +116,65 @@ def cmd_detect(args: argparse.Namespace) -> int:
                 save_rgb(ann / f"{path.stem}.png", draw_result(rgb, res))
     summary = ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
     print(f"torchrow: {len(paths)} image(s) -> {out} ({summary})", file=sys.stderr)
+    return 0
+
+
+def _check_model(args: argparse.Namespace) -> str | None:
+    """``--model`` for ``--impl onnx``: present, readable, a torchrow export, onnxruntime installed."""
+    model = getattr(args, "model", None)
+    if args.impl != "onnx":
+        if model:
+            raise CLIError("--model is only used with --impl onnx")
+        return None
+    if not model:
+        raise CLIError("--impl onnx needs --model MODEL.onnx (write one with: torchrow export onnx --out MODEL.onnx)")
+    if not Path(model).is_file():
+        raise CLIError(f"ONNX model not found: {model}")
+    try:
+        import onnxruntime  # noqa: F401
+
+        from .export import model_info
+
+        info = model_info(model)
+    except ImportError:
+        raise CLIError("--impl onnx needs onnxruntime: pip install 'torchrow[onnx]'") from None
+    except Exception as exc:  # a corrupt or foreign file: one line, not a traceback
+        raise CLIError(f"cannot read ONNX model {model}: {exc}") from None
+    if args.param:
+        raise CLIError("--param cannot change an exported model; export one with those --param values")
+    want = info["params"].image_width
+    if want != info["width"]:
+        raise CLIError(f"model {model} takes {info['width']}x{info['height']} images but its image_width is {want}")
+    return model
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    try:
+        import onnx  # noqa: F401
+        import onnxscript  # noqa: F401
+    except ImportError:
+        raise CLIError("export needs onnx and onnxscript: pip install 'torchrow[onnx]'") from None
+    from .export import model_info, to_onnx
+
+    params = _parse_params(args.param)
+    if args.width != params.image_width:
+        params = params.replace(image_width=args.width)
+    out = Path(args.out)
+    if not out.parent.is_dir():
+        raise CLIError(f"output folder does not exist: {out.parent}")
+    import time
+
+    t0 = time.perf_counter()
+    try:
+        to_onnx(out, height=args.height, width=args.width, batch=args.batch, params=params, opset=args.opset)
+    except ValueError as exc:
+        raise CLIError(str(exc)) from None
+    info = model_info(out)
+    ops = ", ".join(f"{k} {v}" for k, v in sorted(info["ops"].items()))
+    print(f"torchrow: exported {out} in {time.perf_counter() - t0:.0f} s: {info['size'] / 2**20:.1f} MiB, "
+          f"images uint8 ({args.batch}, 3, {args.height}, {args.width}) + veg_lab float64 ({args.batch}, 3), "
+          f"opset {info['opset']}, {sum(info['ops'].values())} nodes")
+    print(f"ops: {ops}")
     return 0
 
 
@@ -118,6 +192,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     params = _parse_params(args.param)
     device = _check_device(args.device)
+    if args.impl == "onnx":
+        raise CLIError("eval supports --impl tensor|reference; for ONNX use: torchrow detect --impl onnx --model M")
     crbd = _open_crbd(args.data)
     indices = list(range(len(crbd)))[:: args.every]
     if args.limit:
@@ -352,8 +428,10 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
 
     def impl(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--impl", choices=("tensor", "reference"), default="tensor",
-                       help="batched tensor path (default) or the per-image reference")
+        p.add_argument("--impl", choices=("tensor", "reference", "onnx"), default="tensor",
+                       help="batched tensor path (default), the per-image reference, or an exported ONNX "
+                            "model in onnxruntime (--model)")
+        p.add_argument("--model", help="ONNX file for --impl onnx (torchrow export onnx)")
         p.add_argument("--batch-size", type=int, default=64, help="images per batch for --impl tensor")
         p.add_argument("--device", default=None, help="torch device for --impl tensor (cpu, cuda, cuda:1)")
 
@@ -399,6 +477,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default=None, help="torch device for --impl tensor (cpu, cuda, cuda:1)")
     common(p)
     p.set_defaults(func=cmd_video)
+
+    p = sub.add_parser("export", help="export the image-mode detector (see README: ONNX export)")
+    esub = p.add_subparsers(dest="format", required=True)
+    p = esub.add_parser("onnx", help="static-shape ONNX graph (torch dynamo exporter)")
+    p.add_argument("--out", required=True, help="output .onnx file")
+    p.add_argument("--height", type=int, default=240, help="working image height (default 240)")
+    p.add_argument("--width", type=int, default=320, help="working image width (default 320)")
+    p.add_argument("--batch", type=int, default=1, help="static batch size (default 1)")
+    p.add_argument("--opset", type=int, default=18, help="ONNX opset, >= 18 (default 18)")
+    common(p)
+    p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("demo", help="detect rows on a built-in synthetic field (no data needed)")
     p.add_argument("--out", default="torchrow-demo.png", help="annotated image (default torchrow-demo.png)")

@@ -22,7 +22,7 @@ from .results import ImageResult
 
 __all__ = ["IMPLS", "run"]
 
-IMPLS = ("tensor", "reference")
+IMPLS = ("tensor", "reference", "onnx")
 
 Loader = Callable[[], np.ndarray]
 
@@ -42,15 +42,25 @@ def _load(name: str, loader: Loader) -> tuple[np.ndarray | None, ImageResult | N
 
 def run(items: Sequence[tuple[str, Loader]], impl: str = "tensor", params: Params | None = None,
         batch_size: int = 64, device: str | None = None, progress: bool = True,
-        desc: str = "detect") -> Iterator[tuple[int, np.ndarray | None, ImageResult, float]]:
+        desc: str = "detect", model: str | None = None) -> Iterator[tuple[int, np.ndarray | None, ImageResult, float]]:
     """Detect every ``(name, loader)`` item; ``loader()`` returns the working RGB image.
 
     Results come back in input order. With ``impl="tensor"`` up to ``batch_size`` images per
-    working size are held in memory until their batch runs.
+    working size are held in memory until their batch runs. ``impl="onnx"`` runs the exported
+    model ``model`` (:mod:`torchrow.export`) in onnxruntime, in batches of the model's static
+    batch size (the last one padded; ``batch_size`` is ignored) with the model's parameters;
+    images of another working size than the model's get an ``error`` record.
     """
     params = params or Params()
     if impl not in IMPLS:
         raise ValueError(f"impl must be one of {IMPLS}, got {impl!r}")
+    if impl == "onnx":
+        if model is None:
+            raise ValueError("impl='onnx' needs model= (an ONNX file written by torchrow.export.to_onnx)")
+        from .export import OnnxDetector
+
+        det = OnnxDetector(model)
+        batch_size = det.batch
     bar = _progress(len(items), desc, progress)
     try:
         if impl == "reference":
@@ -67,17 +77,18 @@ def run(items: Sequence[tuple[str, Loader]], impl: str = "tensor", params: Param
                 bar.update(1)
                 yield i, rgb, err, time.perf_counter() - t0
             return
-        yield from _run_tensor(items, params, batch_size, device, bar)
+        yield from _run_tensor(items, params, batch_size, device, bar, det if impl == "onnx" else None)
     finally:
         bar.close()
 
 
-def _run_tensor(items, params, batch_size, device, bar):
+def _run_tensor(items, params, batch_size, device, bar, det=None):
     import torch
 
     from .detector import CropRowDetector
 
-    det = CropRowDetector(params, device=device)
+    if det is None:
+        det = CropRowDetector(params, device=device)
     done: dict[int, tuple[np.ndarray | None, ImageResult, float]] = {}
     groups: dict[tuple[int, ...], list[int]] = {}
     rgbs: dict[int, np.ndarray] = {}

@@ -1,0 +1,263 @@
+"""ONNX export (torchrow.export): op list, onnxruntime parity with the tensor path, CLI.
+
+The exported graph takes minutes to build on a small CPU, so the model of these tests is
+exported once and cached on disk (``TORCHROW_CACHE`` or ``~/.cache/torchrow``), keyed by
+the source of the code that defines it; parameters with fewer line-search steps
+(``n_rows=3, max_outliers=2``: 16 steps instead of 59) keep it small. Full-CRBD parity at
+the default parameters is the ``slow`` test at the end (and ``benchmarks/bench_onnx.py``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("onnxruntime")
+pytest.importorskip("onnx")
+pytest.importorskip("onnxscript")
+
+from torchrow import Params  # noqa: E402
+from torchrow.cli import main  # noqa: E402
+from torchrow.detector import CropRowDetector  # noqa: E402
+from torchrow.export import FORBIDDEN_OPS, OnnxDetector, model_info, op_counts, to_onnx  # noqa: E402
+
+SMALL = Params(n_rows=3, max_outliers=2)
+BATCH = 2
+
+#: Op types the graph may contain: all supported by TensorRT's ONNX parser (CumSum, TopK with
+#: k <= 3840, GatherElements, ScatterND without reduction, BitShift/Bitwise ops on ints).
+ALLOWED_OPS = {
+    "Abs", "Add", "And", "ArgMax", "BitShift", "BitwiseAnd", "BitwiseOr", "BitwiseXor", "Cast", "Clip", "Concat",
+    "Constant", "CumSum", "Div", "Equal", "Expand", "Floor", "Gather", "GatherElements", "GatherND", "Greater",
+    "GreaterOrEqual", "Identity", "Less", "LessOrEqual", "Max", "Min", "Mod", "Mul", "Neg", "Not", "Or", "Pad",
+    "Pow", "Range", "ReduceMax", "ReduceMin", "ReduceSum", "Reshape", "ScatterElements", "ScatterND", "Shape",
+    "Slice", "Sqrt", "Squeeze", "Sub", "TopK", "Transpose", "Unsqueeze", "Where", "Xor",
+}
+
+
+def _cache_dir() -> Path:
+    env = os.environ.get("TORCHROW_CACHE")
+    return (Path(env) if env else Path.home() / ".cache" / "torchrow") / "onnx-tests"
+
+
+def _source_key(params: Params, batch: int) -> str:
+    root = Path(__file__).resolve().parents[1] / "torchrow"
+    h = hashlib.sha256()
+    for p in sorted([root / "export.py", root / "params.py", root / "shared.py",
+                     *(root / "functional").glob("*.py")]):
+        h.update(p.read_bytes())
+    h.update(repr((params, batch, torch.__version__)).encode())
+    return h.hexdigest()[:16]
+
+
+def _exported(params: Params, batch: int, tmp: Path) -> Path:
+    """The exported model for ``params``/``batch`` at 320x240, cached by source hash."""
+    cache = _cache_dir()
+    path = cache / f"detector-{_source_key(params, batch)}.onnx"
+    if path.is_file():
+        return path
+    out = to_onnx(tmp / "model.onnx", height=240, width=320, batch=batch, params=params)
+    try:
+        cache.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(out, path)
+        return path
+    except OSError:
+        return out
+
+
+@pytest.fixture(scope="module")
+def model_path(tmp_path_factory) -> Path:
+    return _exported(SMALL, BATCH, tmp_path_factory.mktemp("onnx"))
+
+
+@pytest.fixture(scope="module")
+def runner(model_path: Path) -> OnnxDetector:
+    return OnnxDetector(model_path)
+
+
+def _same(ref, got, tol: float = 1e-4) -> list[str]:
+    """Differences between two lists of ImageResult: discrete fields equal, rows within tol px."""
+    problems = []
+    for i, (a, b) in enumerate(zip(ref, got)):
+        ra, rb = a.to_record(), b.to_record()
+        for key in ra:
+            if key != "rows" and ra[key] != rb[key]:
+                problems.append(f"image {i}: {key} {ra[key]} != {rb[key]}")
+        if [(r.valid, r.reason, r.hypothesis) for r in a.rows] != [(r.valid, r.reason, r.hypothesis) for r in b.rows]:
+            problems.append(f"image {i}: row validity/reason/hypothesis differ")
+            continue
+        for ya, yb in zip(a.rows, b.rows):
+            for u, v in ((ya.a, yb.a), (ya.b, yb.b)):
+                if not (np.isnan(u) and np.isnan(v)) and not abs(u - v) <= tol:
+                    problems.append(f"image {i}: row {u} vs {v}")
+            # the row's x over the image height, in px
+            ys = np.arange(a.height, dtype=np.float64)
+            if not np.isnan(ya.a) and np.abs(ya.x_at(ys) - yb.x_at(ys)).max() > tol:
+                problems.append(f"image {i}: row x differs by more than {tol} px")
+    if len(ref) != len(got):
+        problems.append(f"{len(ref)} vs {len(got)} results")
+    return problems
+
+
+# ------------------------------------------------------------------------------------------
+def test_op_list_has_no_scatter_reduction(model_path: Path):
+    import onnx
+
+    ops = op_counts(onnx.load(str(model_path)))
+    assert not [op for op in ops if op in FORBIDDEN_OPS], ops
+    assert set(ops) <= ALLOWED_OPS, f"ops outside the TensorRT whitelist: {set(ops) - ALLOWED_OPS}"
+    assert ops["CumSum"] > 0 and ops["TopK"] > 0  # the vote and the band points
+
+
+def test_model_metadata(model_path: Path):
+    info = model_info(model_path)
+    assert (info["height"], info["width"], info["batch"], info["opset"]) == (240, 320, BATCH, 18)
+    assert info["params"] == SMALL
+    assert "dynamo" in info["exporter"]
+
+
+def _synthetic_batch() -> torch.Tensor:
+    """Adversarial images: all soil (no vegetation), all green (bushy), a sky band, noise."""
+    rng = np.random.default_rng(0)
+    imgs = np.zeros((5, 240, 320, 3), np.uint8)
+    imgs[0] = (120, 90, 60)  # soil only
+    imgs[1] = (40, 160, 40)  # one dense green field: bushy
+    imgs[1, ::7] = (120, 90, 60)
+    imgs[2] = (120, 90, 60)  # sky on top, green rows below
+    imgs[2, :60] = (200, 220, 250)
+    for x0 in range(20, 320, 60):
+        for y in range(60, 240):
+            x = int(x0 + (y - 60) * (160 - x0) / 400)
+            imgs[2, y, max(0, x - 3):x + 3] = (40, 160, 40)
+    imgs[3] = rng.integers(0, 256, (240, 320, 3), dtype=np.uint8)
+    imgs[4] = imgs[2, :, ::-1]
+    return torch.from_numpy(imgs).permute(0, 3, 1, 2).contiguous()
+
+
+def test_parity_synthetic(runner: OnnxDetector):
+    x = _synthetic_batch()
+    ref = CropRowDetector(SMALL)(x).results()
+    got = runner(x).results()
+    assert not _same(ref, got)
+    assert {r.status for r in ref} >= {"no_vegetation"}
+    assert any(r.bushy for r in ref)
+
+
+@pytest.mark.data
+def test_parity_crbd_sample(runner: OnnxDetector, crbd_dir: Path):
+    from torchrow.datasets import CRBD
+
+    ds = CRBD(crbd_dir)
+    idx = [0, 57, 130, 200, 280]  # odd count: the last batch is padded
+    x = torch.from_numpy(np.stack([ds.image(i) for i in idx])).permute(0, 3, 1, 2).contiguous()
+    ref = CropRowDetector(SMALL)(x).results()
+    got = runner(x).results()
+    assert not _same(ref, got)
+
+
+def test_veg_color_override(runner: OnnxDetector):
+    x = _synthetic_batch()[2:4]
+    color = torch.tensor([40, 160, 40], dtype=torch.uint8)
+    ref = CropRowDetector(SMALL)(x, veg_color=color).results()
+    assert not _same(ref, runner(x, veg_color=color).results())
+
+
+def test_wrong_size_is_a_clear_error(runner: OnnxDetector):
+    with pytest.raises(ValueError, match="takes 320x240 images, got 160x120"):
+        runner(torch.zeros((1, 3, 120, 160), dtype=torch.uint8))
+
+
+def test_missing_model_is_a_clear_error(tmp_path: Path):
+    with pytest.raises(FileNotFoundError, match="ONNX model not found"):
+        OnnxDetector(tmp_path / "nope.onnx")
+
+
+def test_export_argument_errors(tmp_path: Path):
+    with pytest.raises(ValueError, match="batch must be an integer >= 1"):
+        to_onnx(tmp_path / "m.onnx", batch=0)
+    with pytest.raises(ValueError, match="opset must be an integer >= 18"):
+        to_onnx(tmp_path / "m.onnx", opset=17)
+    with pytest.raises(FileNotFoundError, match="output folder does not exist"):
+        to_onnx(tmp_path / "missing" / "m.onnx")
+
+
+# --- CLI -------------------------------------------------------------------------------------
+def _write_images(folder: Path, batch: torch.Tensor) -> None:
+    import cv2
+
+    folder.mkdir()
+    for i, im in enumerate(batch.permute(0, 2, 3, 1).numpy()):
+        cv2.imwrite(str(folder / f"im{i}.png"), im[..., ::-1])
+
+
+def _records(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def test_cli_detect_onnx_equals_tensor(model_path: Path, tmp_path: Path):
+    _write_images(tmp_path / "imgs", _synthetic_batch())
+    a, b = tmp_path / "tensor.jsonl", tmp_path / "onnx.jsonl"
+    params = [f"--param=n_rows={SMALL.n_rows}", f"--param=max_outliers={SMALL.max_outliers}"]
+    assert main(["detect", str(tmp_path / "imgs"), "--out", str(a), "-q", *params]) == 0
+    assert main(["detect", str(tmp_path / "imgs"), "--out", str(b), "-q", "--impl", "onnx",
+                 "--model", str(model_path)]) == 0
+    ra, rb = _records(a), _records(b)
+    assert [r["name"] for r in ra] == [r["name"] for r in rb]
+    for x, y in zip(ra, rb):
+        assert {k: v for k, v in x.items() if k != "rows"} == {k: v for k, v in y.items() if k != "rows"}
+        assert [(r["valid"], r["reason"]) for r in x["rows"]] == [(r["valid"], r["reason"]) for r in y["rows"]]
+        for r, s in zip(x["rows"], y["rows"]):
+            for key in ("a", "b"):
+                assert (r[key] is None and s[key] is None) or abs(r[key] - s[key]) <= 1e-4
+
+
+def test_cli_onnx_errors(model_path: Path, tmp_path: Path, capsys):
+    _write_images(tmp_path / "imgs", _synthetic_batch()[:1])
+    out = str(tmp_path / "o.jsonl")
+    assert main(["detect", str(tmp_path / "imgs"), "--out", out, "--impl", "onnx"]) == 2
+    assert "--impl onnx needs --model" in capsys.readouterr().err
+    assert main(["detect", str(tmp_path / "imgs"), "--out", out, "--impl", "onnx", "--model",
+                 str(tmp_path / "none.onnx")]) == 2
+    assert "ONNX model not found" in capsys.readouterr().err
+    small = tmp_path / "small"
+    small.mkdir()
+    import cv2
+
+    cv2.imwrite(str(small / "a.png"), np.zeros((100, 640, 3), np.uint8))
+    assert main(["detect", str(small), "--out", out, "--impl", "onnx", "--model", str(model_path)]) == 2
+    err = capsys.readouterr().err
+    assert "takes 320x240 images" in err and err.count("\n") == 1
+    assert main(["detect", str(tmp_path / "imgs"), "--out", out, "--model", str(model_path)]) == 2
+    assert "--model is only used with --impl onnx" in capsys.readouterr().err
+
+
+# --- slow: the default-parameter model on all CRBD images ------------------------------------
+@pytest.mark.slow
+@pytest.mark.data
+def test_parity_all_crbd_default_params(crbd_dir: Path, tmp_path_factory):
+    from torchrow.datasets import CRBD
+
+    path = _exported(Params(), 4, tmp_path_factory.mktemp("onnx-full"))
+    det = OnnxDetector(path)
+    ds = CRBD(crbd_dir)
+    problems = []
+    for s in range(0, len(ds), 32):
+        idx = list(range(s, min(len(ds), s + 32)))
+        x = torch.from_numpy(np.stack([ds.image(i) for i in idx])).permute(0, 3, 1, 2).contiguous()
+        problems += _same(CropRowDetector()(x).results(), det(x).results())
+    assert not problems, problems[:10]
+
+
+@pytest.mark.slow
+def test_lab_box_decisions_exhaustive():
+    from torchrow.export import check_lab
+
+    res = check_lab()
+    assert res["flippable"] == 0, res
