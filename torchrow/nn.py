@@ -7,16 +7,15 @@ loss on their outputs can be minimised by gradient descent (for instance to fit 
 vegetation colour to ground truth, :mod:`torchrow.calibrate`). Each is a typed functional op
 plus a thin :class:`torch.nn.Module` holding its parameters, kornia style:
 
-=============================  ==========================================  ============================
-block                          input -> output                             hard counterpart
-=============================  ==========================================  ============================
-:class:`SoftVegetationMask`    float ``(B, 3, H, W)`` RGB in [0, 1] ->     ALGORITHM.md 3.2,
-                               float ``(B, H, W)`` in [0, 1]               :func:`~torchrow.functional.vegetation.raw_mask`
-:class:`HoughVoting`           float ``(B, H, W)`` weights ->              ALGORITHM.md 5 (votes),
-                               float ``(B, n_theta, 2D+1)``                :func:`~torchrow.functional.hough.votes`
-:class:`WeightedVanishingPoint`  float ``(B, N)`` theta (rad), rho (px),   ALGORITHM.md 6 (normal equations),
-                               weight (+ bool valid) -> ``(B, 2)`` px      :func:`~torchrow.functional.vanishing.vanishing_point`
-=============================  ==========================================  ============================
+* :class:`SoftVegetationMask`: float ``(B, 3, H, W)`` RGB in [0, 1] -> float ``(B, H, W)``
+  in [0, 1]; hard counterpart ALGORITHM.md 3.2,
+  :func:`torchrow.functional.vegetation.raw_mask` (its limit as the temperature -> 0);
+* :class:`HoughVoting`: float ``(B, H, W)`` weights -> float ``(B, n_theta, 2D+1)``
+  accumulator; hard counterpart ALGORITHM.md 5, :func:`torchrow.functional.hough.votes`
+  (equal for 0/1 weights);
+* :class:`WeightedVanishingPoint`: float ``(B, N)`` theta (rad), rho (px), weight and an
+  optional bool ``valid`` -> ``(B, 2)`` px; hard counterpart ALGORITHM.md 6,
+  :func:`torchrow.functional.vanishing.vanishing_point`.
 
 None of this is used by the hard pipeline; importing or running it changes no result there.
 """

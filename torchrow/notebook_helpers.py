@@ -16,7 +16,7 @@ from .datasets import ENV_VAR, GroundTruth
 from .params import Params
 from .results import ImageResult
 
-__all__ = ["find_data_root", "gt_polylines", "stage_pictures", "show_grid"]
+__all__ = ["find_data_root", "gt_polylines", "stage_pictures", "show_grid", "result_summary"]
 
 
 def find_data_root(start: str | os.PathLike[str] | None = None) -> Path:
@@ -154,5 +154,3 @@ def result_summary(res: ImageResult) -> str:
     return (f"{res.name or ''} {res.status}: {sum(r.valid for r in res.rows)}/{len(res.rows)} valid rows, "
             f"vp {vp}, colour {tuple(res.veg_color)}, sky {res.sky}").strip()
 
-
-__all__.append("result_summary")
