@@ -22,7 +22,7 @@ The precision is what the Hough stage needs (every mask pixel off the rows votes
 line) and, unlike IoU or BCE against the wide band, it is not improved by blurring the mask
 (a uniform mask scores the band's area fraction, about 0.3). The fraction term keeps the mask
 from shrinking onto a handful of perfect pixels: below ``min_fraction`` of the region (the
-hard masks of CRBD's training images cover 0.7-11%, median 2.7%) it costs up to ``penalty``.
+hard masks of CRBD's training images cover 0-11%, median about 2.5%) it costs up to ``penalty``.
 """
 
 from __future__ import annotations
@@ -223,8 +223,8 @@ def fit_vegetation_color(images: torch.Tensor, targets: torch.Tensor, regions: t
     Notes
     -----
     The images' LAB is computed once (the pipeline's shared float64 table), so a step costs
-    the soft box and its gradient only: about 10 ms per 320x240 image on 2 CPU cores with
-    the defaults.
+    the soft box and its gradient only: 25-55 ms per 320x240 image and step with the
+    defaults, measured on a shared (busy) 2-core machine.
     """
     from .functional.color import vegetation_color
     from .functional.vegetation import lab as lab_of
