@@ -2,7 +2,8 @@
 
 One module per stage, named as in the tensor path: :mod:`.sky` (section 1), :mod:`.color`
 (2), :mod:`.vegetation` (3-4), :mod:`.hough` (5), :mod:`.vanishing` (6), :mod:`.ransac` (7);
-:mod:`.pipeline` composes them. Readable first: loops where they read best.
+:mod:`.pipeline` composes them; :mod:`.tracker` is video mode (section 8). Readable first: loops
+where they read best.
 """
 
 from . import color, hough, ransac, sky, vanishing, vegetation
