@@ -337,7 +337,8 @@ class _Annotator:
 
 
 def cmd_video(args: argparse.Namespace) -> int:
-    from .runner import _progress
+    from tqdm.auto import tqdm
+
     from .video import central_jumps, plot_tracks
 
     params = _parse_params(args.param)
@@ -378,8 +379,7 @@ def cmd_video(args: argparse.Namespace) -> int:
     by_source: dict[str, list[dict]] = {n: [] for n in names}
     counts: dict[str, int] = {}
     total = sum(s.length for s in sources)
-    bar = _progress(total, "video", not args.quiet)
-    bar.unit = "frame"
+    bar = tqdm(total=total, desc="video", file=sys.stderr, disable=args.quiet, unit="frame")
     try:
         with open(out, "w") as fh:
             for run in runs:

@@ -179,7 +179,7 @@ def draw_frame(rgb: np.ndarray, result, scale: int = 2) -> np.ndarray:
     lines = [f"frame {result.frame}  k {result.k}  conf {result.confidence:.2f}",
              f"heading {fmt(result.heading_px, ' px')} / {fmt(result.heading_rad, ' rad', 3)}",
              f"lateral {fmt(result.lateral_px, ' px')} / {fmt(result.lateral_frac, '', 2)} rows"]
-    y = 30
+    y = 50  # below draw_result's status label
     for text in lines:
         (tw, th), base = cv2.getTextSize(text, font, 0.5, 1)
         cv2.rectangle(img, (2, y - th - 3), (8 + tw, y + base), (0, 0, 0), -1)
