@@ -46,7 +46,7 @@ class Tracker(nn.Module):
     --------
     Robot loop, B = 1 camera::
 
-        tracker = torchrow.Tracker(hfov_deg=87)
+        tracker = torchrow.Tracker(hfov_deg=69)
         state = None
         while True:
             frame = camera.read()                              # (H, W, 3) uint8 RGB
