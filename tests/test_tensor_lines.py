@@ -201,3 +201,19 @@ def test_ransac_vp_margin_fallback_is_exact(monkeypatch) -> None:
     tr.FALLBACKS.update(chunks=0, total=0)
     assert _check_rows(cases) == before
     assert tr.FALLBACKS["total"] > 0
+
+
+def test_export_tracing_does_not_poison_constant_caches() -> None:
+    """Tables built while ``torch.export`` traces are traced tensors: they must not be cached
+    for later eager calls (regression: eager detection after an ONNX export failed)."""
+    th._CACHE.clear()
+    tr._TABLES.clear()
+
+    class Uses(torch.nn.Module):
+        def forward(self, theta: torch.Tensor) -> torch.Tensor:
+            c, _ = th.trig(P, theta.device)
+            return c[theta] + tr._table(P, theta.device)[: theta.shape[0], 0]
+
+    torch.export.export(Uses(), (torch.zeros(3, dtype=torch.int64),), strict=False)
+    c, _ = th.trig(P, torch.device("cpu"))
+    assert float(c[0]) == 1.0 and float(tr._table(P, torch.device("cpu"))[0, 0]) >= 0.0

@@ -177,7 +177,15 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         # whose bit patterns equal their cast values: export them as Cast.
         ep = ep.run_decompositions({torch.ops.aten.view.dtype: _view_as_cast})
         prog = torch.onnx.export(ep, dynamo=True, opset_version=opset, input_names=["images", "veg_lab"],
-                                 output_names=list(GRAPH_OUTPUTS), verbose=False, optimize=optimize)
+                                 output_names=list(GRAPH_OUTPUTS), verbose=False, optimize=False)
+        if optimize:
+            # Constant folding and dead-node removal only: the exporter's default optimizer
+            # also runs onnxscript's pattern rewriter, which took ~80% of a 9-minute export
+            # of this unrolled graph (hundreds of thousands of match attempts) for no gain.
+            from onnxscript import optimizer
+
+            optimizer.fold_constants_ir(prog.model)
+            optimizer.remove_unused_nodes(prog.model)
     model = legalize(prog.model_proto)
     meta = {"torchrow_format": "1", "height": str(height), "width": str(width), "batch": str(batch),
             "params": json.dumps(_params_dict(params)), "exporter": f"torch.onnx dynamo, torch {torch.__version__}",

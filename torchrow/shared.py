@@ -116,7 +116,7 @@ def lab_table_torch(device: "str | object" = "cpu"):
     dev = torch.device(device)
     key = str(dev)
     t = _TORCH_TABLES.get(key)
-    if t is None:
+    if t is None or torch.compiler.is_exporting():  # never cache a tensor traced by torch.export
         base = _TORCH_TABLES.get("cpu")
         if base is None:
             import warnings
@@ -124,9 +124,11 @@ def lab_table_torch(device: "str | object" = "cpu"):
             with warnings.catch_warnings():  # read-only memory map: torch never writes to it
                 warnings.simplefilter("ignore", UserWarning)
                 base = torch.from_numpy(lab_table())
-            _TORCH_TABLES["cpu"] = base
+            if not torch.compiler.is_exporting():
+                _TORCH_TABLES["cpu"] = base
         t = base if dev.type == "cpu" else base.to(dev)
-        _TORCH_TABLES[key] = t
+        if not torch.compiler.is_exporting():
+            _TORCH_TABLES[key] = t
     return t
 
 

@@ -31,11 +31,19 @@ CHUNK = 65536
 def trig(params: Params, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
     """Shared ``(cos, sin)`` of the Hough angles as float64 ``(n_theta,)`` tensors on ``device``."""
     key = ("trig", params.theta_step, str(device))
-    if key not in _CACHE:
+    if key not in _CACHE or torch.compiler.is_exporting():
         c, s = hough_trig(params.theta_step)
-        _CACHE[key] = (torch.tensor(c, dtype=torch.float64, device=device),
-                       torch.tensor(s, dtype=torch.float64, device=device))
+        made = (torch.tensor(c, dtype=torch.float64, device=device), torch.tensor(s, dtype=torch.float64, device=device))
+        if not cacheable():
+            return made
+        _CACHE[key] = made
     return _CACHE[key]
+
+
+def cacheable() -> bool:
+    """Whether a constant tensor built now may be cached for later calls: not while
+    ``torch.export`` traces (it would hand traced tensors to later eager calls)."""
+    return not torch.compiler.is_exporting()
 
 
 def rho_table(height: int, width: int, params: Params, device: torch.device) -> torch.Tensor:
@@ -47,13 +55,16 @@ def rho_table(height: int, width: int, params: Params, device: torch.device) -> 
     720 bytes per pixel: 55 MB at 320x240, 885 MB at 1280x960 (the last two sizes are kept).
     """
     key = ("rho", height, width, params.theta_step, str(device))
-    if key not in _CACHE:
+    if key not in _CACHE or not cacheable():
         for k in [k for k in _CACHE if k[0] == "rho"][:-1]:
             _CACHE.pop(k, None)  # another thread may have dropped it already
         n_rho = 2 * rho_offset(height, width) + 1
         t = torch.from_numpy(rho_index_table(height, width, params.theta_step).astype(np.int32))
         t += torch.arange(t.shape[0], dtype=torch.int32).view(-1, 1) * n_rho
-        _CACHE[key] = t.T.contiguous().to(device)  # pixel-major: one pixel's cells are one row
+        t = t.T.contiguous().to(device)  # pixel-major: one pixel's cells are one row
+        if not cacheable():
+            return t
+        _CACHE[key] = t
     return _CACHE[key]
 
 

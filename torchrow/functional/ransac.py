@@ -16,7 +16,7 @@ from ..params import Params
 from ..results import REASONS
 from ..shared import hypothesis_table
 from . import _exact
-from .hough import active_width, pixel_list, trig
+from .hough import active_width, cacheable, pixel_list, trig
 
 __all__ = ["RowFits", "fit_rows", "validate_rows", "REASON_CODES", "SCORE_BUDGET"]
 
@@ -114,8 +114,11 @@ def _inliers(px, py, vx, vy, x1, y1, x2, y2, thr: float):
 
 def _table(params: Params, device: torch.device) -> torch.Tensor:
     key = (params.seed, params.ransac_trials, str(device))
-    if key not in _TABLES:
-        _TABLES[key] = torch.tensor(hypothesis_table(params.seed, params.ransac_trials), device=device)
+    if key not in _TABLES or not cacheable():
+        made = torch.tensor(hypothesis_table(params.seed, params.ransac_trials), device=device)
+        if not cacheable():
+            return made
+        _TABLES[key] = made
     return _TABLES[key]
 
 
