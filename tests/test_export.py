@@ -239,7 +239,7 @@ def test_cli_onnx_errors(model_path: Path, tmp_path: Path, capsys):
 
 
 # --- slow: the default-parameter model on all CRBD images ------------------------------------
-@pytest.mark.slow
+@pytest.mark.heavy
 @pytest.mark.data
 def test_parity_all_crbd_default_params(crbd_dir: Path, tmp_path_factory):
     from torchrow.datasets import CRBD
@@ -255,7 +255,7 @@ def test_parity_all_crbd_default_params(crbd_dir: Path, tmp_path_factory):
     assert not problems, problems[:10]
 
 
-@pytest.mark.slow
+@pytest.mark.heavy
 def test_lab_box_decisions_exhaustive():
     from torchrow.export import check_lab
 

@@ -104,6 +104,13 @@ def test_batch_of_different_lengths_equals_reference(tensor_tracker) -> None:
         for r, g in zip(ref, got[b]):
             assert_same_frame(r, g, f"seq {src} frame {r.frame}")
     assert got[2][0].status == "error" and got[2][1].hough_ran and got[2][1].name == "s2_1.png"
+    # groups of sequences on worker threads: the same records as one group (continuous
+    # outputs within 1e-6 px: padding widths, hence float summation blocks, follow the group)
+    for workers in (1, 3):
+        other = torchrow.Tracker(P320, hfov_deg=70.0, workers=workers).track(items, sources=["a", "b", "c"])
+        for b, (seq_g, seq_o) in enumerate(zip(got, other)):
+            for g, o in zip(seq_g, seq_o):
+                assert_same_frame(g, o, f"workers={workers} seq {b} frame {g.frame}")
 
 
 def test_step_with_passed_back_state_equals_track(moving, moving_ref) -> None:

@@ -9,6 +9,8 @@ masking sequences that have ended or whose frame is unreadable. Results equal
 
 from __future__ import annotations
 
+import dataclasses
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Iterable, Iterator, Sequence
 
@@ -59,7 +61,7 @@ class Tracker(nn.Module):
     """
 
     def __init__(self, params: Params | None = None, device: str | torch.device | None = None,
-                 hfov_deg: float | None = None, chunk: int = 8) -> None:
+                 hfov_deg: float | None = None, chunk: int = 8, workers: int | None = None) -> None:
         super().__init__()
         self.params = params or Params()
         self.device = torch.device(device) if device is not None else torch.device("cpu")
@@ -67,6 +69,13 @@ class Tracker(nn.Module):
         if chunk < 1:
             raise ValueError(f"chunk must be >= 1, got {chunk}")
         self.chunk = chunk
+        if workers is not None and workers < 1:
+            raise ValueError(f"workers must be None or >= 1, got {workers}")
+        # As CropRowDetector: on a CPU, groups of sequences advance concurrently on
+        # single-threaded workers (most ops are small and run on one thread anyway).
+        # Sequences are independent, so results never depend on it (tested).
+        self.workers = workers if workers is not None else (
+            torch.get_num_threads() if self.device.type == "cpu" else 1)
 
     # -- tensors in, tensors out ----------------------------------------------------------
     @torch.no_grad()
@@ -98,8 +107,63 @@ class Tracker(nn.Module):
             raise ValueError(f"state holds {len(state)} sequences, frames {bsz}")
         act = torch.ones(bsz, dtype=torch.bool, device=self.device) if active is None else active.to(self.device)
         state = self._start(x, state, act)
-        veg, k, bushy = ftrack.segment(x, state.sky, state.veg_color, state.info0, self.params)
-        return ftrack.advance(veg, k, bushy, act, state, self.params)
+        veg, k, bushy = self._segment(x, state.sky, state.veg_color, state.info0)
+        return self._advance(veg, k, bushy, act, state)
+
+    # -- sequences in groups on worker threads (CPU) ---------------------------------------
+    def _groups(self, batch: int) -> list[slice]:
+        n = min(self.workers, batch) if self.device.type == "cpu" else 1
+        edges = [round(i * batch / n) for i in range(n + 1)] if n > 1 else [0, batch]
+        return [slice(edges[i], edges[i + 1]) for i in range(len(edges) - 1)]
+
+    def _parallel(self, fn, groups: list[slice]) -> list:
+        """``fn(group)`` for every group, concurrently on single-threaded workers."""
+        if len(groups) == 1:
+            return [fn(groups[0])]
+        from .functional import hough as fhough
+        from .functional import ransac as fransac
+        from .shared import lab_table_torch
+
+        fhough.trig(self.params, self.device)  # shared constants exist before the threads read them
+        fransac._table(self.params, self.device)
+        lab_table_torch(self.device)
+
+        def run(g: slice):
+            torch.set_num_threads(1)  # per-thread settings (OpenMP, grad mode)
+            with torch.no_grad():
+                return fn(g)
+
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            with ThreadPoolExecutor(max_workers=len(groups)) as pool:
+                return list(pool.map(run, groups))
+        finally:
+            torch.set_num_threads(threads)
+
+    def _segment(self, x: torch.Tensor, sky: torch.Tensor, color: torch.Tensor, info0: torch.Tensor):
+        """:func:`torchrow.functional.tracker.segment` over groups of frames."""
+        parts = self._parallel(lambda g: ftrack.segment(x[g], sky[g], color[g], info0[g], self.params),
+                               self._groups(x.shape[0]))
+        return tuple(torch.cat(t) for t in zip(*parts)) if len(parts) > 1 else parts[0]
+
+    def _advance(self, veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, act: torch.Tensor,
+                 state: TrackerState) -> tuple[TrackStep, TrackerState]:
+        """:func:`torchrow.functional.tracker.advance` over groups of sequences."""
+        groups = self._groups(veg.shape[0])
+        if veg.shape[0] >= 2 and len(groups) > 1:
+            # rho_table is per working size: build it once, outside the threads
+            from .functional import hough as fhough
+            fhough.rho_table(veg.shape[1], veg.shape[2], self.params, self.device)
+        parts = self._parallel(lambda g: ftrack.advance(veg[g], k[g], bushy[g], act[g], state.select(g), self.params),
+                               groups)
+        if len(parts) == 1:
+            return parts[0]
+        step = TrackStep(**{f.name: torch.cat([getattr(q[0], f.name) for q in parts])
+                            for f in dataclasses.fields(TrackStep)})
+        new = TrackerState(**{f.name: torch.cat([getattr(q[1], f.name) for q in parts])
+                              for f in dataclasses.fields(TrackerState)})
+        return step, new
 
     def _start(self, frames: torch.Tensor, state: TrackerState, active: torch.Tensor) -> TrackerState:
         """Initialise the active sequences that have not seen a frame yet from ``frames``."""
@@ -252,8 +316,8 @@ class Tracker(nn.Module):
             if where:
                 seq = torch.tensor([b for b, _ in where], dtype=torch.int64, device=self.device)
                 x = torch.from_numpy(np.stack([got[b][t][1].rgb for b, t in where])).permute(0, 3, 1, 2)
-                v, k1, b1 = ftrack.segment(x.contiguous().to(self.device), state.sky[seq], state.veg_color[seq],
-                                           state.info0[seq], p)
+                v, k1, b1 = self._segment(x.contiguous().to(self.device), state.sky[seq], state.veg_color[seq],
+                                          state.info0[seq])
                 flat = seq * t_max + torch.tensor([t for _, t in where], dtype=torch.int64, device=self.device)
                 veg.view(bsz * t_max, h, w)[flat] = v
                 kk.view(-1)[flat] = k1
@@ -263,7 +327,7 @@ class Tracker(nn.Module):
                 act_list = [t < len(got[b]) and got[b][t][1].rgb is not None for b in range(bsz)]
                 if any(act_list):
                     act = torch.tensor(act_list, dtype=torch.bool, device=self.device)
-                    stepped, state = ftrack.advance(veg[:, t], kk[:, t], bushy[:, t], act, state, p)
+                    stepped, state = self._advance(veg[:, t], kk[:, t], bushy[:, t], act, state)
                     names = [got[b][t][1].name if t < len(got[b]) else None for b in range(bsz)]
                     idxs = [got[b][t][0] if t < len(got[b]) else 0 for b in range(bsz)]
                     recs = self.results(stepped, state, w, h, names, srcs, idxs)
