@@ -23,12 +23,15 @@ args = ap.parse_args()
 ds = CRBD(args.data)
 det = OnnxDetector(args.model)
 tdet = CropRowDetector()
-problems = []; n = 0; t0 = time.time()
+problems = []
+n = 0
+t0 = time.time()
 for s in range(0, len(ds), 32):
     idx = list(range(s, min(len(ds), s + 32)))
     x = torch.from_numpy(np.stack([ds.image(i) for i in idx])).permute(0, 3, 1, 2).contiguous()
     names = [ds.names[i] for i in idx]
     p = _same(tdet(x).results(names), det(x).results(names))
-    problems += p; n += len(idx)
+    problems += p
+    n += len(idx)
     print(f"{n} images, {len(problems)} differences, {time.time()-t0:.0f} s", flush=True)
 print("DONE", n, "images;", len(problems), "differences", problems[:10])
