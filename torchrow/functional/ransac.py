@@ -231,12 +231,27 @@ def fit_rows(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, present:
         best_t = torch.where(better, carg + t0, best_t)
     support = support & (best_score >= 0)
     # refit on the inliers of the best hypothesis
+    cx, cy, sxx, syy, sxy = best_moments(u, best_t, total, px, py, n_keep, v_keep, valid_pt, vp,
+                                         params.ransac_threshold)
+    dx, dy = principal_direction(sxx, syy, sxy)
+    hyp = torch.where(support, best_t, torch.full_like(best_t, -1))
+    return cx, cy, dx, dy, hyp, support
+
+
+def best_moments(u, best_t, total, px, py, n_keep, v_keep, valid_pt, vp, thr: float):
+    """Step 7.5 up to the scatter: weighted centroid ``cx, cy`` and scatter ``sxx, syy, sxy``
+    (float64 ``(B, S)``) of the inliers of hypothesis ``best_t`` of the table ``u``.
+
+    ``total`` float64 ``(B, S)`` = ``n' + v'``; ``px, py`` float64 ``(B, S, P)`` kept points,
+    ``valid_pt`` bool ``(B, S, P)``; the VP ``(B, 2)`` weighs ``v_keep`` when it is an inlier.
+    Shared by the eager and the exportable (:mod:`.static`) paths.
+    """
     ub = u[best_t]  # (B, S, 2)
     i1 = torch.floor(ub[..., 0] * total).to(torch.int64).unsqueeze(2)
     i2 = torch.floor(ub[..., 1] * total).to(torch.int64).unsqueeze(2)
     x1, y1 = _pick(px, py, i1, n_keep, vp)
     x2, y2 = _pick(px, py, i2, n_keep, vp)
-    pix, vpi = _inliers(px, py, vp[:, 0], vp[:, 1], x1, y1, x2, y2, params.ransac_threshold)
+    pix, vpi = _inliers(px, py, vp[:, 0], vp[:, 1], x1, y1, x2, y2, thr)
     wpix = (pix.squeeze(2) & valid_pt).to(torch.float64)  # (B, S, P)
     wvp = vpi.squeeze(2).to(torch.float64) * v_keep.to(torch.float64)  # (B, S)
     vx, vy = vp[:, 0].view(-1, 1), vp[:, 1].view(-1, 1)
@@ -249,12 +264,15 @@ def fit_rows(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, present:
     sxx = (wpix * ex * ex).sum(2) + wvp * evx * evx
     syy = (wpix * ey * ey).sum(2) + wvp * evy * evy
     sxy = (wpix * ex * ey).sum(2) + wvp * evx * evy
+    return cx, cy, sxx, syy, sxy
+
+
+def principal_direction(sxx: torch.Tensor, syy: torch.Tensor, sxy: torch.Tensor):
+    """Unit principal direction ``(dx, dy)`` of the weighted scatter, dy > 0 (dx > 0 when dy = 0)."""
     phi = 0.5 * torch.atan2(2.0 * sxy, sxx - syy)
     dx, dy = torch.cos(phi), torch.sin(phi)
     flip = (dy < 0) | ((dy == 0) & (dx < 0))
-    dx, dy = torch.where(flip, -dx, dx), torch.where(flip, -dy, dy)
-    hyp = torch.where(support, best_t, torch.full_like(best_t, -1))
-    return cx, cy, dx, dy, hyp, support
+    return torch.where(flip, -dx, dx), torch.where(flip, -dy, dy)
 
 
 def validate_rows(cx, cy, dx, dy, hyp, support, present, height: int, hough_band: torch.Tensor,

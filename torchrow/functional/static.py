@@ -45,7 +45,7 @@ from . import ransac as fransac
 from . import sky as fsky
 from . import vegetation as fveg
 from .hough import excluded_angles
-from .vanishing import _drop, max_steps, vanishing_point
+from .vanishing import drop_outlier, max_steps, outlier_check
 
 __all__ = ["lab", "LINEAR_RGB", "VoteTables", "vote_tables", "votes", "StaticDetector", "finish_rows",
            "GRAPH_OUTPUTS"]
@@ -260,22 +260,10 @@ class StaticDetector(nn.Module):
                     - rho_new.to(torch.float64).unsqueeze(1)).abs()
             alive = alive & ~((dist <= half_band) & got.unsqueeze(1))
 
-            sol = vanishing_point(theta, rho, weight, valid, p)
-            no_vp = check & ~sol.ok
-            err = torch.where(valid, sol.residuals.abs(), torch.full_like(sol.residuals, -1.0))
-            i = torch.argmax(err, dim=1)
-            e_i = err.gather(1, i.unsqueeze(1)).squeeze(1)
-            is_out = (e_i > p.outlier_ratio * sol.spread) & (e_i > p.outlier_min_px)
-            finish = check & sol.ok & ~is_out
-            vp = torch.where(finish.unsqueeze(1), torch.stack([sol.x, sol.y], 1), vp)
+            no_vp, finish, drop, i, xy = outlier_check(theta, rho, weight, valid, check, p)
+            vp = torch.where(finish.unsqueeze(1), xy, vp)
             has_vp = has_vp | finish
-            drop = check & sol.ok & is_out
-            rec = torch.stack([theta.gather(1, i.unsqueeze(1)).squeeze(1), rho.gather(1, i.unsqueeze(1)).squeeze(1),
-                               weight.gather(1, i.unsqueeze(1)).squeeze(1)], 1)
-            o_slot = (torch.arange(o_max, device=dev).unsqueeze(0) == n_out.unsqueeze(1)) & drop.unsqueeze(1)
-            out = torch.where(o_slot.unsqueeze(-1), rec.unsqueeze(1), out)
-            n_out = n_out + drop.to(torch.int64)
-            theta, rho, weight = _drop(theta, i, drop), _drop(rho, i, drop), _drop(weight, i, drop)
+            theta, rho, weight, out, n_out = drop_outlier(theta, rho, weight, i, drop, out, n_out)
             held = held - drop.to(torch.int64)
             dropped = dropped + drop.to(torch.int64)
             restart = drop & (dropped == p.max_outliers)
@@ -354,24 +342,8 @@ class StaticDetector(nn.Module):
             best_score = torch.where(better, cmax, best_score)
             best_t = torch.where(better, carg + t0, best_t)
         support = support & (best_score >= 0)
-        ub = self.u[best_t]
-        i1 = torch.floor(ub[..., 0] * total).to(torch.int64).unsqueeze(2)
-        i2 = torch.floor(ub[..., 1] * total).to(torch.int64).unsqueeze(2)
-        x1, y1 = fransac._pick(px, py, i1, n_keep, vp)
-        x2, y2 = fransac._pick(px, py, i2, n_keep, vp)
-        pix, vpi = fransac._inliers(px, py, vp[:, 0], vp[:, 1], x1, y1, x2, y2, p.ransac_threshold)
-        wpix = (pix.squeeze(2) & valid_pt).to(torch.float64)
-        wvp = vpi.squeeze(2).to(torch.float64) * v_keep.to(torch.float64)
-        vx, vy = vp[:, 0].view(-1, 1), vp[:, 1].view(-1, 1)
-        wsum = wpix.sum(2) + wvp
-        safe = torch.where(wsum > 0, wsum, torch.ones_like(wsum))
-        cx = ((wpix * px).sum(2) + wvp * vx) / safe
-        cy = ((wpix * py).sum(2) + wvp * vy) / safe
-        ex, ey = px - cx.unsqueeze(2), py - cy.unsqueeze(2)
-        evx, evy = vx - cx, vy - cy
-        sxx = (wpix * ex * ex).sum(2) + wvp * evx * evx
-        syy = (wpix * ey * ey).sum(2) + wvp * evy * evy
-        sxy = (wpix * ex * ey).sum(2) + wvp * evx * evy
+        cx, cy, sxx, syy, sxy = fransac.best_moments(self.u, best_t, total, px, py, n_keep, v_keep, valid_pt, vp,
+                                                     p.ransac_threshold)
         hyp = torch.where(support, best_t, torch.full_like(best_t, -1))
         return cx, cy, sxx, syy, sxy, hyp, support
 
@@ -401,9 +373,6 @@ def finish_rows(cx, cy, sxx, syy, sxy, hyp, support, present, height: int, width
     Inputs are the graph's float64/int64/bool ``(B, S)`` fit outputs (torch tensors); the
     direction is computed exactly as :func:`torchrow.functional.ransac.fit_rows` does.
     """
-    phi = 0.5 * torch.atan2(2.0 * sxy, sxx - syy)
-    dx, dy = torch.cos(phi), torch.sin(phi)
-    flip = (dy < 0) | ((dy == 0) & (dx < 0))
-    dx, dy = torch.where(flip, -dx, dx), torch.where(flip, -dy, dy)
+    dx, dy = fransac.principal_direction(sxx, syy, sxy)
     band = torch.full(support.shape[:1], params.hough_band_px(width), dtype=torch.int64)
     return fransac.validate_rows(cx, cy, dx, dy, hyp, support, present, height, band, params)

@@ -105,6 +105,32 @@ def _drop(t: torch.Tensor, i: torch.Tensor, which: torch.Tensor) -> torch.Tensor
     return torch.where(which.unsqueeze(1), torch.gather(t, 1, src), t)
 
 
+def outlier_check(theta: torch.Tensor, rho: torch.Tensor, weight: torch.Tensor, valid: torch.Tensor,
+                  check: torch.Tensor, params: Params):
+    """Section 6 for the images where ``check`` (bool ``(B,)``): the VP of the held lines
+    (int64 ``(B, S)``, ``valid`` bool ``(B, S)``) and its worst line.
+
+    Returns ``no_vp``, ``finish`` (converged: no outlier) and ``drop`` (line ``i`` is an
+    outlier), bool ``(B,)`` each, ``i`` int64 ``(B,)`` and the VP ``xy`` float64 ``(B, 2)``.
+    """
+    sol = vanishing_point(theta, rho, weight, valid, params)
+    err = torch.where(valid, sol.residuals.abs(), torch.full_like(sol.residuals, -1.0))
+    i = torch.argmax(err, dim=1)  # first on ties
+    e_i = err.gather(1, i.unsqueeze(1)).squeeze(1)
+    is_out = (e_i > params.outlier_ratio * sol.spread) & (e_i > params.outlier_min_px)
+    return check & ~sol.ok, check & sol.ok & ~is_out, check & sol.ok & is_out, i, torch.stack([sol.x, sol.y], 1)
+
+
+def drop_outlier(theta, rho, weight, i, drop, out, n_out):
+    """Where ``drop``: record line ``i`` as the next outlier (``out`` int64 ``(B, O, 3)``,
+    ``n_out`` ``(B,)``) and remove it from the held lines, later lines moving up one."""
+    rec = torch.stack([t.gather(1, i.unsqueeze(1)).squeeze(1) for t in (theta, rho, weight)], 1)
+    o_slot = (torch.arange(out.shape[1], device=out.device).unsqueeze(0) == n_out.unsqueeze(1)) & drop.unsqueeze(1)
+    out = torch.where(o_slot.unsqueeze(-1), rec.unsqueeze(1), out)
+    return (_drop(theta, i, drop), _drop(rho, i, drop), _drop(weight, i, drop), out,
+            n_out + drop.to(torch.int64))
+
+
 def find_lines(hough_in: torch.Tensor, params: Params) -> LineSearch:
     """N-maximum extraction with outlier rejection and N-1 restarts, for every image at once.
 
@@ -156,22 +182,10 @@ def find_lines(hough_in: torch.Tensor, params: Params) -> LineSearch:
                 state.erase(th, rho_new, got, params)
 
         # --- check: vanishing point and outlier --------------------------------------------
-        sol = vanishing_point(theta, rho, weight, valid, params)
-        no_vp = check & ~sol.ok
-        err = torch.where(valid, sol.residuals.abs(), torch.full_like(sol.residuals, -1.0))
-        i = torch.argmax(err, dim=1)
-        e_i = err.gather(1, i.unsqueeze(1)).squeeze(1)
-        is_out = (e_i > params.outlier_ratio * sol.spread) & (e_i > params.outlier_min_px)
-        finish = check & sol.ok & ~is_out
-        vp = torch.where(finish.unsqueeze(1), torch.stack([sol.x, sol.y], 1), vp)
+        no_vp, finish, drop, i, xy = outlier_check(theta, rho, weight, valid, check, params)
+        vp = torch.where(finish.unsqueeze(1), xy, vp)
         has_vp = has_vp | finish
-        drop = check & sol.ok & is_out
-        rec = torch.stack([theta.gather(1, i.unsqueeze(1)).squeeze(1), rho.gather(1, i.unsqueeze(1)).squeeze(1),
-                           weight.gather(1, i.unsqueeze(1)).squeeze(1)], 1)
-        o_slot = (torch.arange(o_max, device=dev).unsqueeze(0) == n_out.unsqueeze(1)) & drop.unsqueeze(1)
-        out = torch.where(o_slot.unsqueeze(-1), rec.unsqueeze(1), out)
-        n_out = n_out + drop.to(torch.int64)
-        theta, rho, weight = _drop(theta, i, drop), _drop(rho, i, drop), _drop(weight, i, drop)
+        theta, rho, weight, out, n_out = drop_outlier(theta, rho, weight, i, drop, out, n_out)
         held = held - drop.to(torch.int64)
         dropped = dropped + drop.to(torch.int64)
         restart = drop & (dropped == params.max_outliers)
