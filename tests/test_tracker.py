@@ -277,9 +277,9 @@ def test_caterra_first_frames_parity(data_dir) -> None:
     assert sum(r.hough_ran for r in ref) >= 4
 
 
-def test_single_pass_adaptive_k_equals_the_stage_function() -> None:
-    """functional.tracker.adapt_k (per-pixel smallest k + histogram) == vegetation.adapt_k."""
-    from torchrow.functional import tracker as ftrack
+def test_single_pass_adaptive_k_equals_a_box_test_per_k() -> None:
+    """vegetation.adapt_k (per-pixel smallest k + histogram) == section 3.3 walked with one
+    box test (raw_mask) per k."""
     from torchrow.functional import vegetation as fveg
 
     rng = np.random.default_rng(1)
@@ -292,5 +292,16 @@ def test_single_pass_adaptive_k_equals_the_stage_function() -> None:
     for info in ([0.02] * 5, list(rng.random(5) * 0.4), [0.0] * 5, [1e-4] * 5, [1.0] * 5):
         info0 = torch.tensor(info, dtype=torch.float64)
         k1, r1 = fveg.adapt_k(x, color, sky, info0, P320)
-        k2, r2 = ftrack.adapt_k(x, color, sky, info0, P320)
+        k2 = torch.full_like(k1, P320.video_k_start)
+        for i in range(x.shape[0]):
+            def frac(k: int) -> float:
+                raw = fveg.raw_mask(x[i:i + 1], color[i:i + 1], torch.tensor([k]), sky[i:i + 1])
+                return float(fveg.raw_fraction(raw, sky[i:i + 1])[0])
+            kk = P320.video_k_start
+            while frac(kk) > P320.video_shrink_above * info[i] and kk > P320.video_k_min:
+                kk -= 1
+            while frac(kk) < P320.video_grow_below * info[i] and kk < P320.video_k_max:
+                kk += 1
+            k2[i] = kk
+        r2 = fveg.raw_mask(x, color, k2, sky)
         assert torch.equal(k1, k2) and torch.equal(r1, r2), info

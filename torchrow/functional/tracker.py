@@ -32,10 +32,9 @@ from . import ransac as fransac
 from . import sky as fsky
 from . import vanishing as fvan
 from . import vegetation as fveg
-from ..shared import lab_table_torch
 from ._checks import check_images
 
-__all__ = ["TrackerState", "TrackStep", "init_state", "merge_state", "segment", "adapt_k", "advance", "coverage",
+__all__ = ["TrackerState", "TrackStep", "init_state", "merge_state", "segment", "advance", "coverage",
            "STATUS_OK", "STATUS_INVALID", "STATUS_NO_VP", "STATUS_NO_VEGETATION"]
 
 # codes into torchrow.results.STATUSES
@@ -191,84 +190,10 @@ def segment(frames: torch.Tensor, sky: torch.Tensor, color: torch.Tensor, info0:
     bushy : bool (N,)
         ``density > bushy_ratio`` (section 4).
     """
-    k, raw = adapt_k(frames, color, sky, info0, params)
+    k, raw = fveg.adapt_k(frames, color, sky, info0, params)
     veg = fveg.remove_bushy(raw, sky, params)
     bushy = fveg.density(veg, sky) > params.bushy_ratio
     return veg, k, bushy
-
-
-def _min_k(lab: torch.Tensor, c: torch.Tensor, k_min: int, k_max: int) -> torch.Tensor:
-    """Smallest integer ``k`` in ``[k_min, k_max]`` whose box holds each pixel (``k_max + 1``: none).
-
-    ``lab`` float64 (n, 3, P) (channel-major), ``c`` float64 (n, 3) -> int64 (n, P).
-    Section 3.2's test ``c - k <= lab <= c + k`` is monotone in ``k`` (``fl(c - k)`` cannot
-    grow and ``fl(c + k)`` cannot shrink as ``k`` grows), so per channel the smallest
-    admitting ``k`` is a binary search of ``lab`` in the exact bounds ``fl(c + k)``
-    (ascending) and ``-fl(c - k)`` (ascending; negation is exact) of every ``k``: the same
-    float64 comparisons as :func:`torchrow.functional.vegetation.raw_mask`, without a pass per
-    ``k``. The raw mask at any ``k`` is then ``min_k <= k``.
-    """
-    n, _, p = lab.shape
-    ks = torch.arange(k_min, k_max + 1, device=lab.device, dtype=torch.float64)
-    out = torch.zeros((n, p), dtype=torch.int64, device=lab.device)
-    for ch in range(3):
-        cc = c[:, ch:ch + 1]  # (n, 1)
-        hi = cc + ks  # (n, K) ascending: v <= c + k
-        neg_lo = -(cc - ks)  # (n, K) ascending: c - k <= v  <=>  -(c - k) >= -v
-        v = lab[:, ch].contiguous()
-        j_hi = torch.searchsorted(hi, v, side="left")  # first k with c + k >= v
-        j_lo = torch.searchsorted(neg_lo, -v, side="left")  # first k with -(c - k) >= -v
-        out = torch.maximum(out, torch.maximum(j_hi, j_lo))
-    return out + k_min
-
-
-def adapt_k(images: torch.Tensor, color: torch.Tensor, sky: torch.Tensor, info0: torch.Tensor,
-            params: Params) -> tuple[torch.Tensor, torch.Tensor]:
-    """Section 3.3, video mode, in one pass over the pixels; equals
-    :func:`torchrow.functional.vegetation.adapt_k` (a test checks it).
-
-    Instead of one box test per ``k`` of ``[video_k_min, video_k_max]``, each pixel's smallest
-    admitting ``k`` is found by binary search in the exact bounds (:func:`_min_k`); the raw fraction at every ``k`` is then a
-    cumulative histogram, and the raw mask at the chosen ``k`` a comparison. Same inputs and
-    outputs as the stage function: ``uint8 (B, 3, H, W)``, ``uint8 (B, 3)``, ``int (B,)``,
-    ``float64 (B,)`` -> ``k`` int64 (B,), raw mask bool (B, H, W).
-    """
-    check_images(images)
-    b, _, h, w = images.shape
-    dev = images.device
-    k_min, k_max, k_start = params.video_k_min, params.video_k_max, params.video_k_start
-    n_k = k_max - k_min + 1
-    skyc = sky.to(device=dev, dtype=torch.int64).clamp(0, h)
-    below = (torch.arange(h, device=dev).view(1, h, 1) >= skyc.view(-1, 1, 1)).expand(b, h, w).reshape(b, h * w)
-    table = lab_table_torch(dev)
-    c = table.index_select(0, fveg._pack(color.to(dev).reshape(-1, 3, 1, 1))).view(b, 1, 3)
-    kstar = torch.empty((b, h * w), dtype=torch.int64, device=dev)
-    step = max(1, (1 << 18) // max(h * w, 1))  # bounded temporaries, as the stage functions
-    for b0 in range(0, b, step):
-        chunk = images[b0:b0 + step]
-        lab = table.index_select(0, fveg._pack(chunk)).view(chunk.shape[0], h * w, 3).transpose(1, 2)
-        kstar[b0:b0 + step] = _min_k(lab, c[b0:b0 + step].view(-1, 3), k_min, k_max)
-    # counts[b, j] = pixels below the horizon with kstar == k_min + j (j = n_k: never inside)
-    lin = torch.arange(b, device=dev).view(-1, 1) * (n_k + 1) + (kstar - k_min)
-    hist = torch.bincount(lin[below], minlength=b * (n_k + 1)).view(b, n_k + 1)
-    counts = hist[:, :n_k].cumsum(dim=1)
-    size = (h - skyc) * w
-    frac = counts.to(torch.float64) / size.clamp(min=1).to(torch.float64).view(-1, 1)
-    frac = torch.where((size > 0).view(-1, 1), frac, torch.zeros_like(frac))
-    info0 = info0.to(device=dev, dtype=torch.float64)
-    shrink = params.video_shrink_above * info0
-    grow = params.video_grow_below * info0
-    k = torch.full((b,), k_start, dtype=torch.int64, device=dev)
-
-    def frac_at(kk: torch.Tensor) -> torch.Tensor:
-        return frac.gather(1, (kk - k_min).view(-1, 1)).view(-1)
-
-    for _ in range(k_start - k_min):
-        k = k - ((frac_at(k) > shrink) & (k > k_min)).to(torch.int64)
-    for _ in range(k_max - k_min):
-        k = k + ((frac_at(k) < grow) & (k < k_max)).to(torch.int64)
-    raw = (kstar <= k.view(-1, 1)) & below
-    return k, raw.view(b, h, w)
 
 
 def coverage(veg: torch.Tensor, a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor, sky: torch.Tensor,

@@ -311,6 +311,31 @@ def raw_fraction(raw: torch.Tensor, sky: torch.Tensor) -> torch.Tensor:
     return _fraction(raw, _sky(sky, raw.shape[1], raw.device))
 
 
+def _min_k(lab: torch.Tensor, c: torch.Tensor, k_min: int, k_max: int) -> torch.Tensor:
+    """Smallest integer ``k`` in ``[k_min, k_max]`` whose box holds each pixel (``k_max + 1``: none).
+
+    ``lab`` float64 (n, 3, P) (channel-major), ``c`` float64 (n, 3) -> int64 (n, P).
+    Section 3.2's test ``c - k <= lab <= c + k`` is monotone in ``k`` (``fl(c - k)`` cannot
+    grow and ``fl(c + k)`` cannot shrink as ``k`` grows), so per channel the smallest
+    admitting ``k`` is a binary search of ``lab`` in the exact bounds ``fl(c + k)``
+    (ascending) and ``-fl(c - k)`` (ascending; negation is exact) of every ``k``: the same
+    float64 comparisons as :func:`raw_mask`, without a pass per
+    ``k``. The raw mask at any ``k`` is then ``min_k <= k``.
+    """
+    n, _, p = lab.shape
+    ks = torch.arange(k_min, k_max + 1, device=lab.device, dtype=torch.float64)
+    out = torch.zeros((n, p), dtype=torch.int64, device=lab.device)
+    for ch in range(3):
+        cc = c[:, ch:ch + 1]  # (n, 1)
+        hi = cc + ks  # (n, K) ascending: v <= c + k
+        neg_lo = -(cc - ks)  # (n, K) ascending: c - k <= v  <=>  -(c - k) >= -v
+        v = lab[:, ch].contiguous()
+        j_hi = torch.searchsorted(hi, v, side="left")  # first k with c + k >= v
+        j_lo = torch.searchsorted(neg_lo, -v, side="left")  # first k with -(c - k) >= -v
+        out = torch.maximum(out, torch.maximum(j_hi, j_lo))
+    return out + k_min
+
+
 def adapt_k(images: torch.Tensor, color: torch.Tensor, sky: torch.Tensor, info0: torch.Tensor,
             params: Params) -> tuple[torch.Tensor, torch.Tensor]:
     """Section 3.3, video mode: adapt the LAB half-width ``k`` to the frame-0 fraction.
@@ -318,8 +343,9 @@ def adapt_k(images: torch.Tensor, color: torch.Tensor, sky: torch.Tensor, info0:
     Start at ``k = video_k_start``; while ``fraction > video_shrink_above * info0`` and
     ``k > video_k_min``: ``k -= 1``; then while ``fraction < video_grow_below * info0`` and
     ``k < video_k_max``: ``k += 1``. The fraction (:func:`raw_fraction`) of every integer
-    ``k`` in ``[video_k_min, video_k_max]`` is computed once (one LAB gather, one box test
-    per ``k``), then both loops run with static bounds (``k_start - k_min`` and
+    ``k`` in ``[video_k_min, video_k_max]`` is computed once in one pass over the pixels
+    (each pixel's smallest admitting ``k``, :func:`_min_k`, then a cumulative histogram; the
+    raw mask at any ``k`` is ``min_k <= k``), then both loops run with static bounds (``k_start - k_min`` and
     ``k_max - k_min`` steps) on that table, images whose condition failed keep their ``k``
     (the condition then stays false, so this equals the reference's early exits).
 
@@ -352,26 +378,22 @@ def adapt_k(images: torch.Tensor, color: torch.Tensor, sky: torch.Tensor, info0:
     _check_vector(info0, b, "info0", allow_int=False)
     dev = images.device
     k_min, k_max, k_start = params.video_k_min, params.video_k_max, params.video_k_start
-    ks = torch.arange(k_min, k_max + 1, device=dev, dtype=torch.int64)  # (K,)
-    n_k = ks.numel()
+    n_k = k_max - k_min + 1
     skyc = _sky(sky, h, dev)
-    below = _below(skyc, h)
-    counts = torch.zeros((b, n_k), dtype=torch.int64, device=dev)
+    below = _below(skyc, h).expand(b, h, w).reshape(b, h * w).to(torch.bool)
+    kstar = torch.full((b, h * w), k_max + 1, dtype=torch.int64, device=dev)
     if b > 0:
         table = lab_table_torch(dev)
-        c = table.index_select(0, _pack(color.to(dev).reshape(-1, 3, 1, 1)))  # (B, 3)
-        kf = ks.to(torch.float64).view(1, n_k, 1)
-        lo = (c.unsqueeze(1) - kf).unsqueeze(2)  # (B, K, 1, 3)
-        hi = (c.unsqueeze(1) + kf).unsqueeze(2)
+        c = table.index_select(0, _pack(color.to(dev).reshape(-1, 3, 1, 1))).view(b, 3)
         starts, step = _chunks(b, h * w)
         for b0 in starts:
             chunk = images[b0:b0 + step]
-            n = chunk.shape[0]
-            vals = table.index_select(0, _pack(chunk)).view(n, h * w, 3)
-            keep = below[b0:b0 + n].expand(n, h, w).reshape(n, h * w)
-            for j in range(n_k):  # static loop over the k grid, not over images
-                inside = _inside(vals, lo[b0:b0 + n, j], hi[b0:b0 + n, j]).bitwise_and_(keep)
-                counts[b0:b0 + n, j] = inside.sum(dim=1, dtype=torch.int64)
+            lab = table.index_select(0, _pack(chunk)).view(chunk.shape[0], h * w, 3).transpose(1, 2)
+            kstar[b0:b0 + step] = _min_k(lab, c[b0:b0 + step], k_min, k_max)
+    # counts[b, j] = pixels below the horizon with kstar <= k_min + j (kstar = k_max + 1: never)
+    n_bins = b * (n_k + 1)
+    lin = torch.where(below, torch.arange(b, device=dev).view(-1, 1) * (n_k + 1) + (kstar - k_min), n_bins)
+    counts = torch.bincount(lin.view(-1), minlength=n_bins + 1)[:n_bins].view(b, n_k + 1)[:, :n_k].cumsum(dim=1)
     size = (h - skyc) * w
     frac = counts.to(torch.float64) / size.clamp(min=1).to(torch.float64).view(-1, 1)
     frac = torch.where((size > 0).view(-1, 1), frac, torch.zeros_like(frac))
@@ -387,7 +409,7 @@ def adapt_k(images: torch.Tensor, color: torch.Tensor, sky: torch.Tensor, info0:
         k = k - ((frac_at(k) > shrink) & (k > k_min)).to(torch.int64)
     for _ in range(k_max - k_min):
         k = k + ((frac_at(k) < grow) & (k < k_max)).to(torch.int64)
-    return k, raw_mask(images, color, k, sky)
+    return k, ((kstar <= k.view(-1, 1)) & below).view(b, h, w)
 
 
 # ----------------------------------------------------------------------------------------
