@@ -9,10 +9,7 @@ the default parameters is the ``slow`` test at the end (and ``benchmarks/bench_o
 
 from __future__ import annotations
 
-import hashlib
 import json
-import os
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -27,49 +24,10 @@ from torchrow import Params  # noqa: E402
 from torchrow.cli import main  # noqa: E402
 from torchrow.detector import CropRowDetector  # noqa: E402
 from torchrow.export import FORBIDDEN_OPS, OnnxDetector, model_info, op_counts, to_onnx  # noqa: E402
+from onnx_models import ALLOWED_OPS, exported as _exported  # noqa: E402
 
 SMALL = Params(n_rows=3, max_outliers=2)
 BATCH = 2
-
-#: Op types the graph may contain: all supported by TensorRT's ONNX parser (CumSum, TopK with
-#: k <= 3840, GatherElements, ScatterND without reduction, BitShift/Bitwise ops on ints).
-ALLOWED_OPS = {
-    "Abs", "Add", "And", "ArgMax", "BitShift", "BitwiseAnd", "BitwiseOr", "BitwiseXor", "Cast", "Clip", "Concat",
-    "Constant", "CumSum", "Div", "Equal", "Expand", "Floor", "Gather", "GatherElements", "GatherND", "Greater",
-    "GreaterOrEqual", "Identity", "Less", "LessOrEqual", "Max", "Min", "Mod", "Mul", "Neg", "Not", "Or", "Pad",
-    "Pow", "Range", "ReduceMax", "ReduceMin", "ReduceSum", "Reshape", "ScatterElements", "ScatterND", "Shape",
-    "Slice", "Sqrt", "Squeeze", "Sub", "TopK", "Transpose", "Unsqueeze", "Where", "Xor",
-}
-
-
-def _cache_dir() -> Path:
-    env = os.environ.get("TORCHROW_CACHE")
-    return (Path(env) if env else Path.home() / ".cache" / "torchrow") / "onnx-tests"
-
-
-def _source_key(params: Params, batch: int) -> str:
-    root = Path(__file__).resolve().parents[1] / "torchrow"
-    h = hashlib.sha256()
-    for p in sorted([root / "export.py", root / "params.py", root / "shared.py",
-                     *(root / "functional").glob("*.py")]):
-        h.update(p.read_bytes())
-    h.update(repr((params, batch, torch.__version__)).encode())
-    return h.hexdigest()[:16]
-
-
-def _exported(params: Params, batch: int, tmp: Path) -> Path:
-    """The exported model for ``params``/``batch`` at 320x240, cached by source hash."""
-    cache = _cache_dir()
-    path = cache / f"detector-{_source_key(params, batch)}.onnx"
-    if path.is_file():
-        return path
-    out = to_onnx(tmp / "model.onnx", height=240, width=320, batch=batch, params=params)
-    try:
-        cache.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(out, path)
-        return path
-    except OSError:
-        return out
 
 
 @pytest.fixture(scope="module")

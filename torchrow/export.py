@@ -40,7 +40,7 @@ import torch
 from .detector import STATUS_CODES, BatchResult
 from .params import Params
 
-__all__ = ["to_onnx", "OnnxDetector", "legalize", "op_counts", "model_info", "FORBIDDEN_OPS", "DEFAULT_OPSET"]
+__all__ = ["to_onnx", "OnnxDetector", "OnnxTracker", "legalize", "op_counts", "model_info", "FORBIDDEN_OPS", "DEFAULT_OPSET"]
 
 DEFAULT_OPSET = 18
 
@@ -133,8 +133,9 @@ def _check_shape(height: int, width: int, batch: int, opset: int) -> None:
 
 
 def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 1, params: Params | None = None,
-            opset: int = DEFAULT_OPSET, optimize: bool = True) -> Path:
-    """Export the image-mode detector as a static-shape ONNX graph.
+            opset: int = DEFAULT_OPSET, optimize: bool = True, tracker: bool = False) -> Path:
+    """Export the image-mode detector (or, with ``tracker=True``, the tracker step) as a
+    static-shape ONNX graph.
 
     Parameters
     ----------
@@ -149,35 +150,56 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
     opset : int
         ONNX opset, 18 or newer (default 18).
 
+    tracker : bool
+        Export :class:`torchrow.functional.static.StaticTrackerStep` (one frame of ``B``
+        sequences + their state -> rows + new state; run it with :class:`OnnxTracker`).
+        ``width`` must then equal ``params.video_width`` (set it with ``params``).
+
     Returns
     -------
     Path
-        ``path``. The model has inputs ``images`` uint8 ``(B, 3, H, W)`` and ``veg_lab``
-        float64 ``(B, 3)`` and the outputs :data:`torchrow.functional.static.GRAPH_OUTPUTS`.
+        ``path``. The detector has inputs ``images`` uint8 ``(B, 3, H, W)`` and ``veg_lab``
+        float64 ``(B, 3)`` and the outputs :data:`torchrow.functional.static.GRAPH_OUTPUTS`;
+        the tracker step has the inputs :data:`~torchrow.functional.static.TRACKER_INPUTS`
+        and outputs :data:`~torchrow.functional.static.TRACKER_OUTPUTS`.
     """
     import json
     import warnings
 
     import onnx
 
-    from .functional.static import GRAPH_OUTPUTS, StaticDetector
+    from .functional import static
 
     _check_shape(height, width, batch, opset)
     params = params or Params()
     path = Path(path)
     if not path.parent.is_dir():
         raise FileNotFoundError(f"output folder does not exist: {path.parent}")
-    module = StaticDetector(height, width, params).eval()
     images = torch.zeros((batch, 3, height, width), dtype=torch.uint8)
     veg_lab = torch.zeros((batch, 3), dtype=torch.float64)
+    if tracker:
+        if width != params.video_width:
+            raise ValueError(f"the tracker step works at params.video_width = {params.video_width} px, "
+                             f"got width {width}")
+        from .functional.tracker import TrackerState
+
+        module = static.StaticTrackerStep(height, width, params).eval()
+        empty = TrackerState.empty(batch, params)
+        args = (images, veg_lab, torch.ones(batch, dtype=torch.bool)) + tuple(
+            getattr(empty, f) for f in static.TRACKER_STATE)
+        names, outputs = list(static.TRACKER_INPUTS), list(static.TRACKER_OUTPUTS)
+    else:
+        module = static.StaticDetector(height, width, params).eval()
+        args = (images, veg_lab)
+        names, outputs = ["images", "veg_lab"], list(static.GRAPH_OUTPUTS)
     with warnings.catch_warnings(), torch.no_grad():
         warnings.simplefilter("ignore")
-        ep = torch.export.export(module, (images, veg_lab), strict=False)
+        ep = torch.export.export(module, args, strict=False)
         # bool <-> uint8/int8 reinterpretations in the vegetation stage only ever hold 0/1,
         # whose bit patterns equal their cast values: export them as Cast.
         ep = ep.run_decompositions({torch.ops.aten.view.dtype: _view_as_cast})
-        prog = torch.onnx.export(ep, dynamo=True, opset_version=opset, input_names=["images", "veg_lab"],
-                                 output_names=list(GRAPH_OUTPUTS), verbose=False, optimize=False)
+        prog = torch.onnx.export(ep, dynamo=True, opset_version=opset, input_names=names,
+                                 output_names=outputs, verbose=False, optimize=False)
         if optimize:
             # Constant folding and dead-node removal only: the exporter's default optimizer
             # also runs onnxscript's pattern rewriter, which took ~80% of a 9-minute export
@@ -187,7 +209,7 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
             optimizer.fold_constants_ir(prog.model)
             optimizer.remove_unused_nodes(prog.model)
     model = legalize(prog.model_proto)
-    meta = {"torchrow_format": "1", "height": str(height), "width": str(width), "batch": str(batch),
+    meta = {"torchrow_format": "1", "kind": "tracker" if tracker else "detector", "height": str(height), "width": str(width), "batch": str(batch),
             "params": json.dumps(_params_dict(params)), "exporter": f"torch.onnx dynamo, torch {torch.__version__}",
             "opset": str(opset)}
     for k, v in meta.items():
@@ -208,7 +230,8 @@ def _params_dict(params: Params) -> dict:
 
 
 def model_info(path: str | Path) -> dict:
-    """Size (bytes), static shape, params, exporter and op counts of an exported model."""
+    """Size (bytes), kind (``detector`` or ``tracker``), static shape, params, exporter and op
+    counts of an exported model."""
     import json
 
     import onnx
@@ -220,7 +243,7 @@ def model_info(path: str | Path) -> dict:
         raise ValueError(f"{path} is not a torchrow ONNX detector (no torchrow metadata)")
     raw = json.loads(meta["params"])
     raw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in raw.items()}
-    return {"size": path.stat().st_size, "height": int(meta["height"]), "width": int(meta["width"]),
+    return {"size": path.stat().st_size, "kind": meta.get("kind", "detector"), "height": int(meta["height"]), "width": int(meta["width"]),
             "batch": int(meta["batch"]), "params": Params(**raw), "exporter": meta.get("exporter", ""),
             "opset": int(meta.get("opset", 0)), "ops": op_counts(model)}
 
@@ -243,19 +266,13 @@ class OnnxDetector:
     """
 
     def __init__(self, model_path: str | Path, threads: int | None = None) -> None:
-        ort = _ort()
         path = Path(model_path)
         if not path.is_file():
             raise FileNotFoundError(f"ONNX model not found: {path}")
-        info = model_info(path)
         self.path = path
+        info = _open(self, path, "detector", threads)
         self.height, self.width, self.batch = info["height"], info["width"], info["batch"]
         self.params: Params = info["params"]
-        so = ort.SessionOptions()
-        so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_BASIC
-        if threads:
-            so.intra_op_num_threads = int(threads)
-        self.session = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
 
     def __call__(self, images: torch.Tensor, veg_color: torch.Tensor | None = None) -> BatchResult:
         """Detect rows in ``uint8 (N, 3, H, W)`` images (any ``N``; run in batches of the
@@ -317,6 +334,95 @@ class OnnxDetector:
         """Detect rows in a list of same-sized working-size RGB arrays ``(H, W, 3)``."""
         x = torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2).contiguous()
         return self(x)
+
+
+def _open(runner, path: Path, kind: str, threads: int | None) -> dict:
+    """Read ``path``'s metadata (it must be a ``kind`` model) and open an onnxruntime session
+    on ``runner.session``; returns :func:`model_info`."""
+    ort = _ort()
+    info = model_info(path)
+    if info["kind"] != kind:
+        other = {"detector": "OnnxDetector", "tracker": "OnnxTracker"}[info["kind"]]
+        raise ValueError(f"{path.name} is a torchrow {info['kind']} model; run it with {other}")
+    so = ort.SessionOptions()
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_BASIC
+    if threads:
+        so.intra_op_num_threads = int(threads)
+    runner.session = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+    return info
+
+
+class OnnxTracker:
+    """Run an exported tracker step (``to_onnx(..., tracker=True)``) in onnxruntime.
+
+    Same interface and results as :class:`torchrow.Tracker` for ``B`` sequences in
+    lock-step, ``B`` the model's static batch: :meth:`forward` (tensors) and :meth:`step`
+    (arrays in, :class:`~torchrow.steering.FrameResult` records out). The host computes only
+    the vegetation colour of each sequence's frame 0 (section 2) and its LAB; everything
+    else, frame 0's sky and ``info0`` included, runs in the graph.
+
+    Parameters
+    ----------
+    model_path : str or Path
+    hfov_deg : float, optional
+        Horizontal field of view for the records' ``heading_rad``.
+    threads : int, optional
+        onnxruntime intra-op threads.
+    """
+
+    def __init__(self, model_path: str | Path, hfov_deg: float | None = None, threads: int | None = None) -> None:
+        from .tracker import Tracker
+
+        path = Path(model_path)
+        if not path.is_file():
+            raise FileNotFoundError(f"ONNX model not found: {path}")
+        self.path = path
+        info = _open(self, path, "tracker", threads)
+        self.height, self.width, self.batch = info["height"], info["width"], info["batch"]
+        self.params: Params = info["params"]
+        self._records = Tracker(self.params, hfov_deg=hfov_deg)  # records and frame loading only
+
+    def forward(self, frames: torch.Tensor, state=None, active: torch.Tensor | None = None):
+        """One lock-step frame: ``uint8 (B, 3, H, W)`` frames at working size ->
+        ``(TrackStep, TrackerState)``, as :meth:`torchrow.Tracker.forward`."""
+        from .functional import color as fcolor
+        from .functional._checks import check_images
+        from .functional.static import TRACKER_STATE, TRACKER_STEP
+        from .functional.tracker import TrackerState, TrackStep
+        from .shared import lab_table_torch, pack_rgb
+
+        check_images(frames, "frames")
+        b, _, h, w = frames.shape
+        if (b, h, w) != (self.batch, self.height, self.width):
+            raise ValueError(f"the model {self.path.name} takes {self.batch} frames of {self.width}x{self.height}, "
+                             f"got {b} of {w}x{h}")
+        x = frames.cpu().contiguous()
+        state = state if state is not None else TrackerState.empty(b, self.params)
+        act = torch.ones(b, dtype=torch.bool) if active is None else active.to("cpu", torch.bool)
+        color = state.veg_color.clone()
+        start = act & ~state.ready
+        if bool(start.any()):
+            idx = torch.nonzero(start).view(-1)  # host side: which sequences begin now
+            color[idx] = fcolor.vegetation_color(x.index_select(0, idx), self.params)
+        veg_lab = lab_table_torch("cpu")[torch.from_numpy(pack_rgb(color.numpy()))].clone()
+        feed = {"images": x.numpy(), "veg_lab": veg_lab.numpy(), "active": act.numpy()}
+        feed.update({"state_" + f: getattr(state, f).cpu().numpy() for f in TRACKER_STATE})
+        outs = [torch.from_numpy(o) for o in self.session.run(None, feed)]
+        step = TrackStep(**dict(zip(TRACKER_STEP, outs)), active=act)
+        new = TrackerState(veg_color=color, **{f: o for f, o in zip(TRACKER_STATE, outs[len(TRACKER_STEP):])})
+        return step, new
+
+    __call__ = forward
+
+    def step(self, frames, state=None, names=None):
+        """Arrays (any size, resized to the working width) or a working-size tensor in;
+        ``(list of FrameResult, TrackerState)`` out, as :meth:`torchrow.Tracker.step`."""
+        if isinstance(frames, torch.Tensor):
+            x = frames
+        else:
+            x = torch.from_numpy(np.stack([self._records.prepare(f) for f in frames])).permute(0, 3, 1, 2)
+        stepped, new = self.forward(x.contiguous(), state)
+        return self._records.results(stepped, new, x.shape[3], x.shape[2], names), new
 
 
 def _concat(parts: list[BatchResult]) -> BatchResult:

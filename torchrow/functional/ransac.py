@@ -8,6 +8,7 @@ shared table are scored against them in chunks of hypotheses so memory stays bou
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -18,7 +19,8 @@ from ..shared import hypothesis_table
 from . import _exact
 from .hough import active_width, cacheable, pixel_list, trig
 
-__all__ = ["RowFits", "fit_rows", "validate_rows", "REASON_CODES", "SCORE_BUDGET"]
+__all__ = ["RowFits", "fit_rows", "validate_rows", "band_member", "subsample_plan", "principal_direction",
+           "REASON_CODES", "SCORE_BUDGET"]
 
 #: Reason codes of :attr:`RowFits.reason`, indices into :data:`torchrow.results.REASONS`.
 REASON_CODES = {r: i for i, r in enumerate(REASONS)}
@@ -62,26 +64,12 @@ def _band_points(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, band
     idx = idx[:, :k]
     live = torch.arange(k, device=veg.device) < count.unsqueeze(1)  # (B, K)
     xs, ys = idx % w, idx // w
-    if track is None:
-        cos, sin = trig(params, veg.device)
-        dist = ((xs.to(torch.float64).unsqueeze(1) * cos[theta].unsqueeze(2)
-                 + ys.to(torch.float64).unsqueeze(1) * sin[theta].unsqueeze(2))
-                - rho.to(torch.float64).unsqueeze(2)).abs()
-        member = (dist <= (band.to(torch.float64) / 2).view(-1, 1, 1)) & live.unsqueeze(1)  # (B, S, K)
-    else:
-        ta, tb = (t.to(torch.float64).unsqueeze(2) for t in track)  # (B, S, 1)
-        r = (xs.to(torch.float64).unsqueeze(1) - ta * ys.to(torch.float64).unsqueeze(1)) - tb
-        half = (band.to(torch.float64) / 2).view(-1, 1, 1)
-        member = (r * r <= (half * half) * (1.0 + ta * ta)) & live.unsqueeze(1)  # (B, S, K)
-    n = member.sum(dim=2)
-    v = n // 2
-    sub = n + v > params.ransac_max_points
-    n_keep = torch.where(sub, (params.ransac_subsample * n) // torch.clamp(n + v, min=1), n)
-    v_keep = torch.where(sub, params.ransac_subsample - n_keep, v)
+    cos, sin = trig(params, veg.device)
+    member = band_member(xs.to(torch.float64).unsqueeze(1), ys.to(torch.float64).unsqueeze(1), theta, rho, band,
+                         cos, sin, track) & live.unsqueeze(1)  # (B, S, K)
     lin = idx.unsqueeze(1).expand_as(member)  # raster index y*W + x, row-major order
-    key = torch.where(sub.unsqueeze(2), (lin * params.subsample_hash) & 0xFFFFFFFF, lin)
+    n, n_keep, v_keep, key = subsample_plan(member, lin, params)
     big = torch.iinfo(torch.int64).max
-    key = key.masked_fill(~member, big)
     p = min(k, max(params.ransac_max_points, params.ransac_subsample))
     p = min(p, active_width(n_keep.flatten()))
     sel = torch.topk(key, p, dim=2, largest=False, sorted=True).indices if p > 0 else key[..., :0]
@@ -90,6 +78,45 @@ def _band_points(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, band
     chosen = torch.sort(chosen, dim=2).values  # back to row-major order; padding last
     chosen = torch.where(chosen == big, torch.zeros_like(chosen), chosen)
     return (chosen % w).to(torch.float64), (chosen // w).to(torch.float64), n_keep, v_keep, n
+
+
+def band_member(xs: torch.Tensor, ys: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, band: torch.Tensor,
+                cos: torch.Tensor, sin: torch.Tensor, track: tuple[torch.Tensor, torch.Tensor] | None = None
+                ) -> torch.Tensor:
+    """Step 7's band test of pixels ``xs, ys`` float64 ``(1 or B, 1, K)``: bool ``(B, S, K)``.
+
+    Around the Hough line ``(theta, rho)`` int64 ``(B, S)`` (``cos``/``sin`` the shared
+    float64 tables): ``abs((x*cos + y*sin) - rho) <= band/2``; with ``track = (a, b)``
+    float64 ``(B, S)`` around the row ``x = a*y + b`` instead:
+    ``((x - a*y) - b)**2 <= (band/2)**2 * (1 + a*a)`` (no square root decides). ``band``
+    int64 ``(B,)`` px. Shared by the eager and the exportable paths.
+    """
+    half = (band.to(torch.float64) / 2).view(-1, 1, 1)
+    if track is None:
+        dist = ((xs * cos[theta].unsqueeze(2) + ys * sin[theta].unsqueeze(2)) - rho.to(torch.float64).unsqueeze(2)).abs()
+        return dist <= half
+    ta, tb = (t.to(torch.float64).unsqueeze(2) for t in track)  # (B, S, 1)
+    r = (xs - ta * ys) - tb
+    return r * r <= (half * half) * (1.0 + ta * ta)
+
+
+def subsample_plan(member: torch.Tensor, lin: torch.Tensor, params: Params):
+    """Step 7.2's counts and selection keys for band members ``member`` bool ``(B, S, K)`` at
+    raster indices ``lin`` int64 (broadcastable to it, row-major).
+
+    Returns ``n`` (pixels in the band), ``n_keep``, ``v_keep`` int64 ``(B, S)`` and ``key``
+    int64 ``(B, S, K)``: the ``n_keep`` smallest keys are the kept pixels (the raster index,
+    or the hash ``(i * subsample_hash) & 0xFFFFFFFF`` when subsampling; non-members get
+    ``int64 max``).
+    """
+    n = member.sum(dim=2)
+    v = n // 2
+    sub = n + v > params.ransac_max_points
+    n_keep = torch.where(sub, (params.ransac_subsample * n) // torch.clamp(n + v, min=1), n)
+    v_keep = torch.where(sub, params.ransac_subsample - n_keep, v)
+    key = torch.where(sub.unsqueeze(2), (lin * params.subsample_hash) & 0xFFFFFFFF, lin)
+    key = torch.where(member, key, torch.full_like(key, torch.iinfo(torch.int64).max))
+    return n, n_keep, v_keep, key
 
 
 def _pick(px: torch.Tensor, py: torch.Tensor, i: torch.Tensor, n_keep: torch.Tensor, vp: torch.Tensor):
@@ -267,37 +294,70 @@ def best_moments(u, best_t, total, px, py, n_keep, v_keep, valid_pt, vp, thr: fl
     return cx, cy, sxx, syy, sxy
 
 
-def principal_direction(sxx: torch.Tensor, syy: torch.Tensor, sxy: torch.Tensor):
-    """Unit principal direction ``(dx, dy)`` of the weighted scatter, dy > 0 (dx > 0 when dy = 0)."""
-    phi = 0.5 * torch.atan2(2.0 * sxy, sxx - syy)
-    dx, dy = torch.cos(phi), torch.sin(phi)
+def principal_direction(sxx: torch.Tensor, syy: torch.Tensor, sxy: torch.Tensor, trig_free: bool = False):
+    """Unit principal direction ``(dx, dy)`` of the weighted scatter, dy > 0 (dx > 0 when dy = 0).
+
+    The spec's ``phi = atan2(2*sxy, sxx - syy) / 2``, ``(cos phi, sin phi)``. ``trig_free=True``
+    (the exportable tracker step: ONNX has no ``Atan2``) takes the same eigenvector in closed
+    form, ``(2*sxy, r - d)`` if ``d <= 0`` else ``(r + d, 2*sxy)`` with ``d = sxx - syy``,
+    ``r = sqrt(d**2 + (2*sxy)**2)`` (no cancellation in either branch), normalised; it
+    agrees to a few ulps (``atan2(0, 0) = 0`` gives ``(1, 0)`` in both).
+    """
+    if trig_free:
+        d, e = sxx - syy, 2.0 * sxy
+        r = _exact.sqrt(d * d + e * e)
+        neg = d <= 0
+        vx = torch.where(neg, e, r + d)
+        vy = torch.where(neg, r - d, e)
+        norm = _exact.sqrt(vx * vx + vy * vy)
+        zero = norm == 0
+        safe = torch.where(zero, torch.ones_like(norm), norm)
+        dx = torch.where(zero, torch.ones_like(vx), vx / safe)
+        dy = torch.where(zero, torch.zeros_like(vy), vy / safe)
+    else:
+        phi = 0.5 * torch.atan2(2.0 * sxy, sxx - syy)
+        dx, dy = torch.cos(phi), torch.sin(phi)
     flip = (dy < 0) | ((dy == 0) & (dx < 0))
     return torch.where(flip, -dx, dx), torch.where(flip, -dy, dy)
 
 
 def validate_rows(cx, cy, dx, dy, hyp, support, present, height: int, hough_band: torch.Tensor,
-                  params: Params) -> RowFits:
-    """Step 7.6: validity in row order; ``hough_band`` int64 (B,) px."""
+                  params: Params, trig_free: bool = False) -> RowFits:
+    """Step 7.6: validity in row order; ``hough_band`` int64 (B,) px.
+
+    ``trig_free=True`` (export) decides the two angle rules without ``atan2``, for unit
+    directions with ``dy >= 0`` (:func:`principal_direction`): orientations lie in
+    ``[0, pi)``, so ``|orient_i - orient_k| < min_angle_diff`` is the angle between the two
+    directions, i.e. ``dot > cos(min_angle_diff)``; ``atan2(|dy|, |dx|) < horizon_angle`` is
+    ``|dy| < sin(horizon_angle)``. Equal except within rounding of a threshold.
+    """
     with torch.no_grad():
         a = dx / dy
         b = cx - a * cy
     nan = torch.full_like(a, float("nan"))
     a = torch.where(support, a, nan)
     b = torch.where(support, b, nan)
-    orient = torch.atan2(dy, dx)
-    horizon = torch.atan2(dy.abs(), dx.abs()) < params.horizon_angle
+    if trig_free:
+        horizon = dy.abs() < math.sin(params.horizon_angle)
+    else:
+        orient = torch.atan2(dy, dx)
+        horizon = torch.atan2(dy.abs(), dx.abs()) < params.horizon_angle
     x_bottom = a * (height - 1) + b
     bsz, s = a.shape
     reason = torch.zeros((bsz, s), dtype=torch.int64, device=a.device)
     valid = torch.zeros((bsz, s), dtype=torch.bool, device=a.device)
     band = hough_band.to(torch.float64)
     for k in range(s):
-        earlier = valid[:, :k]
-        par = ((orient[:, :k] - orient[:, k:k + 1]).abs() < params.min_angle_diff) & earlier
-        close = ((x_bottom[:, :k] - x_bottom[:, k:k + 1]).abs() < band.view(-1, 1)) & earlier
-        r = torch.full((bsz,), REASON_CODES["too_close"], dtype=torch.int64, device=a.device)
-        r = torch.where(close.any(1), r, torch.zeros_like(r))
-        r = torch.where(par.any(1), torch.full_like(r, REASON_CODES["parallel"]), r)
+        r = torch.zeros((bsz,), dtype=torch.int64, device=a.device)
+        if k > 0:  # row 0 has no earlier rows (and an empty reduction is not portable to ONNX runtimes)
+            earlier = valid[:, :k]
+            if trig_free:
+                par = (dx[:, :k] * dx[:, k:k + 1] + dy[:, :k] * dy[:, k:k + 1]) > math.cos(params.min_angle_diff)
+            else:
+                par = (orient[:, :k] - orient[:, k:k + 1]).abs() < params.min_angle_diff
+            close = ((x_bottom[:, :k] - x_bottom[:, k:k + 1]).abs() < band.view(-1, 1)) & earlier
+            r = torch.where(close.any(1), torch.full_like(r, REASON_CODES["too_close"]), r)
+            r = torch.where((par & earlier).any(1), torch.full_like(r, REASON_CODES["parallel"]), r)
         r = torch.where(horizon[:, k], torch.full_like(r, REASON_CODES["horizon"]), r)
         r = torch.where(support[:, k], r, torch.full_like(r, REASON_CODES["no_support"]))
         r = torch.where(present[:, k], r, torch.zeros_like(r))

@@ -44,11 +44,12 @@ from . import _exact
 from . import ransac as fransac
 from . import sky as fsky
 from . import vegetation as fveg
+from . import tracker as ftrack
 from .hough import excluded_angles
-from .vanishing import drop_outlier, max_steps, outlier_check
+from .vanishing import LineSearch, drop_outlier, max_steps, outlier_check
 
 __all__ = ["lab", "LINEAR_RGB", "VoteTables", "vote_tables", "votes", "StaticDetector", "finish_rows",
-           "GRAPH_OUTPUTS"]
+           "GRAPH_OUTPUTS", "StaticTrackerStep", "TRACKER_INPUTS", "TRACKER_OUTPUTS"]
 
 # kornia.color.rgb_to_lab constants (sRGB D65), in the order kornia applies them.
 _XYZ = ((0.412453, 0.357580, 0.180423), (0.212671, 0.715160, 0.072169), (0.019334, 0.119193, 0.950227))
@@ -277,25 +278,19 @@ class StaticDetector(nn.Module):
         return theta, rho, weight, valid, out, out_valid, n, vp, has_vp
 
     # -- section 7 ------------------------------------------------------------------------
-    def band_points(self, veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, band: torch.Tensor):
+    def band_points(self, veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, band: torch.Tensor,
+                    track: tuple[torch.Tensor, torch.Tensor] | None = None):
         """Steps 7 and 7.2 with a static ``P``: kept points ``px, py`` float64 ``(B, S, P)``
-        (row-major, padding at the end), ``n_keep``, ``v_keep``, ``n`` int64 ``(B, S)``."""
+        (row-major, padding at the end), ``n_keep``, ``v_keep``, ``n`` int64 ``(B, S)``.
+        ``track = (a, b)``: the band around rows ``x = a*y + b`` (video mode)."""
         p = self.params
         bsz = veg.shape[0]
         hw = self.height * self.width
-        flat = veg.reshape(bsz, 1, hw)
-        dist = ((self.xs.view(1, 1, -1) * self.cos[theta].unsqueeze(2)
-                 + self.ys.view(1, 1, -1) * self.sin[theta].unsqueeze(2)) - rho.to(torch.float64).unsqueeze(2)).abs()
-        member = (dist <= (band.to(torch.float64) / 2).view(-1, 1, 1)) & flat  # (B, S, HW)
-        n = member.sum(dim=2)
-        v = n // 2
-        sub = n + v > p.ransac_max_points
-        n_keep = torch.where(sub, (p.ransac_subsample * n) // torch.clamp(n + v, min=1), n)
-        v_keep = torch.where(sub, p.ransac_subsample - n_keep, v)
+        member = fransac.band_member(self.xs.view(1, 1, -1), self.ys.view(1, 1, -1), theta, rho, band,
+                                     self.cos, self.sin, track) & veg.reshape(bsz, 1, hw)  # (B, S, HW)
         lin = torch.arange(hw, device=veg.device, dtype=torch.int64).view(1, 1, hw)
-        key = torch.where(sub.unsqueeze(2), (lin * p.subsample_hash) & 0xFFFFFFFF, lin)
+        n, n_keep, v_keep, key = fransac.subsample_plan(member, lin, p)
         big = torch.iinfo(torch.int64).max
-        key = torch.where(member, key, torch.full_like(key, big))
         pp = min(hw, max(p.ransac_max_points, p.ransac_subsample))
         sel = torch.topk(key, pp, dim=2, largest=False, sorted=True).indices
         rank_ok = torch.arange(pp, device=veg.device) < n_keep.unsqueeze(2)
@@ -304,11 +299,12 @@ class StaticDetector(nn.Module):
         chosen = torch.where(chosen == big, torch.zeros_like(chosen), chosen)
         return (chosen % self.width).to(torch.float64), (chosen // self.width).to(torch.float64), n_keep, v_keep, n
 
-    def fit_rows(self, veg, theta, rho, present, vp, band):
-        """Steps 7.1-7.5 up to the weighted moments of the best hypothesis' inliers."""
+    def fit_rows(self, veg, theta, rho, present, vp, band, track=None):
+        """Steps 7.1-7.5 up to the weighted moments of the best hypothesis' inliers:
+        ``cx, cy, sxx, syy, sxy`` float64, ``hypothesis`` int64, ``support`` bool, ``(B, S)``."""
         p = self.params
         dev = veg.device
-        px, py, n_keep, v_keep, n = self.band_points(veg, theta, rho, band)
+        px, py, n_keep, v_keep, n = self.band_points(veg, theta, rho, band, track)
         pp = px.shape[2]
         support = present & (n + n // 2 >= p.ransac_min_points)
         total = (n_keep + v_keep).to(torch.float64)
@@ -376,3 +372,109 @@ def finish_rows(cx, cy, sxx, syy, sxy, hyp, support, present, height: int, width
     dx, dy = fransac.principal_direction(sxx, syy, sxy)
     band = torch.full(support.shape[:1], params.hough_band_px(width), dtype=torch.int64)
     return fransac.validate_rows(cx, cy, dx, dy, hyp, support, present, height, band, params)
+
+
+# ------------------------------------------------------------------------------------------
+# The tracker step (ALGORITHM.md section 8)
+# ------------------------------------------------------------------------------------------
+
+#: Tracker-state fields that travel through the graph (``veg_color`` stays on the host; the
+#: graph takes its LAB, ``veg_lab``).
+TRACKER_STATE = ("sky", "info0", "ready", "frames", "age", "prev_valid", "vp", "has_vp", "row_a", "row_b",
+                 "row_present")
+#: Inputs of the exported tracker step, in order (see :class:`StaticTrackerStep`): the frames,
+#: the vegetation colour's LAB, the active mask, then ``state_<field>`` of the state.
+TRACKER_INPUTS = ("images", "veg_lab", "active") + tuple("state_" + f for f in TRACKER_STATE)
+#: Fields of :class:`~torchrow.functional.tracker.TrackStep` the graph returns (all but ``active``).
+TRACKER_STEP = tuple(f for f in ftrack.TrackStep.__dataclass_fields__ if f != "active")
+#: Outputs of the exported tracker step: the step's fields, then ``next_<field>`` of the new state.
+TRACKER_OUTPUTS = TRACKER_STEP + tuple("next_" + f for f in TRACKER_STATE)
+
+
+class StaticTrackerStep(nn.Module):
+    """The exportable tracker step: one frame of ``B`` sequences + their state -> rows + new state.
+
+    The rules are :func:`torchrow.functional.tracker.advance` itself, composed from the
+    static stages of :class:`StaticDetector` (``lazy=False``: the tracked fit and the Hough
+    stage both run for the whole batch and masks choose, so the graph has no control flow).
+    Differences from the eager :class:`torchrow.Tracker`, all outside its results:
+
+    * **Frame 0 in the graph.** A sequence with ``active & ~ready`` takes this frame as frame 0:
+      its sky (section 1) and ``info0`` (the raw fraction at ``video_k_start``) are computed
+      here. Only the vegetation colour (section 2: colour clustering has data-dependent
+      shapes) comes from the host, as its LAB ``veg_lab`` (the shared table's bits).
+    * **Adaptive k** counts, for every ``k``, the pixels whose smallest admitting ``k`` is
+      at most ``k`` with comparisons instead of a histogram (no scatter).
+    * **Step 7.5-7.6 in the graph without** ``atan2`` (ONNX has none):
+      :func:`~torchrow.functional.ransac.principal_direction` and
+      :func:`~torchrow.functional.ransac.validate_rows` with ``trig_free=True``. Rows agree
+      with the eager tracker to a few ulps; a decision could differ only for a value within
+      rounding of a threshold.
+
+    ``forward(images uint8 (B, 3, H, W), veg_lab float64 (B, 3), active bool (B,), *state)``
+    with the state fields :data:`TRACKER_STATE` (dtypes and shapes of
+    :class:`~torchrow.functional.tracker.TrackerState`) returns the tuple
+    :data:`TRACKER_OUTPUTS`. Inactive sequences keep their state.
+
+    Parameters
+    ----------
+    height, width : int
+        Working size of the frames (``params.video_width`` wide).
+    params : Params, optional
+    score_chunks : int
+        RANSAC scoring chunks (bounds memory).
+    """
+
+    def __init__(self, height: int, width: int, params: Params | None = None, score_chunks: int = 4) -> None:
+        super().__init__()
+        self.det = StaticDetector(height, width, params, score_chunks)
+        self.params = self.det.params
+        self.height, self.width = self.det.height, self.det.width
+
+    def _find_lines(self, hin: torch.Tensor) -> LineSearch:
+        theta, rho, weight, valid, out, out_valid, n, vp, has_vp = self.det.find_lines(hin)
+        return LineSearch(theta, rho, weight, valid, out[..., 0], out[..., 1], out[..., 2], out_valid, n, vp, has_vp)
+
+    def _fit_rows(self, veg, theta, rho, present, vp, band, track=None):
+        cx, cy, sxx, syy, sxy, hyp, support = self.det.fit_rows(veg, theta, rho, present, vp, band, track)
+        dx, dy = fransac.principal_direction(sxx, syy, sxy, trig_free=True)
+        return cx, cy, dx, dy, hyp, support
+
+    def segment(self, images: torch.Tensor, veg_lab: torch.Tensor, sky: torch.Tensor, info0: torch.Tensor,
+                start: torch.Tensor):
+        """Section 3 with adaptive ``k`` (and frame 0's ``info0`` where ``start``):
+        ``veg`` bool ``(B, H, W)``, ``k`` int64, ``bushy`` bool, ``info0`` float64 ``(B,)``."""
+        p = self.params
+        bsz, _, h, w = images.shape
+        k_min, k_max = p.video_k_min, p.video_k_max
+        skyc = sky.clamp(0, h)
+        below = (torch.arange(h, device=images.device).view(1, h, 1) >= skyc.view(-1, 1, 1)).expand(bsz, h, w)
+        below = below.reshape(bsz, 1, h * w)
+        kstar = fveg._min_k(lab(images, self.det.lut).reshape(bsz, 3, h * w), veg_lab, k_min, k_max, static=True)
+        ks = torch.arange(k_min, k_max + 1, device=images.device).view(1, -1, 1)
+        counts = ((kstar.unsqueeze(1) <= ks) & below).sum(2)  # (B, n_k): no histogram scatter
+        frac = fveg.k_fractions(counts, skyc, h, w)
+        info0 = torch.where(start, frac[:, p.video_k_start - k_min], info0)
+        k = fveg.choose_k(frac, info0, p)
+        raw = ((kstar.unsqueeze(1) <= k.view(-1, 1, 1)) & below).view(bsz, h, w)
+        veg, bushy = ftrack.finish_segment(raw, sky, p)
+        return veg, k, bushy, info0
+
+    def forward(self, images: torch.Tensor, veg_lab: torch.Tensor, active: torch.Tensor, sky: torch.Tensor,
+                info0: torch.Tensor, ready: torch.Tensor, frames: torch.Tensor, age: torch.Tensor,
+                prev_valid: torch.Tensor, vp: torch.Tensor, has_vp: torch.Tensor, row_a: torch.Tensor,
+                row_b: torch.Tensor, row_present: torch.Tensor):
+        p = self.params
+        bsz, _, h, w = images.shape
+        if (h, w) != (self.height, self.width):
+            raise ValueError(f"StaticTrackerStep built for {self.width}x{self.height}, got frames {w}x{h}")
+        start = active & ~ready
+        sky = torch.where(start, fsky.sky_row(images, p).to(torch.int64), sky)
+        veg, k, bushy, info0 = self.segment(images, veg_lab.to(torch.float64), sky, info0, start)
+        state = ftrack.TrackerState(
+            sky=sky, veg_color=torch.zeros((bsz, 3), dtype=torch.uint8, device=images.device), info0=info0,
+            ready=ready | start, frames=frames, age=age, prev_valid=prev_valid, vp=vp, has_vp=has_vp, row_a=row_a,
+            row_b=row_b, row_present=row_present)
+        stages = ftrack.Stages(find_lines=self._find_lines, fit_rows=self._fit_rows, trig_free=True, lazy=False)
+        step, new = ftrack.advance(veg, k, bushy, active, state, p, stages)
+        return tuple(getattr(step, f) for f in TRACKER_STEP) + tuple(getattr(new, f) for f in TRACKER_STATE)

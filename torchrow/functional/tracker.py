@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import torch
 
@@ -34,7 +35,8 @@ from . import vanishing as fvan
 from . import vegetation as fveg
 from ._checks import check_images
 
-__all__ = ["TrackerState", "TrackStep", "init_state", "merge_state", "segment", "advance", "coverage",
+__all__ = ["TrackerState", "TrackStep", "init_state", "merge_state", "segment", "finish_segment", "advance",
+           "coverage", "Stages", "eager_stages",
            "STATUS_OK", "STATUS_INVALID", "STATUS_NO_VP", "STATUS_NO_VEGETATION"]
 
 # codes into torchrow.results.STATUSES
@@ -191,9 +193,15 @@ def segment(frames: torch.Tensor, sky: torch.Tensor, color: torch.Tensor, info0:
         ``density > bushy_ratio`` (section 4).
     """
     k, raw = fveg.adapt_k(frames, color, sky, info0, params)
-    veg = fveg.remove_bushy(raw, sky, params)
-    bushy = fveg.density(veg, sky) > params.bushy_ratio
+    veg, bushy = finish_segment(raw, sky, params)
     return veg, k, bushy
+
+
+def finish_segment(raw: torch.Tensor, sky: torch.Tensor, params: Params) -> tuple[torch.Tensor, torch.Tensor]:
+    """Section 3.4 and the bushy flag of section 4 on the adaptive-``k`` raw mask ``raw`` bool
+    ``(N, H, W)``: ``veg`` bool ``(N, H, W)`` and ``bushy`` bool ``(N,)``."""
+    veg = fveg.remove_bushy(raw, sky, params)
+    return veg, fveg.density(veg, sky) > params.bushy_ratio
 
 
 def coverage(veg: torch.Tensor, a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor, sky: torch.Tensor,
@@ -236,8 +244,37 @@ def _where(mask: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor
     return torch.where(mask.view(-1, *([1] * (a.dim() - 1))), a, b)
 
 
+@dataclass(frozen=True)
+class Stages:
+    """The stages :func:`advance` composes, so that the eager tracker and the exportable
+    tracker step (:class:`torchrow.functional.static.StaticTrackerStep`) share one set of rules.
+
+    ``find_lines(hin bool (B, H, W)) -> LineSearch`` (sections 5-6);
+    ``fit_rows(veg, theta, rho, present, vp, band, track=None) -> (cx, cy, dx, dy, hypothesis,
+    support)`` (steps 7.1-7.5, as :func:`torchrow.functional.ransac.fit_rows`);
+    ``trig_free``: step 7.6's angle rules without ``atan2`` (see
+    :func:`~torchrow.functional.ransac.validate_rows`); ``lazy``: skip a branch whose mask
+    is empty for the whole batch (a host sync; off for export, where both branches always
+    run and masks choose).
+    """
+
+    find_lines: Callable
+    fit_rows: Callable
+    trig_free: bool = False
+    lazy: bool = True
+
+
+def eager_stages(params: Params) -> Stages:
+    """The :class:`Stages` of the eager tracker: :func:`torchrow.functional.vanishing.find_lines`
+    and :func:`torchrow.functional.ransac.fit_rows`."""
+    def fit(veg, theta, rho, present, vp, band, track=None):
+        return fransac.fit_rows(veg, theta, rho, present, vp, band, params, track=track)
+
+    return Stages(find_lines=lambda hin: fvan.find_lines(hin, params), fit_rows=fit)
+
+
 def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: torch.Tensor,
-            state: TrackerState, params: Params) -> tuple[TrackStep, TrackerState]:
+            state: TrackerState, params: Params, stages: Stages | None = None) -> tuple[TrackStep, TrackerState]:
     """Move every active sequence one frame forward (section 8).
 
     Parameters
@@ -251,6 +288,8 @@ def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: tor
     state : TrackerState
         State after the previous frame (not modified).
     params : Params
+    stages : Stages, optional
+        Default :func:`eager_stages`.
 
     Returns
     -------
@@ -258,6 +297,7 @@ def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: tor
         This frame's outputs and the new state (inactive sequences keep theirs).
     """
     p = params
+    st = stages or eager_stages(p)
     bsz, h, w = veg.shape
     dev = veg.device
     i64 = dict(dtype=torch.int64, device=dev)
@@ -269,15 +309,18 @@ def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: tor
     need = active & (~state.prev_valid | (state.age >= p.hough_every))
     trk = active & ~need
 
+    def rows_of(fit, present):
+        return fransac.validate_rows(*fit, present, h, hough_band, p, trig_free=st.trig_free)
+
     # --- tracked frames: bands around the previous rows, VP of the last Hough run ---------
     zeros_rows = torch.zeros((bsz, s), **i64)
-    if bool(trk.any()):
+    if not st.lazy or bool(trk.any()):
         present_t = state.row_present & trk.unsqueeze(1)
         veg_t = veg & trk.view(-1, 1, 1)  # other sequences' pixels only widen the temporaries
-        fit = fransac.fit_rows(veg_t, zeros_rows, zeros_rows, present_t, state.vp,
-                               torch.full((bsz,), p.track_band, **i64), p, track=(state.row_a, state.row_b))
-        rows_t = fransac.validate_rows(*fit, present_t, h, hough_band, p)
-        ok_t = (rows_t.valid | ~rows_t.present).all(dim=1) & has_veg
+        fit = st.fit_rows(veg_t, zeros_rows, zeros_rows, present_t, state.vp,
+                          torch.full((bsz,), p.track_band, **i64), track=(state.row_a, state.row_b))
+        rows_t = rows_of(fit, present_t)
+        ok_t = (rows_t.valid | ~rows_t.present).all(dim=1) & has_veg & trk
     else:
         nan = torch.full((bsz, s), float("nan"), dtype=torch.float64, device=dev)
         f = torch.zeros((bsz, s), dtype=torch.bool, device=dev)
@@ -287,15 +330,14 @@ def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: tor
     use_h = need | redo
 
     # --- Hough frames: sections 4-7 as in image mode ------------------------------------
-    if bool(use_h.any()):
+    if not st.lazy or bool(use_h.any()):
         veg_h = veg & use_h.view(-1, 1, 1)
         hin, _ = fveg.hough_input(veg_h, sky, p)
-        ls = fvan.find_lines(hin, p)
+        ls = st.find_lines(hin)
         present_h = ls.valid & ls.has_vp.unsqueeze(1) & use_h.unsqueeze(1)
         band = torch.where(bushy, torch.full((bsz,), p.ransac_band_px(w, True), **i64),
                            torch.full((bsz,), p.ransac_band_px(w, False), **i64))
-        fit = fransac.fit_rows(veg_h, ls.theta, ls.rho, present_h, ls.vp, band, p)
-        rows_h = fransac.validate_rows(*fit, present_h, h, hough_band, p)
+        rows_h = rows_of(st.fit_rows(veg_h, ls.theta, ls.rho, present_h, ls.vp, band), present_h)
     else:
         z = torch.zeros((bsz, s), **i64)
         zo = torch.zeros((bsz, o), **i64)

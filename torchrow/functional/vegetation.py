@@ -197,9 +197,7 @@ def _fraction(mask: torch.Tensor, sky: torch.Tensor) -> torch.Tensor:
     """Ones of ``mask`` in rows ``y >= sky`` divided by the number of such pixels (0 if none)."""
     _, h, w = mask.shape
     count = (_u8(mask) & _below(sky, h)).sum(dim=(1, 2), dtype=torch.int64)
-    size = (h - sky) * w
-    frac = count.to(torch.float64) / size.clamp(min=1).to(torch.float64)
-    return torch.where(size > 0, frac, torch.zeros_like(frac))
+    return k_fractions(count.view(-1, 1), sky, h, w).view(-1)
 
 
 # ----------------------------------------------------------------------------------------
@@ -311,7 +309,7 @@ def raw_fraction(raw: torch.Tensor, sky: torch.Tensor) -> torch.Tensor:
     return _fraction(raw, _sky(sky, raw.shape[1], raw.device))
 
 
-def _min_k(lab: torch.Tensor, c: torch.Tensor, k_min: int, k_max: int) -> torch.Tensor:
+def _min_k(lab: torch.Tensor, c: torch.Tensor, k_min: int, k_max: int, static: bool = False) -> torch.Tensor:
     """Smallest integer ``k`` in ``[k_min, k_max]`` whose box holds each pixel (``k_max + 1``: none).
 
     ``lab`` float64 (n, 3, P) (channel-major), ``c`` float64 (n, 3) -> int64 (n, P).
@@ -321,6 +319,10 @@ def _min_k(lab: torch.Tensor, c: torch.Tensor, k_min: int, k_max: int) -> torch.
     (ascending) and ``-fl(c - k)`` (ascending; negation is exact) of every ``k``: the same
     float64 comparisons as :func:`raw_mask`, without a pass per
     ``k``. The raw mask at any ``k`` is then ``min_k <= k``.
+
+    ``static=True`` (ONNX export, which has no batched ``searchsorted``) counts the bounds
+    below each value instead, ``(n, K, P)`` comparisons; a left ``searchsorted`` in an
+    ascending row is exactly that count.
     """
     n, _, p = lab.shape
     ks = torch.arange(k_min, k_max + 1, device=lab.device, dtype=torch.float64)
@@ -330,10 +332,49 @@ def _min_k(lab: torch.Tensor, c: torch.Tensor, k_min: int, k_max: int) -> torch.
         hi = cc + ks  # (n, K) ascending: v <= c + k
         neg_lo = -(cc - ks)  # (n, K) ascending: c - k <= v  <=>  -(c - k) >= -v
         v = lab[:, ch].contiguous()
-        j_hi = torch.searchsorted(hi, v, side="left")  # first k with c + k >= v
-        j_lo = torch.searchsorted(neg_lo, -v, side="left")  # first k with -(c - k) >= -v
+        if static:
+            j_hi = (hi.unsqueeze(2) < v.unsqueeze(1)).sum(1)
+            j_lo = (neg_lo.unsqueeze(2) < (-v).unsqueeze(1)).sum(1)
+        else:
+            j_hi = torch.searchsorted(hi, v, side="left")  # first k with c + k >= v
+            j_lo = torch.searchsorted(neg_lo, -v, side="left")  # first k with -(c - k) >= -v
         out = torch.maximum(out, torch.maximum(j_hi, j_lo))
     return out + k_min
+
+
+def k_fractions(counts: torch.Tensor, sky: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Raw fraction of every ``k`` from its pixel count: float64 ``(B, n_k)``.
+
+    ``counts`` int ``(B, n_k)`` pixels below the horizon in the raw mask of each ``k``;
+    ``sky`` int64 ``(B,)`` clamped horizon rows. One IEEE division, as :func:`raw_fraction`.
+    """
+    size = (height - sky) * width
+    frac = counts.to(torch.float64) / size.clamp(min=1).to(torch.float64).view(-1, 1)
+    return torch.where((size > 0).view(-1, 1), frac, torch.zeros_like(frac))
+
+
+def choose_k(frac: torch.Tensor, info0: torch.Tensor, params: Params) -> torch.Tensor:
+    """Section 3.3's two loops on the fraction table ``frac`` float64 ``(B, n_k)`` (column
+    ``j``: ``k = video_k_min + j``): int64 ``(B,)``.
+
+    Static bounds (``k_start - k_min`` and ``k_max - k_min`` steps); images whose condition
+    failed keep their ``k`` (the condition then stays false, so this equals the reference's
+    early exits).
+    """
+    k_min, k_max, k_start = params.video_k_min, params.video_k_max, params.video_k_start
+    info0 = info0.to(device=frac.device, dtype=torch.float64)
+    shrink = params.video_shrink_above * info0
+    grow = params.video_grow_below * info0
+    k = torch.full(frac.shape[:1], k_start, dtype=torch.int64, device=frac.device)
+
+    def frac_at(kk: torch.Tensor) -> torch.Tensor:
+        return frac.gather(1, (kk - k_min).view(-1, 1)).view(-1)
+
+    for _ in range(k_start - k_min):
+        k = k - ((frac_at(k) > shrink) & (k > k_min)).to(torch.int64)
+    for _ in range(k_max - k_min):
+        k = k + ((frac_at(k) < grow) & (k < k_max)).to(torch.int64)
+    return k
 
 
 def adapt_k(images: torch.Tensor, color: torch.Tensor, sky: torch.Tensor, info0: torch.Tensor,
@@ -345,9 +386,8 @@ def adapt_k(images: torch.Tensor, color: torch.Tensor, sky: torch.Tensor, info0:
     ``k < video_k_max``: ``k += 1``. The fraction (:func:`raw_fraction`) of every integer
     ``k`` in ``[video_k_min, video_k_max]`` is computed once in one pass over the pixels
     (each pixel's smallest admitting ``k``, :func:`_min_k`, then a cumulative histogram; the
-    raw mask at any ``k`` is ``min_k <= k``), then both loops run with static bounds (``k_start - k_min`` and
-    ``k_max - k_min`` steps) on that table, images whose condition failed keep their ``k``
-    (the condition then stays false, so this equals the reference's early exits).
+    raw mask at any ``k`` is ``min_k <= k``), then both loops run on that table
+    (:func:`choose_k`).
 
     Parameters
     ----------
@@ -394,21 +434,7 @@ def adapt_k(images: torch.Tensor, color: torch.Tensor, sky: torch.Tensor, info0:
     n_bins = b * (n_k + 1)
     lin = torch.where(below, torch.arange(b, device=dev).view(-1, 1) * (n_k + 1) + (kstar - k_min), n_bins)
     counts = torch.bincount(lin.view(-1), minlength=n_bins + 1)[:n_bins].view(b, n_k + 1)[:, :n_k].cumsum(dim=1)
-    size = (h - skyc) * w
-    frac = counts.to(torch.float64) / size.clamp(min=1).to(torch.float64).view(-1, 1)
-    frac = torch.where((size > 0).view(-1, 1), frac, torch.zeros_like(frac))
-    info0 = info0.to(device=dev, dtype=torch.float64)
-    shrink = params.video_shrink_above * info0
-    grow = params.video_grow_below * info0
-    k = torch.full((b,), k_start, dtype=torch.int64, device=dev)
-
-    def frac_at(kk: torch.Tensor) -> torch.Tensor:
-        return frac.gather(1, (kk - k_min).view(-1, 1)).view(-1)
-
-    for _ in range(k_start - k_min):
-        k = k - ((frac_at(k) > shrink) & (k > k_min)).to(torch.int64)
-    for _ in range(k_max - k_min):
-        k = k + ((frac_at(k) < grow) & (k < k_max)).to(torch.int64)
+    k = choose_k(k_fractions(counts, skyc, h, w), info0, params)
     return k, ((kstar <= k.view(-1, 1)) & below).view(b, h, w)
 
 

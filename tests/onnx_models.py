@@ -1,0 +1,61 @@
+"""Exported test models, cached on disk: an export takes minutes on a small CPU.
+
+The cache (``TORCHROW_CACHE`` or ``~/.cache/torchrow``, folder ``onnx-tests``) is keyed by
+the source of the code that defines the graph, the parameters, the shape and the torch
+version, so a change to any of them exports afresh.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+from pathlib import Path
+
+import torch
+
+from torchrow import Params
+from torchrow.export import to_onnx
+
+#: Op types the graph may contain: all supported by TensorRT's ONNX parser (CumSum, TopK with
+#: k <= 3840, GatherElements, ScatterND without reduction, BitShift/Bitwise ops on ints).
+ALLOWED_OPS = {
+    "Abs", "Add", "And", "ArgMax", "BitShift", "BitwiseAnd", "BitwiseOr", "BitwiseXor", "Cast", "Clip", "Concat",
+    "Constant", "CumSum", "Div", "Equal", "Expand", "Floor", "Gather", "GatherElements", "GatherND", "Greater",
+    "GreaterOrEqual", "Identity", "Less", "LessOrEqual", "Max", "Min", "Mod", "Mul", "Neg", "Not", "Or", "Pad",
+    "Pow", "Range", "ReduceMax", "ReduceMin", "ReduceSum", "Reshape", "ScatterElements", "ScatterND", "Shape",
+    "Slice", "Sqrt", "Squeeze", "Sub", "TopK", "Transpose", "Unsqueeze", "Where", "Xor",
+}
+
+
+def _cache_dir() -> Path:
+    env = os.environ.get("TORCHROW_CACHE")
+    return (Path(env) if env else Path.home() / ".cache" / "torchrow") / "onnx-tests"
+
+
+def _source_key(*key) -> str:
+    root = Path(__file__).resolve().parents[1] / "torchrow"
+    h = hashlib.sha256()
+    for p in sorted([root / "export.py", root / "params.py", root / "shared.py",
+                     *(root / "functional").glob("*.py")]):
+        h.update(p.read_bytes())
+    h.update(repr((key, torch.__version__)).encode())
+    return h.hexdigest()[:16]
+
+
+def exported(params: Params, batch: int, tmp: Path, height: int = 240, width: int = 320,
+             tracker: bool = False) -> Path:
+    """The model exported with these arguments, from the cache when it is there."""
+    cache = _cache_dir()
+    kind = "tracker" if tracker else "detector"
+    key = (params, batch) if not tracker else (params, batch, height, width, kind)
+    path = cache / f"{kind}-{_source_key(*key)}.onnx"
+    if path.is_file():
+        return path
+    out = to_onnx(tmp / f"{kind}.onnx", height=height, width=width, batch=batch, params=params, tracker=tracker)
+    try:
+        cache.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(out, path)
+        return path
+    except OSError:
+        return out
