@@ -10,7 +10,6 @@ model is cached like the detector's (``tests/onnx_models.py``).
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -23,9 +22,11 @@ pytest.importorskip("onnxscript")
 
 import torchrow  # noqa: E402
 from torchrow import Params  # noqa: E402
-from torchrow.export import FORBIDDEN_OPS, OnnxDetector, OnnxTracker, model_info, op_counts, to_onnx  # noqa: E402
+from torchrow.cli import main  # noqa: E402
+from torchrow.export import (FORBIDDEN_OPS, OnnxDetector, OnnxTracker, model_info, op_counts,  # noqa: E402
+                             step_differences, to_onnx)
 from torchrow.functional.static import TRACKER_INPUTS, TRACKER_OUTPUTS  # noqa: E402
-from torchrow.functional.tracker import TrackerState, TrackStep  # noqa: E402
+from torchrow.functional.tracker import TrackerState  # noqa: E402
 from torchrow.io import resize_to_width  # noqa: E402
 from torchrow.synthetic import FieldSpec, sequence  # noqa: E402
 from onnx_models import ALLOWED_OPS, exported  # noqa: E402
@@ -53,25 +54,6 @@ def _frames(images: list[np.ndarray]) -> torch.Tensor:
     return torch.from_numpy(x).permute(0, 3, 1, 2).contiguous()
 
 
-def _differences(t: int, ref, got) -> list[str]:
-    """Field-by-field differences of two TrackSteps or TrackerStates of active sequences."""
-    out = []
-    act = ref.active if isinstance(ref, TrackStep) else torch.ones(len(ref.sky), dtype=torch.bool)
-    for f in dataclasses.fields(ref):
-        a, b = getattr(ref, f.name)[act], getattr(got, f.name)[act]
-        if isinstance(ref, TrackStep) and f.name in ("hough_theta", "hough_rho", "hough_weight", "out_theta",
-                                                      "out_rho", "out_weight"):
-            valid = (ref.hough_valid if f.name.startswith("hough") else ref.out_valid)[act]
-            a, b = torch.where(valid, a, 0), torch.where(valid, b, 0)  # unused slots carry no meaning
-        if a.dtype == torch.float64:
-            same = a.shape == b.shape and bool(torch.isclose(a, b, rtol=0, atol=TOL, equal_nan=True).all())
-        else:
-            same = torch.equal(a, b)
-        if not same:
-            out.append(f"frame {t}: {type(ref).__name__}.{f.name}: {a.tolist()} != {b.tolist()}")
-    return out
-
-
 def _run_both(onnx_tracker: OnnxTracker, batches: list[torch.Tensor], actives: list[torch.Tensor] | None = None):
     """Step the eager and the ONNX tracker through the same frames; returns the eager steps
     and every difference."""
@@ -82,7 +64,8 @@ def _run_both(onnx_tracker: OnnxTracker, batches: list[torch.Tensor], actives: l
         act = None if actives is None else actives[t]
         step_e, st_e = eager(x, st_e, act)
         step_o, st_o = onnx_tracker(x, st_o, act)
-        problems += _differences(t, step_e, step_o) + _differences(t, st_e, st_o)
+        diff = step_differences(step_e, step_o, TOL) + step_differences(st_e, st_o, TOL)
+        problems += [f"frame {t}: {d}" for d in diff]
         steps.append(step_e)
     return steps, problems
 
@@ -175,3 +158,16 @@ def test_records_and_errors(onnx_tracker: OnnxTracker, model_path: Path, tmp_pat
     with pytest.raises(ValueError, match="video_width"):
         to_onnx(tmp_path / "x.onnx", height=HEIGHT, width=200, params=SMALL, tracker=True)
     assert isinstance(TrackerState.empty(BATCH, SMALL), TrackerState)
+
+
+def test_cli_export_and_detect_refuse_mismatches(model_path: Path, tmp_path: Path, capsys):
+    out = str(tmp_path / "t.onnx")
+    assert main(["export", "onnx", "--tracker", "--out", out]) == 2
+    assert "--tracker needs --height" in capsys.readouterr().err
+    import cv2
+
+    (tmp_path / "imgs").mkdir()
+    cv2.imwrite(str(tmp_path / "imgs" / "a.png"), np.zeros((120, 160, 3), np.uint8))
+    assert main(["detect", str(tmp_path / "imgs"), "--out", str(tmp_path / "o.jsonl"), "--impl", "onnx",
+                 "--model", str(model_path)]) == 2
+    assert "is a torchrow tracker model" in capsys.readouterr().err

@@ -140,6 +140,9 @@ def _check_model(args: argparse.Namespace) -> str | None:
         raise CLIError("--impl onnx needs onnxruntime: pip install 'torchrow[onnx]'") from None
     except Exception as exc:  # a corrupt or foreign file: one line, not a traceback
         raise CLIError(f"cannot read ONNX model {model}: {exc}") from None
+    if info["kind"] != "detector":
+        raise CLIError(f"{model} is a torchrow {info['kind']} model; detect needs a detector model "
+                       "(torchrow export onnx without --tracker)")
     if args.param:
         raise CLIError("--param cannot change an exported model; export one with those --param values")
     want = info["params"].image_width
@@ -157,8 +160,19 @@ def cmd_export(args: argparse.Namespace) -> int:
     from .export import model_info, to_onnx
 
     params = _parse_params(args.param)
-    if args.width != params.image_width:
-        params = params.replace(image_width=args.width)
+    if args.tracker:
+        width = args.width if args.width is not None else params.video_width
+        if args.height is None:
+            raise CLIError("--tracker needs --height: the frames' working height at width "
+                           f"{width} (e.g. 281 for 1280x720 video at the default video_width 500)")
+        height = args.height
+        if width != params.video_width:
+            params = params.replace(video_width=width)
+    else:
+        width = args.width if args.width is not None else 320
+        height = args.height if args.height is not None else 240
+        if width != params.image_width:
+            params = params.replace(image_width=width)
     out = Path(args.out)
     if not out.parent.is_dir():
         raise CLIError(f"output folder does not exist: {out.parent}")
@@ -166,13 +180,15 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     try:
-        to_onnx(out, height=args.height, width=args.width, batch=args.batch, params=params, opset=args.opset)
+        to_onnx(out, height=height, width=width, batch=args.batch, params=params, opset=args.opset,
+                tracker=args.tracker)
     except ValueError as exc:
         raise CLIError(str(exc)) from None
     info = model_info(out)
     ops = ", ".join(f"{k} {v}" for k, v in sorted(info["ops"].items()))
+    what = "tracker step: frames + veg_lab + active + state" if args.tracker else "images + veg_lab"
     print(f"torchrow: exported {out} in {time.perf_counter() - t0:.0f} s: {info['size'] / 2**20:.1f} MiB, "
-          f"images uint8 ({args.batch}, 3, {args.height}, {args.width}) + veg_lab float64 ({args.batch}, 3), "
+          f"{what}, uint8 frames ({args.batch}, 3, {height}, {width}), "
           f"opset {info['opset']}, {sum(info['ops'].values())} nodes")
     print(f"ops: {ops}")
     return 0
@@ -478,12 +494,16 @@ def build_parser() -> argparse.ArgumentParser:
     common(p)
     p.set_defaults(func=cmd_video)
 
-    p = sub.add_parser("export", help="export the image-mode detector (see README: ONNX export)")
+    p = sub.add_parser("export", help="export the image-mode detector or the tracker step (see README: ONNX export)")
     esub = p.add_subparsers(dest="format", required=True)
     p = esub.add_parser("onnx", help="static-shape ONNX graph (torch dynamo exporter)")
     p.add_argument("--out", required=True, help="output .onnx file")
-    p.add_argument("--height", type=int, default=240, help="working image height (default 240)")
-    p.add_argument("--width", type=int, default=320, help="working image width (default 320)")
+    p.add_argument("--tracker", action="store_true",
+                   help="export the video tracker step (frame + state -> rows + new state) instead of the detector")
+    p.add_argument("--height", type=int, default=None,
+                   help="working height (detector default 240; required with --tracker)")
+    p.add_argument("--width", type=int, default=None,
+                   help="working width (detector default 320; tracker default video_width, 500)")
     p.add_argument("--batch", type=int, default=1, help="static batch size (default 1)")
     p.add_argument("--opset", type=int, default=18, help="ONNX opset, >= 18 (default 18)")
     common(p)

@@ -40,7 +40,8 @@ import torch
 from .detector import STATUS_CODES, BatchResult
 from .params import Params
 
-__all__ = ["to_onnx", "OnnxDetector", "OnnxTracker", "legalize", "op_counts", "model_info", "FORBIDDEN_OPS", "DEFAULT_OPSET"]
+__all__ = ["to_onnx", "OnnxDetector", "OnnxTracker", "step_differences", "legalize", "op_counts", "model_info",
+           "FORBIDDEN_OPS", "DEFAULT_OPSET"]
 
 DEFAULT_OPSET = 18
 
@@ -209,7 +210,8 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
             optimizer.fold_constants_ir(prog.model)
             optimizer.remove_unused_nodes(prog.model)
     model = legalize(prog.model_proto)
-    meta = {"torchrow_format": "1", "kind": "tracker" if tracker else "detector", "height": str(height), "width": str(width), "batch": str(batch),
+    meta = {"torchrow_format": "1", "kind": "tracker" if tracker else "detector", "height": str(height),
+            "width": str(width), "batch": str(batch),
             "params": json.dumps(_params_dict(params)), "exporter": f"torch.onnx dynamo, torch {torch.__version__}",
             "opset": str(opset)}
     for k, v in meta.items():
@@ -243,7 +245,8 @@ def model_info(path: str | Path) -> dict:
         raise ValueError(f"{path} is not a torchrow ONNX detector (no torchrow metadata)")
     raw = json.loads(meta["params"])
     raw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in raw.items()}
-    return {"size": path.stat().st_size, "kind": meta.get("kind", "detector"), "height": int(meta["height"]), "width": int(meta["width"]),
+    return {"size": path.stat().st_size, "kind": meta.get("kind", "detector"), "height": int(meta["height"]),
+            "width": int(meta["width"]),
             "batch": int(meta["batch"]), "params": Params(**raw), "exporter": meta.get("exporter", ""),
             "opset": int(meta.get("opset", 0)), "ops": op_counts(model)}
 
@@ -423,6 +426,36 @@ class OnnxTracker:
             x = torch.from_numpy(np.stack([self._records.prepare(f) for f in frames])).permute(0, 3, 1, 2)
         stepped, new = self.forward(x.contiguous(), state)
         return self._records.results(stepped, new, x.shape[3], x.shape[2], names), new
+
+
+def step_differences(ref, got, tol: float = 1e-9) -> list[str]:
+    """Field-by-field differences between two tracker steps or states of the same sequences.
+
+    ``ref``/``got``: :class:`~torchrow.functional.tracker.TrackStep` or
+    :class:`~torchrow.functional.tracker.TrackerState` (e.g. :class:`torchrow.Tracker` vs
+    :class:`OnnxTracker`). Only active sequences are compared (a step's ``active``); Hough
+    line and outlier slots only where valid (the others carry no meaning); float64 fields
+    within ``tol`` (NaN equals NaN), all others exactly. Returns one line per differing field.
+    """
+    import dataclasses
+
+    from .functional.tracker import TrackStep
+
+    out = []
+    act = ref.active if isinstance(ref, TrackStep) else torch.ones(len(ref.sky), dtype=torch.bool)
+    for f in dataclasses.fields(ref):
+        a, b = getattr(ref, f.name)[act], getattr(got, f.name)[act]
+        if isinstance(ref, TrackStep) and f.name in ("hough_theta", "hough_rho", "hough_weight", "out_theta",
+                                                      "out_rho", "out_weight"):
+            valid = (ref.hough_valid if f.name.startswith("hough") else ref.out_valid)[act]
+            a, b = torch.where(valid, a, 0), torch.where(valid, b, 0)
+        if a.dtype == torch.float64:
+            same = a.shape == b.shape and bool(torch.isclose(a, b, rtol=0, atol=tol, equal_nan=True).all())
+        else:
+            same = torch.equal(a, b)
+        if not same:
+            out.append(f"{type(ref).__name__}.{f.name}: {a.tolist()} != {b.tolist()}")
+    return out
 
 
 def _concat(parts: list[BatchResult]) -> BatchResult:

@@ -417,7 +417,7 @@ def adapt_k(images: torch.Tensor, color: torch.Tensor, sky: torch.Tensor, info0:
     check_rows(sky, b)
     _check_vector(info0, b, "info0", allow_int=False)
     dev = images.device
-    k_min, k_max, k_start = params.video_k_min, params.video_k_max, params.video_k_start
+    k_min, k_max = params.video_k_min, params.video_k_max
     n_k = k_max - k_min + 1
     skyc = _sky(sky, h, dev)
     below = _below(skyc, h).expand(b, h, w).reshape(b, h * w).to(torch.bool)
