@@ -32,6 +32,8 @@ def main() -> None:
     ap.add_argument("--data", default=None)
     ap.add_argument("--frames", type=int, default=0, help="at most this many frames (default all 100)")
     ap.add_argument("--model", default=None, help="an exported tracker model (default: export one now)")
+    ap.add_argument("--no-control-flow", action="store_true",
+                    help="export without If: both branches run on every frame, masks choose")
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args()
     files = sorted((data_root(args.data) / "caterra_video").glob("*.jpg"))
@@ -46,7 +48,7 @@ def main() -> None:
         h = load_image(files[0], params.video_width).shape[0]
         t0 = time.perf_counter()
         path = to_onnx(Path(tmp.name) / "tracker.onnx", height=h, width=params.video_width, batch=1, params=params,
-                       tracker=True)
+                       tracker=True, control_flow=not args.no_control_flow)
         t_export = time.perf_counter() - t0
     info = model_info(path)
     frames = [torch.from_numpy(load_image(f, params.video_width)).permute(2, 0, 1).unsqueeze(0).contiguous()
@@ -77,7 +79,9 @@ def main() -> None:
              f"| torch tracker (`torchrow.Tracker.forward`) | {t_torch / n * 1e3:.0f} | {n / t_torch:.2f} |",
              f"| onnxruntime {__import__('onnxruntime').__version__} (`OnnxTracker`, CPU EP, basic optimisations) | "
              f"{t_onnx / n * 1e3:.0f} | {n / t_onnx:.2f} |", "",
-             f"The Hough stage ran on {hough} of {n} frames; the graph runs it (masked) on every frame.", "",
+             f"The Hough stage ran on {hough} of {n} frames; "
+             + ("the graph skips it on the others (ONNX `If`)." if info["control_flow"] else
+                "the graph runs it (masked) on every frame (exported without `If`)."), "",
              f"Model: {info['size'] / 2**20:.1f} MiB, opset {info['opset']}, {info['exporter']}, "
              f"{sum(info['ops'].values())} nodes; export time "
              + (f"{t_export:.0f} s" if t_export == t_export else "not measured (--model given)") + ".",
@@ -86,7 +90,7 @@ def main() -> None:
     print("\n".join(lines))
     if not args.no_write:
         cmd = "python benchmarks/bench_onnx_tracker.py" + (f" --frames {args.frames}" if args.frames else "") + (
-            " --model MODEL" if args.model else "")
+            " --model MODEL" if args.model else "") + (" --no-control-flow" if args.no_control_flow else "")
         append_results("ONNX export: tracker step, onnxruntime vs torch", cmd, "\n".join(lines))
 
 

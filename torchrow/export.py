@@ -1,4 +1,9 @@
-"""ONNX export of the image-mode detector and an onnxruntime runner (issue 6, part 1).
+"""ONNX export of the image-mode detector and of the tracker step, and onnxruntime runners.
+
+The tracker step (``to_onnx(..., tracker=True)``, :class:`OnnxTracker`) is one graph from a
+frame and the previous state to rows and the new state; see
+:class:`torchrow.functional.static.StaticTrackerStep` for what runs where. The rest of this
+docstring describes the image-mode detector.
 
 :func:`to_onnx` exports :class:`torchrow.functional.static.StaticDetector` (a static-shape,
 scatter-free formulation of ALGORITHM.md sections 1 and 3-7) with torch's dynamo-based
@@ -71,25 +76,52 @@ def _narrow_types():
     return {T.BOOL, T.UINT8, T.INT8, T.INT16, T.UINT16}
 
 
+def _subgraphs(node):
+    """The graphs held by a node's attributes (an ``If``'s branches)."""
+    from onnx import AttributeProto
+
+    for attr in node.attribute:
+        if attr.type == AttributeProto.GRAPH:
+            yield attr.g
+        elif attr.type == AttributeProto.GRAPHS:
+            yield from attr.graphs
+
+
+def _graph_types(graph, types: dict) -> None:
+    for v in list(graph.value_info) + list(graph.input) + list(graph.output):
+        types[v.name] = v.type.tensor_type.elem_type
+    types.update({i.name: i.data_type for i in graph.initializer})
+    for node in graph.node:
+        for g in _subgraphs(node):
+            _graph_types(g, types)
+
+
 def legalize(model):
     """Widen small-integer/bool inputs of compute nodes to int32 (in place; returns the model).
 
-    For each node that is neither data movement nor a logical op, every input of type
-    bool/uint8/int8/int16/uint16 (except ``Where``'s condition) is cast to int32, and each such
-    output is computed in int32 and cast back to its type. Node names are made unique.
+    For each node that is neither data movement, a logical op nor control flow, every input
+    of type bool/uint8/int8/int16/uint16 (except ``Where``'s condition) is cast to int32, and
+    each such output is computed in int32 and cast back to its type. ``If`` branches are
+    walked too. Node names are made unique.
     """
     import onnx
+
+    types: dict = {}
+    _graph_types(onnx.shape_inference.infer_shapes(model).graph, types)
+    _legalize_graph(model.graph, types, "n")
+    return model
+
+
+def _legalize_graph(graph, types: dict, prefix: str) -> None:
     from onnx import TensorProto, helper
 
-    inferred = onnx.shape_inference.infer_shapes(model)
-    types = {v.name: v.type.tensor_type.elem_type
-             for v in list(inferred.graph.value_info) + list(inferred.graph.input) + list(inferred.graph.output)}
-    types.update({i.name: i.data_type for i in model.graph.initializer})
     narrow = _narrow_types()
     out_nodes = []
-    for i, node in enumerate(model.graph.node):
-        node.name = f"n{i}_{node.op_type}"
-        if node.op_type in _MOVE or node.op_type in _LOGICAL:
+    for i, node in enumerate(graph.node):
+        node.name = f"{prefix}{i}_{node.op_type}"
+        for j, g in enumerate(_subgraphs(node)):
+            _legalize_graph(g, types, f"{prefix}{i}g{j}_")
+        if node.op_type in _MOVE or node.op_type in _LOGICAL or node.op_type in ("If", "Loop"):
             out_nodes.append(node)
             continue
         pre, post = [], []
@@ -98,7 +130,7 @@ def legalize(model):
                 continue
             if node.op_type in ("Equal",) and types.get(name) == TensorProto.BOOL:
                 continue
-            wide = f"{name}__i32_{i}_{k}"
+            wide = f"{name}__i32_{prefix}{i}_{k}"
             pre.append(helper.make_node("Cast", [name], [wide], to=TensorProto.INT32, name=f"{wide}_cast"))
             node.input[k] = wide
         if pre:
@@ -108,16 +140,22 @@ def legalize(model):
                     post.append(helper.make_node("Cast", [wide], [name], to=types[name], name=f"{wide}_cast"))
                     node.output[k] = wide
         out_nodes += pre + [node] + post
-    del model.graph.node[:]
-    model.graph.node.extend(out_nodes)
-    return model
+    del graph.node[:]
+    graph.node.extend(out_nodes)
 
 
 def op_counts(model) -> Counter:
-    """``Counter`` of op types in the main graph; scatters with a reduction counted as
-    ``<Op>_reduction``."""
+    """``Counter`` of op types in the graph and its ``If`` branches; scatters with a reduction
+    counted as ``<Op>_reduction``."""
     c: Counter = Counter()
-    for node in model.graph.node:
+
+    def nodes(graph):
+        for node in graph.node:
+            yield node
+            for g in _subgraphs(node):
+                yield from nodes(g)
+
+    for node in nodes(model.graph):
         name = node.op_type
         if name in ("ScatterElements", "ScatterND"):
             red = [a for a in node.attribute if a.name == "reduction"]
@@ -134,7 +172,8 @@ def _check_shape(height: int, width: int, batch: int, opset: int) -> None:
 
 
 def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 1, params: Params | None = None,
-            opset: int = DEFAULT_OPSET, optimize: bool = True, tracker: bool = False) -> Path:
+            opset: int = DEFAULT_OPSET, optimize: bool = True, tracker: bool = False,
+            control_flow: bool = True) -> Path:
     """Export the image-mode detector (or, with ``tracker=True``, the tracker step) as a
     static-shape ONNX graph.
 
@@ -155,6 +194,10 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         Export :class:`torchrow.functional.static.StaticTrackerStep` (one frame of ``B``
         sequences + their state -> rows + new state; run it with :class:`OnnxTracker`).
         ``width`` must then equal ``params.video_width`` (set it with ``params``).
+    control_flow : bool
+        Tracker only: skip the Hough stage (and the tracked fit) with an ONNX ``If`` when no
+        sequence of the batch needs it (default); ``False`` gives a graph without ``If``
+        that always runs both and masks the results (slower; same results).
 
     Returns
     -------
@@ -184,7 +227,7 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
                              f"got width {width}")
         from .functional.tracker import TrackerState
 
-        module = static.StaticTrackerStep(height, width, params).eval()
+        module = static.StaticTrackerStep(height, width, params, control_flow=control_flow).eval()
         empty = TrackerState.empty(batch, params)
         args = (images, veg_lab, torch.ones(batch, dtype=torch.bool)) + tuple(
             getattr(empty, f) for f in static.TRACKER_STATE)
@@ -198,9 +241,14 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         ep = torch.export.export(module, args, strict=False)
         # bool <-> uint8/int8 reinterpretations in the vegetation stage only ever hold 0/1,
         # whose bit patterns equal their cast values: export them as Cast.
-        ep = ep.run_decompositions({torch.ops.aten.view.dtype: _view_as_cast})
+        if not (tracker and control_flow):
+            ep = ep.run_decompositions({torch.ops.aten.view.dtype: _view_as_cast})
+            table = None
+        else:  # re-decomposing a program with torch.cond subgraphs fails validation: translate instead
+            table = {torch.ops.aten.view.dtype: _view_dtype_onnx}
         prog = torch.onnx.export(ep, dynamo=True, opset_version=opset, input_names=names,
-                                 output_names=outputs, verbose=False, optimize=False)
+                                 output_names=outputs, verbose=False, optimize=False,
+                                 custom_translation_table=table)
         if optimize:
             # Constant folding and dead-node removal only: the exporter's default optimizer
             # also runs onnxscript's pattern rewriter, which took ~80% of a 9-minute export
@@ -211,7 +259,7 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
             optimizer.remove_unused_nodes(prog.model)
     model = legalize(prog.model_proto)
     meta = {"torchrow_format": "1", "kind": "tracker" if tracker else "detector", "height": str(height),
-            "width": str(width), "batch": str(batch),
+            "width": str(width), "batch": str(batch), "control_flow": str(bool(tracker and control_flow)),
             "params": json.dumps(_params_dict(params)), "exporter": f"torch.onnx dynamo, torch {torch.__version__}",
             "opset": str(opset)}
     for k, v in meta.items():
@@ -219,6 +267,13 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         entry.key, entry.value = k, v
     onnx.save(model, str(path))
     return path
+
+
+def _view_dtype_onnx(x, dtype: int):
+    """``aten.view.dtype`` of a 0/1 tensor as an ONNX ``Cast``."""
+    from onnxscript import opset18 as op
+
+    return op.Cast(x, to=int(dtype))  # the exporter hands over the ONNX element type
 
 
 def _view_as_cast(x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
@@ -245,7 +300,8 @@ def model_info(path: str | Path) -> dict:
         raise ValueError(f"{path} is not a torchrow ONNX detector (no torchrow metadata)")
     raw = json.loads(meta["params"])
     raw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in raw.items()}
-    return {"size": path.stat().st_size, "kind": meta.get("kind", "detector"), "height": int(meta["height"]),
+    return {"size": path.stat().st_size, "kind": meta.get("kind", "detector"),
+            "control_flow": meta.get("control_flow") == "True", "height": int(meta["height"]),
             "width": int(meta["width"]),
             "batch": int(meta["batch"]), "params": Params(**raw), "exporter": meta.get("exporter", ""),
             "opset": int(meta.get("opset", 0)), "ops": op_counts(model)}
@@ -506,9 +562,9 @@ def check_lab(k: Sequence[float] | None = None, params: Params | None = None, pr
     -------
     dict
         ``colors`` (2**24), ``mismatched_colors``, ``mismatched_values`` per channel,
-        ``max_abs_diff``, ``max_ulps`` (in ulps of ``max(|value|, 1)``), ``flippable`` (number of (colour, channel) values with a
-        bound between graph and table value; 0 means every box decision is identical for every
-        vegetation colour) and ``k``.
+        ``max_abs_diff``, ``max_ulps`` (in ulps of ``max(|value|, 1)``), ``flippable`` (number
+        of (colour, channel, k) with a bound between graph and table value; 0 means every box
+        decision is identical for every vegetation colour and every ``k``) and ``k``.
     """
     import tempfile
     import warnings
@@ -558,9 +614,13 @@ def check_lab(k: Sequence[float] | None = None, params: Params | None = None, pr
             continue
         lo = np.minimum(got[m, c], want[m, c])
         hi = np.maximum(got[m, c], want[m, c])
-        col = np.asarray(table[:, c])
+        order = np.argsort(lo, kind="stable")  # sorted queries: cache-friendly searches
+        lo, hi = lo[order], hi[order]
+        col = np.sort(np.asarray(table[:, c]))
         for kk in ks:
-            bounds = np.sort(np.concatenate([col - kk, col + kk]))
-            res["flippable"] += int((np.searchsorted(bounds, hi, side="right") - np.searchsorted(bounds, lo, side="left")
-                                     > 0).sum())
+            # fl(v - k) and fl(v + k) are non-decreasing in v: both bound lists are sorted as is
+            hit = np.zeros(lo.shape, dtype=bool)
+            for bounds in (col - kk, col + kk):
+                hit |= np.searchsorted(bounds, hi, side="right") > np.searchsorted(bounds, lo, side="left")
+            res["flippable"] += int(hit.sum())
     return res

@@ -115,7 +115,7 @@ def subsample_plan(member: torch.Tensor, lin: torch.Tensor, params: Params):
     n_keep = torch.where(sub, (params.ransac_subsample * n) // torch.clamp(n + v, min=1), n)
     v_keep = torch.where(sub, params.ransac_subsample - n_keep, v)
     key = torch.where(sub.unsqueeze(2), (lin * params.subsample_hash) & 0xFFFFFFFF, lin)
-    key = torch.where(member, key, torch.full_like(key, torch.iinfo(torch.int64).max))
+    key = key.masked_fill(~member, torch.iinfo(torch.int64).max)  # a scalar fill: no (B, S, K) constant in a graph
     return n, n_keep, v_keep, key
 
 
@@ -300,11 +300,15 @@ def principal_direction(sxx: torch.Tensor, syy: torch.Tensor, sxy: torch.Tensor,
     The spec's ``phi = atan2(2*sxy, sxx - syy) / 2``, ``(cos phi, sin phi)``. ``trig_free=True``
     (the exportable tracker step: ONNX has no ``Atan2``) takes the same eigenvector in closed
     form, ``(2*sxy, r - d)`` if ``d <= 0`` else ``(r + d, 2*sxy)`` with ``d = sxx - syy``,
-    ``r = sqrt(d**2 + (2*sxy)**2)`` (no cancellation in either branch), normalised; it
-    agrees to a few ulps (``atan2(0, 0) = 0`` gives ``(1, 0)`` in both).
+    ``r = sqrt(d**2 + (2*sxy)**2)`` (no cancellation in either branch; ``d`` and ``2*sxy``
+    first scaled by the larger magnitude), normalised; it agrees to a few ulps
+    (``atan2(0, 0) = 0`` gives ``(1, 0)`` in both).
     """
     if trig_free:
         d, e = sxx - syy, 2.0 * sxy
+        m = torch.maximum(d.abs(), e.abs())
+        m = torch.where(m > 0, m, torch.ones_like(m))
+        d, e = d / m, e / m  # scaled to [-1, 1]: squares neither overflow nor underflow
         r = _exact.sqrt(d * d + e * e)
         neg = d <= 0
         vx = torch.where(neg, e, r + d)

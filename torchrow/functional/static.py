@@ -1,4 +1,5 @@
-"""Static-shape, scatter-free formulation of the image-mode detector, for ONNX export.
+"""Static-shape, scatter-free formulation of the image-mode detector and of the tracker step
+(:class:`StaticTrackerStep`, at the end), for ONNX export.
 
 Same results as :class:`torchrow.detector.CropRowDetector` (ALGORITHM.md sections 1 and 3-7),
 written so that ``torch.onnx.export(..., dynamo=True)`` gives a graph whose every shape is
@@ -110,8 +111,9 @@ class VoteTables:
     ``angles`` int64 ``(A,)``: the pickable angle indices (``|j*step - 90| >= horizontal_excl``;
     the others are never peaks, so they are never voted). ``order`` int32 ``(A*H*W,)``: per
     angle, the raster pixel indices sorted by rho index (stable), concatenated.
-    ``ends`` int64 ``(A, 2D+1)``: per angle and rho index ``r``, the number of pixels whose
-    rho index is ``<= r``. ``n_rho = 2D+1``, ``d = D``.
+    ``ends`` int64 ``(A*(2D+1),)``: per angle ``a`` and rho index ``r``, ``a*(H*W + 1)`` plus
+    the number of pixels whose rho index is ``<= r`` (the run end's position in the angles'
+    prefix sums, each led by a 0). ``n_rho = 2D+1``, ``d = D``.
     """
 
     angles: torch.Tensor
@@ -131,7 +133,8 @@ def _vote_arrays(height: int, width: int, theta_step: int, horizontal_excl: int)
     sub = idx[angles].astype(np.int64)
     order = np.argsort(sub, axis=1, kind="stable")
     ends = np.stack([np.cumsum(np.bincount(s, minlength=n_rho)) for s in sub])
-    return angles, order.reshape(-1).astype(np.int32), ends.astype(np.int64), n_rho, d
+    ends += np.arange(len(angles), dtype=np.int64)[:, None] * (height * width + 1)
+    return angles, order.reshape(-1).astype(np.int32), ends.reshape(-1).astype(np.int64), n_rho, d
 
 
 def vote_tables(height: int, width: int, params: Params, device: torch.device | str = "cpu") -> VoteTables:
@@ -152,9 +155,11 @@ def votes(alive: torch.Tensor, tables: VoteTables) -> torch.Tensor:
     n_ang = tables.angles.shape[0]
     g = torch.index_select(alive.to(torch.int32), 1, tables.order).view(b, n_ang, hw)
     cs = torch.cumsum(g, dim=2, dtype=torch.int32)
-    ends = tables.ends.unsqueeze(0).expand(b, n_ang, tables.n_rho)
-    upto = torch.gather(cs, 2, (ends - 1).clamp(min=0))
-    upto = torch.where(ends > 0, upto, torch.zeros_like(upto))
+    # a leading 0 per angle makes "the sum of the first e pixels" cs[e] for every e in [0, HW],
+    # so one flat index_select with the constant run ends reads all cells (no per-step
+    # (B, A, 2D+1) index or zero constants in the graph)
+    cs = torch.cat([torch.zeros_like(cs[:, :, :1]), cs], dim=2).view(b, n_ang * (hw + 1))
+    upto = torch.index_select(cs, 1, tables.ends).view(b, n_ang, tables.n_rho)
     return upto - torch.cat([torch.zeros_like(upto[:, :, :1]), upto[:, :, :-1]], dim=2)
 
 
@@ -261,7 +266,7 @@ class StaticDetector(nn.Module):
                     - rho_new.to(torch.float64).unsqueeze(1)).abs()
             alive = alive & ~((dist <= half_band) & got.unsqueeze(1))
 
-            no_vp, finish, drop, i, xy = outlier_check(theta, rho, weight, valid, check, p)
+            no_vp, finish, drop, i, xy = outlier_check(theta, rho, weight, valid, check, p, (self.cos, self.sin))
             vp = torch.where(finish.unsqueeze(1), xy, vp)
             has_vp = has_vp | finish
             theta, rho, weight, out, n_out = drop_outlier(theta, rho, weight, i, drop, out, n_out)
@@ -294,7 +299,7 @@ class StaticDetector(nn.Module):
         pp = min(hw, max(p.ransac_max_points, p.ransac_subsample))
         sel = torch.topk(key, pp, dim=2, largest=False, sorted=True).indices
         rank_ok = torch.arange(pp, device=veg.device) < n_keep.unsqueeze(2)
-        chosen = torch.where(rank_ok, sel, torch.full_like(sel, big))  # sel is the raster index itself
+        chosen = sel.masked_fill(~rank_ok, big)  # sel is the raster index itself
         chosen = torch.topk(chosen, pp, dim=2, largest=False, sorted=True).values  # row-major, padding last
         chosen = torch.where(chosen == big, torch.zeros_like(chosen), chosen)
         return (chosen % self.width).to(torch.float64), (chosen // self.width).to(torch.float64), n_keep, v_keep, n
@@ -309,9 +314,8 @@ class StaticDetector(nn.Module):
         support = present & (n + n // 2 >= p.ransac_min_points)
         total = (n_keep + v_keep).to(torch.float64)
         valid_pt = torch.arange(pp, device=dev) < n_keep.unsqueeze(2)
-        nan = torch.full_like(px, float("nan"))
-        qx = torch.where(valid_pt, px, nan).unsqueeze(2)  # (B, S, 1, P); padding fails every test
-        qy = torch.where(valid_pt, py, nan).unsqueeze(2)
+        qx = px.masked_fill(~valid_pt, float("nan")).unsqueeze(2)  # (B, S, 1, P); padding fails every test
+        qy = py.masked_fill(~valid_pt, float("nan")).unsqueeze(2)
         vx, vy = vp[:, 0].view(-1, 1, 1), vp[:, 1].view(-1, 1, 1)
         t_all = self.u.shape[0]
         step = -(-t_all // max(1, self.score_chunks))
@@ -395,8 +399,11 @@ class StaticTrackerStep(nn.Module):
     """The exportable tracker step: one frame of ``B`` sequences + their state -> rows + new state.
 
     The rules are :func:`torchrow.functional.tracker.advance` itself, composed from the
-    static stages of :class:`StaticDetector` (``lazy=False``: the tracked fit and the Hough
-    stage both run for the whole batch and masks choose, so the graph has no control flow).
+    static stages of :class:`StaticDetector`. With ``control_flow=True`` (default) the
+    tracked fit and the Hough stage each sit in a ``torch.cond`` (an ONNX ``If``) that skips
+    them when no sequence of the batch needs them: a tracked frame of one camera then costs
+    a small part of a Hough frame. ``control_flow=False`` runs both for the whole batch and
+    lets masks choose (no ``If``; for runtimes without control flow).
     Differences from the eager :class:`torchrow.Tracker`, all outside its results:
 
     * **Frame 0 in the graph.** A sequence with ``active & ~ready`` takes this frame as frame 0:
@@ -423,10 +430,14 @@ class StaticTrackerStep(nn.Module):
     params : Params, optional
     score_chunks : int
         RANSAC scoring chunks (bounds memory).
+    control_flow : bool
+        Skip unneeded branches with ``torch.cond`` (ONNX ``If``) instead of masking them.
     """
 
-    def __init__(self, height: int, width: int, params: Params | None = None, score_chunks: int = 4) -> None:
+    def __init__(self, height: int, width: int, params: Params | None = None, score_chunks: int = 4,
+                 control_flow: bool = True) -> None:
         super().__init__()
+        self.control_flow = bool(control_flow)
         self.det = StaticDetector(height, width, params, score_chunks)
         self.params = self.det.params
         self.height, self.width = self.det.height, self.det.width
@@ -475,6 +486,7 @@ class StaticTrackerStep(nn.Module):
             sky=sky, veg_color=torch.zeros((bsz, 3), dtype=torch.uint8, device=images.device), info0=info0,
             ready=ready | start, frames=frames, age=age, prev_valid=prev_valid, vp=vp, has_vp=has_vp, row_a=row_a,
             row_b=row_b, row_present=row_present)
-        stages = ftrack.Stages(find_lines=self._find_lines, fit_rows=self._fit_rows, trig_free=True, lazy=False)
+        stages = ftrack.Stages(find_lines=self._find_lines, fit_rows=self._fit_rows, trig_free=True,
+                               branches="cond" if self.control_flow else "always")
         step, new = ftrack.advance(veg, k, bushy, active, state, p, stages)
         return tuple(getattr(step, f) for f in TRACKER_STEP) + tuple(getattr(new, f) for f in TRACKER_STATE)

@@ -253,15 +253,32 @@ class Stages:
     ``fit_rows(veg, theta, rho, present, vp, band, track=None) -> (cx, cy, dx, dy, hypothesis,
     support)`` (steps 7.1-7.5, as :func:`torchrow.functional.ransac.fit_rows`);
     ``trig_free``: step 7.6's angle rules without ``atan2`` (see
-    :func:`~torchrow.functional.ransac.validate_rows`); ``lazy``: skip a branch whose mask
-    is empty for the whole batch (a host sync; off for export, where both branches always
-    run and masks choose).
+    :func:`~torchrow.functional.ransac.validate_rows`). ``branches`` says how the tracked
+    and the Hough branch are skipped when no sequence of the batch needs them: ``"sync"``
+    (a host sync, eager), ``"cond"`` (``torch.cond``: an ONNX ``If``), ``"always"`` (never
+    skipped; masks choose, so a graph has no control flow at all). Results never depend on it.
     """
 
     find_lines: Callable
     fit_rows: Callable
     trig_free: bool = False
-    lazy: bool = True
+    branches: str = "sync"
+
+    def run(self, pred: torch.Tensor, fn: Callable, skip: Callable, operands: tuple) -> tuple:
+        """``fn(*operands)`` if ``pred`` (bool scalar tensor) else ``skip(*operands)``, per
+        :attr:`branches`; both return tuples of tensors of the same shapes and dtypes."""
+        if self.branches == "always":
+            return fn(*operands)
+        if self.branches == "cond" and torch.compiler.is_exporting():
+            def dense(f):  # torch.cond wants dense outputs of matching strides
+                return lambda *a: tuple(t.contiguous() for t in f(*a))
+
+            return tuple(torch.cond(pred, dense(fn), dense(skip), operands))
+        if self.branches == "cond":  # eager: the same choice, without compiling the branches
+            return fn(*operands) if bool(pred) else skip(*operands)
+        if self.branches != "sync":
+            raise ValueError(f"branches must be 'sync', 'cond' or 'always', got {self.branches!r}")
+        return fn(*operands) if bool(pred) else skip(*operands)
 
 
 def eager_stages(params: Params) -> Stages:
@@ -312,39 +329,56 @@ def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: tor
     def rows_of(fit, present):
         return fransac.validate_rows(*fit, present, h, hough_band, p, trig_free=st.trig_free)
 
+    ls_names = tuple(f.name for f in dataclasses.fields(fvan.LineSearch))
+
+    def no_fit(*_):
+        z = torch.zeros((bsz, s), dtype=torch.float64, device=dev)
+        return (z, z.clone(), z.clone(), torch.ones_like(z), torch.full((bsz, s), -1, **i64),
+                torch.zeros((bsz, s), dtype=torch.bool, device=dev))
+
     # --- tracked frames: bands around the previous rows, VP of the last Hough run ---------
-    zeros_rows = torch.zeros((bsz, s), **i64)
-    if not st.lazy or bool(trk.any()):
-        present_t = state.row_present & trk.unsqueeze(1)
-        veg_t = veg & trk.view(-1, 1, 1)  # other sequences' pixels only widen the temporaries
-        fit = st.fit_rows(veg_t, zeros_rows, zeros_rows, present_t, state.vp,
-                          torch.full((bsz,), p.track_band, **i64), track=(state.row_a, state.row_b))
-        rows_t = rows_of(fit, present_t)
-        ok_t = (rows_t.valid | ~rows_t.present).all(dim=1) & has_veg & trk
-    else:
-        nan = torch.full((bsz, s), float("nan"), dtype=torch.float64, device=dev)
-        f = torch.zeros((bsz, s), dtype=torch.bool, device=dev)
-        rows_t = fransac.RowFits(nan, nan.clone(), f, zeros_rows, torch.full_like(zeros_rows, -1), f.clone())
-        ok_t = torch.zeros(bsz, dtype=torch.bool, device=dev)
+    # Only the fits sit in the branches (st.run): they are the cost; the cheap rules around
+    # them run on every frame and see no row where a branch was skipped.
+    present_t = state.row_present & trk.unsqueeze(1)
+    veg_t = veg & trk.view(-1, 1, 1)  # other sequences' pixels only widen the temporaries
+
+    def tracked(veg_t, present_t, vp, row_a, row_b):
+        zeros_rows = torch.zeros((bsz, s), **i64)
+        return st.fit_rows(veg_t, zeros_rows, zeros_rows, present_t, vp, torch.full((bsz,), p.track_band, **i64),
+                           track=(row_a, row_b))
+
+    fit = st.run(trk.any(), tracked, no_fit, (veg_t, present_t, state.vp, state.row_a, state.row_b))
+    rows_t = rows_of(fit, present_t)
+    ok_t = (rows_t.valid | ~rows_t.present).all(dim=1) & has_veg & trk
     redo = trk & ~ok_t
     use_h = need | redo
 
     # --- Hough frames: sections 4-7 as in image mode ------------------------------------
-    if not st.lazy or bool(use_h.any()):
-        veg_h = veg & use_h.view(-1, 1, 1)
-        hin, _ = fveg.hough_input(veg_h, sky, p)
+    veg_h = veg & use_h.view(-1, 1, 1)
+    hin, _ = fveg.hough_input(veg_h, sky, p)
+    band = torch.where(bushy, torch.full((bsz,), p.ransac_band_px(w, True), **i64),
+                       torch.full((bsz,), p.ransac_band_px(w, False), **i64))
+
+    def hough(hin, veg_h, use_h, band):
         ls = st.find_lines(hin)
-        present_h = ls.valid & ls.has_vp.unsqueeze(1) & use_h.unsqueeze(1)
-        band = torch.where(bushy, torch.full((bsz,), p.ransac_band_px(w, True), **i64),
-                           torch.full((bsz,), p.ransac_band_px(w, False), **i64))
-        rows_h = rows_of(st.fit_rows(veg_h, ls.theta, ls.rho, present_h, ls.vp, band), present_h)
-    else:
+        present = ls.valid & ls.has_vp.unsqueeze(1) & use_h.unsqueeze(1)
+        return (tuple(getattr(ls, f) for f in ls_names)
+                + tuple(st.fit_rows(veg_h, ls.theta, ls.rho, present, ls.vp, band)))
+
+    def no_hough(*_):
         z = torch.zeros((bsz, s), **i64)
         zo = torch.zeros((bsz, o), **i64)
-        fb = torch.zeros(bsz, dtype=torch.bool, device=dev)
-        ls = fvan.LineSearch(z, z, z, z.bool(), zo, zo, zo, zo.bool(), torch.zeros(bsz, **i64),
-                             torch.zeros((bsz, 2), dtype=torch.float64, device=dev), fb)
-        rows_h = rows_t
+        b8 = dict(dtype=torch.bool, device=dev)
+        ls = (z, z.clone(), z.clone(), torch.zeros((bsz, s), **b8), zo, zo.clone(), zo.clone(), torch.zeros((bsz, o), **b8),
+              torch.zeros(bsz, **i64), torch.zeros((bsz, 2), dtype=torch.float64, device=dev), torch.zeros(bsz, **b8))
+        return ls + no_fit()
+
+    # hin is a dtype view (Canny works on uint8): handing torch.cond a copy keeps the view's
+    # decomposition out of the branch, which an exported program could not re-decompose
+    out = st.run(use_h.any(), hough, no_hough, (hin.clone(), veg_h, use_h, band))
+    ls = fvan.LineSearch(*out[:len(ls_names)])
+    present_h = ls.valid & ls.has_vp.unsqueeze(1) & use_h.unsqueeze(1)
+    rows_h = rows_of(out[len(ls_names):], present_h)
     all_valid_h = (rows_h.valid | ~rows_h.present).all(dim=1)
     status_h = torch.where(all_valid_h, torch.full((bsz,), STATUS_OK, **i64), torch.full((bsz,), STATUS_INVALID, **i64))
     status_h = torch.where(ls.has_vp, status_h, torch.full_like(status_h, STATUS_NO_VP))

@@ -31,7 +31,7 @@ class VPSolution:
 
 
 def vanishing_point(theta: torch.Tensor, rho: torch.Tensor, weight: torch.Tensor, valid: torch.Tensor,
-                    params: Params) -> VPSolution:
+                    params: Params, tables: tuple[torch.Tensor, torch.Tensor] | None = None) -> VPSolution:
     """Solve ``[[A, C], [C, B]] [x0, y0] = [D, E]`` for every image by Cramer's rule.
 
     Parameters
@@ -39,9 +39,12 @@ def vanishing_point(theta: torch.Tensor, rho: torch.Tensor, weight: torch.Tensor
     theta, rho, weight : int64 (B, S) held lines, compact at the front in held order.
     valid : bool (B, S) which slots hold a line.
 
+    tables : optional ``(cos, sin)`` float64 ``(n_theta,)``, the shared tables (default
+        :func:`~torchrow.functional.hough.trig`; an exported module passes its buffers).
+
     Sums run slot by slot in held order, as in the reference, so the bits agree.
     """
-    cos, sin = trig(params, theta.device)
+    cos, sin = tables if tables is not None else trig(params, theta.device)
     co, si = cos[theta], sin[theta]
     w, r = weight.to(torch.float64), rho.to(torch.float64)
     z = torch.zeros(theta.shape[0], dtype=torch.float64, device=theta.device)
@@ -106,14 +109,14 @@ def _drop(t: torch.Tensor, i: torch.Tensor, which: torch.Tensor) -> torch.Tensor
 
 
 def outlier_check(theta: torch.Tensor, rho: torch.Tensor, weight: torch.Tensor, valid: torch.Tensor,
-                  check: torch.Tensor, params: Params):
+                  check: torch.Tensor, params: Params, tables: tuple[torch.Tensor, torch.Tensor] | None = None):
     """Section 6 for the images where ``check`` (bool ``(B,)``): the VP of the held lines
     (int64 ``(B, S)``, ``valid`` bool ``(B, S)``) and its worst line.
 
     Returns ``no_vp``, ``finish`` (converged: no outlier) and ``drop`` (line ``i`` is an
     outlier), bool ``(B,)`` each, ``i`` int64 ``(B,)`` and the VP ``xy`` float64 ``(B, 2)``.
     """
-    sol = vanishing_point(theta, rho, weight, valid, params)
+    sol = vanishing_point(theta, rho, weight, valid, params, tables)
     err = torch.where(valid, sol.residuals.abs(), torch.full_like(sol.residuals, -1.0))
     i = torch.argmax(err, dim=1)  # first on ties
     e_i = err.gather(1, i.unsqueeze(1)).squeeze(1)

@@ -586,10 +586,13 @@ def canny_binary(veg: torch.Tensor, sky: torch.Tensor, params: Params) -> torch.
     m = mag[r + 1:r + 1 + n]
     torch.add(ax, ay, out=m)
     mag2 = mag.view(b, h + 2, r)
-    mag2[:, 0] = 0  # the frame holds values computed across image boundaries: clear it
-    mag2[:, h + 1] = 0
-    mag2[:, :, 0] = 0
-    mag2[:, :, r - 1] = 0
+    # the frame holds values computed across image boundaries: clear it (zero_(), not "= 0",
+    # which would trace to lifted scalar constants that an exported program with torch.cond
+    # subgraphs cannot re-decompose)
+    mag2[:, 0].zero_()
+    mag2[:, h + 1].zero_()
+    mag2[:, :, 0].zero_()
+    mag2[:, :, r - 1].zero_()
     mag2[:, 1:h + 1].bitwise_and_(below.view(torch.int8).neg())  # 0 or all ones
     del ax, ay, dx, dy
     tmp = torch.empty(n, dtype=torch.bool, device=dev)

@@ -1,0 +1,145 @@
+"""The exportable formulations (torchrow.functional.static) run eagerly in torch, against
+the eager stages: no onnx needed, no export, seconds per test.
+
+The ONNX tests (test_export*.py) check that onnxruntime runs these graphs to the same
+results; these check the formulations themselves on the inputs that stress them: the
+scatter-free vote, the static adaptive k and the trig-free row finish.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import torchrow
+from torchrow import Params
+from torchrow.functional import hough as fhough
+from torchrow.functional import ransac as fransac
+from torchrow.functional import vegetation as fveg
+from torchrow.functional import static
+from torchrow.functional.tracker import TrackerState
+from torchrow.export import step_differences
+from torchrow.shared import lab_table_torch, pack_rgb
+from torchrow.synthetic import FieldSpec, sequence
+
+from test_tensor_lines import _adversarial_masks
+
+P = Params()
+
+
+def test_scatter_free_votes_equal_scatter_votes() -> None:
+    """Prefix sums gathered at constant run ends == scatter-add votes, on the pickable angles."""
+    for h, w in ((240, 320), (37, 53)):
+        masks = torch.from_numpy(np.stack([m[:h, :w] for m in _adversarial_masks()]))
+        tables = static.vote_tables(h, w, P)
+        got = static.votes(masks.reshape(len(masks), -1), tables)  # (B, A, 2D+1)
+        ref = fhough.votes(masks, P)  # (B, n_theta, 2D+1)
+        assert torch.equal(got.to(torch.int64), ref.index_select(1, tables.angles).to(torch.int64))
+
+
+@settings(deadline=None, max_examples=40, suppress_health_check=[HealthCheck.too_slow])
+@given(sxx=st.floats(0, 1e6), syy=st.floats(0, 1e6), r=st.floats(-1, 1))
+def test_trig_free_direction_matches_atan2(sxx: float, syy: float, r: float) -> None:
+    """The closed-form eigenvector equals (cos, sin) of the spec's atan2 half-angle to 1e-12."""
+    sxy = r * math.sqrt(sxx * syy)  # a valid (positive semi-definite) scatter
+    t = [torch.tensor([v], dtype=torch.float64) for v in (sxx, syy, sxy)]
+    dx0, dy0 = fransac.principal_direction(*t)
+    dx1, dy1 = fransac.principal_direction(*t, trig_free=True)
+    if abs(float(dy0)) < 1e-9:  # a horizontal direction: the sign convention may differ by rounding
+        assert abs(abs(float(dx0)) - abs(float(dx1))) < 1e-12 and abs(float(dy1)) < 1e-9
+    else:
+        assert abs(float(dx0 - dx1)) < 1e-12 and abs(float(dy0 - dy1)) < 1e-12
+    assert float(dy1) >= 0
+
+
+def test_trig_free_validity_equals_atan2_rules() -> None:
+    """Rows built to sit on each side of the horizon and parallel thresholds get the same
+    reasons with and without atan2."""
+    ang = torch.tensor([[1.2, 1.2 + P.min_angle_diff * 0.9, 1.9, P.horizon_angle * 0.8, 2.5],
+                        [0.5, 0.5 + P.min_angle_diff * 1.1, 2.0, P.horizon_angle * 1.2, 1.4]], dtype=torch.float64)
+    dx, dy = torch.cos(ang), torch.sin(ang)
+    cx = torch.tensor([[20.0, 120.0, 220.0, 160.0, 300.0]] * 2, dtype=torch.float64)
+    cy = torch.full_like(cx, 150.0)
+    hyp = torch.zeros((2, 5), dtype=torch.int64)
+    ok = torch.ones((2, 5), dtype=torch.bool)
+    band = torch.full((2,), P.hough_band_px(320), dtype=torch.int64)
+    a = fransac.validate_rows(cx, cy, dx, dy, hyp, ok, ok, 240, band, P)
+    b = fransac.validate_rows(cx, cy, dx, dy, hyp, ok, ok, 240, band, P, trig_free=True)
+    assert torch.equal(a.reason, b.reason) and torch.equal(a.valid, b.valid)
+    assert set(a.reason.flatten().tolist()) >= {0, 2, 3}  # valid, horizon and parallel all occur
+
+
+def test_static_detector_equals_crop_row_detector() -> None:
+    """StaticDetector + host finish == CropRowDetector on synthetic fields (reduced steps)."""
+    small = Params(n_rows=3, max_outliers=2)
+    fields = [FieldSpec.at_size(320, 240, n_rows=5, seed=s) for s in (1, 4)]
+    x = torch.from_numpy(np.stack([sequence(f, 1)[0].image for f in fields])).permute(0, 3, 1, 2).contiguous()
+    ref = torchrow.CropRowDetector(small)(x)
+    lab = lab_table_torch("cpu")[torch.from_numpy(pack_rgb(ref.veg_color.numpy()))]
+    with torch.no_grad():
+        o = dict(zip(static.GRAPH_OUTPUTS, static.StaticDetector(240, 320, small)(x, lab)))
+    rows = static.finish_rows(o["fit_cx"], o["fit_cy"], o["fit_sxx"], o["fit_syy"], o["fit_sxy"],
+                              o["row_hypothesis"], o["row_support"], o["row_present"], 240, 320, small)
+    assert torch.equal(o["hough_theta"], ref.hough_theta) and torch.equal(o["hough_rho"], ref.hough_rho)
+    assert torch.equal(rows.valid, ref.row_valid) and torch.equal(rows.reason, ref.row_reason)
+    assert torch.allclose(rows.a, ref.row_a, rtol=0, atol=1e-12, equal_nan=True)
+    assert torch.allclose(rows.b, ref.row_b, rtol=0, atol=1e-9, equal_nan=True)
+    assert bool(ref.row_valid.any())
+
+
+def test_static_adaptive_k_equals_eager() -> None:
+    """Comparison-counted fractions (no histogram) give the eager k and raw mask, and frame 0's
+    info0 equals init_state's."""
+    seq = sequence(FieldSpec.at_size(160, 90, n_rows=5, seed=6), 3, drift_px_per_frame=2.0)
+    x = torch.from_numpy(np.stack([f.image for f in seq])).permute(0, 3, 1, 2).contiguous()
+    pv = Params(video_width=160)
+    from torchrow.functional import tracker as ftrack
+
+    st0 = ftrack.init_state(x[:1].expand(3, -1, -1, -1).contiguous(), pv)
+    info0 = st0.info0 * torch.tensor([1.0, 0.3, 3.0], dtype=torch.float64)  # grow, shrink and stay
+    k_e, raw_e = fveg.adapt_k(x, st0.veg_color, st0.sky, info0, pv)
+    lab = lab_table_torch("cpu")[torch.from_numpy(pack_rgb(st0.veg_color.numpy()))]
+    step = static.StaticTrackerStep(90, 160, pv)
+    start = torch.tensor([True, False, False])
+    veg, k_s, bushy, info_s = step.segment(x, lab, st0.sky, info0, start)
+    assert torch.equal(k_s, k_e) and len(set(k_e.tolist())) > 1
+    assert torch.equal(info_s[0], st0.info0[0]) and torch.equal(info_s[1:], info0[1:])
+    veg_e, bushy_e = ftrack.finish_segment(raw_e, st0.sky, pv)
+    assert torch.equal(veg, veg_e) and torch.equal(bushy, bushy_e)
+
+
+@pytest.mark.slow
+def test_static_tracker_step_equals_tracker() -> None:
+    """StaticTrackerStep (both branches always run, masks choose) == torchrow.Tracker."""
+    pv = Params(video_width=160, n_rows=3, max_outliers=2)
+    seqs = [sequence(FieldSpec.at_size(320, 180, n_rows=5, seed=s), 7, drift_px_per_frame=1.5, gap=(2, 4))
+            for s in (3, 9)]
+    from torchrow.io import resize_to_width
+
+    module = static.StaticTrackerStep(90, 160, pv)
+    eager = torchrow.Tracker(pv, workers=1)
+    st_e = None
+    st_g = TrackerState.empty(2, pv)
+    for t in range(7):
+        x = torch.from_numpy(np.stack([resize_to_width(s[t].image, 160) for s in seqs])).permute(0, 3, 1, 2)
+        x = x.contiguous()
+        step_e, st_e = eager(x, st_e)
+        lab = lab_table_torch("cpu")[torch.from_numpy(pack_rgb(st_e.veg_color.numpy()))]
+        with torch.no_grad():
+            out = module(x, lab, torch.ones(2, dtype=torch.bool), *[getattr(st_g, f) for f in static.TRACKER_STATE])
+        o = dict(zip(static.TRACKER_OUTPUTS, out))
+        step_g = ftrack_step(o, step_e.active)
+        st_g = TrackerState(veg_color=st_e.veg_color, **{f: o["next_" + f] for f in static.TRACKER_STATE})
+        assert not step_differences(step_e, step_g), (t, step_differences(step_e, step_g))
+        assert not step_differences(st_e, st_g), (t, step_differences(st_e, st_g))
+
+
+def ftrack_step(o: dict, active: torch.Tensor):
+    from torchrow.functional.tracker import TrackStep
+
+    return TrackStep(**{f: o[f] for f in static.TRACKER_STEP}, active=active)
