@@ -43,6 +43,13 @@ def model_path(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
+def masked_path(tmp_path_factory) -> Path:
+    """The same step exported without ``If`` (both branches always run, masks choose)."""
+    return exported(SMALL, BATCH, tmp_path_factory.mktemp("onnx-tracker-masked"), HEIGHT, WIDTH, tracker=True,
+                    control_flow=False)
+
+
+@pytest.fixture(scope="module")
 def onnx_tracker(model_path: Path) -> OnnxTracker:
     return OnnxTracker(model_path, hfov_deg=70.0)
 
@@ -71,18 +78,26 @@ def _run_both(onnx_tracker: OnnxTracker, batches: list[torch.Tensor], actives: l
 
 
 # ------------------------------------------------------------------------------------------
-def test_graph_interface_and_op_list(model_path: Path):
+@pytest.mark.parametrize("control_flow", [True, False])
+def test_graph_interface_and_op_list(model_path: Path, masked_path: Path, control_flow: bool):
+    """Inputs/outputs as documented; ops (If branches included) within the TensorRT
+    whitelist, no scatter with a reduction; exactly two ``If`` (tracked fit, Hough stage)
+    with control flow, none without."""
     import onnx
 
-    model = onnx.load(str(model_path))
+    path = model_path if control_flow else masked_path
+    model = onnx.load(str(path))
     assert [i.name for i in model.graph.input] == list(TRACKER_INPUTS)
     assert [o.name for o in model.graph.output] == list(TRACKER_OUTPUTS)
     ops = op_counts(model)
-    assert not [op for op in ops if op in FORBIDDEN_OPS], ops
-    assert set(ops) <= ALLOWED_OPS, f"ops outside the TensorRT whitelist: {set(ops) - ALLOWED_OPS}"
-    info = model_info(model_path)
+    allowed_flow = {"If"} if control_flow else set()
+    assert not [op for op in ops if op in FORBIDDEN_OPS and op not in allowed_flow], ops
+    assert set(ops) <= ALLOWED_OPS | allowed_flow, f"ops outside the TensorRT whitelist: {set(ops) - ALLOWED_OPS}"
+    assert ops["If"] == (2 if control_flow else 0)
+    assert ops["CumSum"] > 0  # the scatter-free vote sits inside the Hough branch
+    info = model_info(path)
     assert (info["kind"], info["batch"], info["height"], info["width"]) == ("tracker", BATCH, HEIGHT, WIDTH)
-    assert info["params"] == SMALL
+    assert info["params"] == SMALL and info["control_flow"] == control_flow
 
 
 def test_synthetic_sequences_equal_the_eager_tracker(onnx_tracker: OnnxTracker):
@@ -96,6 +111,14 @@ def test_synthetic_sequences_equal_the_eager_tracker(onnx_tracker: OnnxTracker):
     assert not problems, "\n".join(problems[:20])
     ran = torch.stack([s.hough_ran for s in steps])
     assert bool(ran[0].all()) and not bool(ran.all()), "both branches (Hough and tracked) must be exercised"
+
+
+def test_graph_without_control_flow_equals_the_eager_tracker(masked_path: Path):
+    """The ``If``-free export gives the same steps (here on a drifting synthetic pair)."""
+    a = sequence(FieldSpec.at_size(320, 180, n_rows=5, seed=4), 7, drift_px_per_frame=2.0, gap=(2, 4))
+    b = sequence(FieldSpec.at_size(320, 180, n_rows=5, seed=7), 7, heading_rad_per_frame=-0.008)
+    steps, problems = _run_both(OnnxTracker(masked_path), [_frames([fa.image, fb.image]) for fa, fb in zip(a, b)])
+    assert not problems, "\n".join(problems[:20])
 
 
 def test_late_start_inactive_frames_and_empty_frames(onnx_tracker: OnnxTracker):

@@ -114,14 +114,16 @@ def test_static_adaptive_k_equals_eager() -> None:
 
 
 @pytest.mark.slow
-def test_static_tracker_step_equals_tracker() -> None:
-    """StaticTrackerStep (both branches always run, masks choose) == torchrow.Tracker."""
+@pytest.mark.parametrize("control_flow", [True, False])
+def test_static_tracker_step_equals_tracker(control_flow: bool) -> None:
+    """StaticTrackerStep == torchrow.Tracker, with branches skipped (eagerly: the ``If``'s
+    choice) or always run and masked."""
     pv = Params(video_width=160, n_rows=3, max_outliers=2)
     seqs = [sequence(FieldSpec.at_size(320, 180, n_rows=5, seed=s), 7, drift_px_per_frame=1.5, gap=(2, 4))
             for s in (3, 9)]
     from torchrow.io import resize_to_width
 
-    module = static.StaticTrackerStep(90, 160, pv)
+    module = static.StaticTrackerStep(90, 160, pv, control_flow=control_flow)
     eager = torchrow.Tracker(pv, workers=1)
     st_e = None
     st_g = TrackerState.empty(2, pv)

@@ -257,7 +257,7 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
 
             optimizer.fold_constants_ir(prog.model)
             optimizer.remove_unused_nodes(prog.model)
-    model = legalize(prog.model_proto)
+    model = _drop_unused_initializers(legalize(prog.model_proto))
     meta = {"torchrow_format": "1", "kind": "tracker" if tracker else "detector", "height": str(height),
             "width": str(width), "batch": str(batch), "control_flow": str(bool(tracker and control_flow)),
             "params": json.dumps(_params_dict(params)), "exporter": f"torch.onnx dynamo, torch {torch.__version__}",
@@ -267,6 +267,25 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         entry.key, entry.value = k, v
     onnx.save(model, str(path))
     return path
+
+
+def _drop_unused_initializers(model):
+    """Remove initializers no node reads (``If`` branches included): constant folding leaves
+    some behind in graphs with control flow, and onnxruntime warns about each."""
+    used: set = set()
+
+    def walk(graph):
+        for node in graph.node:
+            used.update(node.input)
+            for g in _subgraphs(node):
+                walk(g)
+        used.update(o.name for o in graph.output)
+
+    walk(model.graph)
+    keep = [i for i in model.graph.initializer if i.name in used]
+    del model.graph.initializer[:]
+    model.graph.initializer.extend(keep)
+    return model
 
 
 def _view_dtype_onnx(x, dtype: int):
