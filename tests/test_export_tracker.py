@@ -187,6 +187,8 @@ def test_cli_export_and_detect_refuse_mismatches(model_path: Path, tmp_path: Pat
     out = str(tmp_path / "t.onnx")
     assert main(["export", "onnx", "--tracker", "--out", out]) == 2
     assert "--tracker needs --height" in capsys.readouterr().err
+    assert main(["export", "onnx", "--no-control-flow", "--out", out]) == 2
+    assert "--no-control-flow applies to --tracker only" in capsys.readouterr().err
     import cv2
 
     (tmp_path / "imgs").mkdir()

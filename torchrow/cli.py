@@ -160,6 +160,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     from .export import model_info, to_onnx
 
     params = _parse_params(args.param)
+    if args.no_control_flow and not args.tracker:
+        raise CLIError("--no-control-flow applies to --tracker only (the detector graph has no control flow)")
     if args.tracker:
         width = args.width if args.width is not None else params.video_width
         if args.height is None:
@@ -181,7 +183,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     try:
         to_onnx(out, height=height, width=width, batch=args.batch, params=params, opset=args.opset,
-                tracker=args.tracker)
+                tracker=args.tracker, control_flow=not args.no_control_flow)
     except ValueError as exc:
         raise CLIError(str(exc)) from None
     info = model_info(out)
@@ -500,6 +502,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output .onnx file")
     p.add_argument("--tracker", action="store_true",
                    help="export the video tracker step (frame + state -> rows + new state) instead of the detector")
+    p.add_argument("--no-control-flow", action="store_true",
+                   help="tracker: no ONNX If; both branches run on every frame, masks choose (slower, same results)")
     p.add_argument("--height", type=int, default=None,
                    help="working height (detector default 240; required with --tracker)")
     p.add_argument("--width", type=int, default=None,

@@ -257,7 +257,7 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
 
             optimizer.fold_constants_ir(prog.model)
             optimizer.remove_unused_nodes(prog.model)
-    model = _drop_unused_initializers(legalize(prog.model_proto))
+    model = _compact(_drop_unused_initializers(legalize(prog.model_proto)))
     meta = {"torchrow_format": "1", "kind": "tracker" if tracker else "detector", "height": str(height),
             "width": str(width), "batch": str(batch), "control_flow": str(bool(tracker and control_flow)),
             "params": json.dumps(_params_dict(params)), "exporter": f"torch.onnx dynamo, torch {torch.__version__}",
@@ -285,6 +285,45 @@ def _drop_unused_initializers(model):
     keep = [i for i in model.graph.initializer if i.name in used]
     del model.graph.initializer[:]
     model.graph.initializer.extend(keep)
+    return model
+
+
+def _compact(model):
+    """Drop per-node metadata and rename every value except the graph's inputs and outputs
+    to ``t<n>``.
+
+    The exporter attaches the tracing Python's stack and module path to every node and names
+    values after closure paths (~100 characters inside ``torch.cond`` branches); on the
+    unrolled tracker step that was about half the file. One mapping over all graphs keeps the
+    ``If`` branches' references to outer values consistent.
+    """
+    keep = {v.name for v in model.graph.input} | {v.name for v in model.graph.output} | {""}
+    mapping: dict = {}
+
+    def new(name: str) -> str:
+        if name in keep:
+            return name
+        if name not in mapping:
+            mapping[name] = f"t{len(mapping)}"
+        return mapping[name]
+
+    def walk(graph, top: bool):
+        for v in graph.initializer:
+            v.name = new(v.name)
+        for v in graph.value_info:
+            v.name = new(v.name)
+        if not top:
+            for v in list(graph.input) + list(graph.output):
+                v.name = new(v.name)
+        for node in graph.node:
+            del node.metadata_props[:]
+            node.doc_string = ""
+            node.input[:] = [new(x) for x in node.input]
+            node.output[:] = [new(x) for x in node.output]
+            for g in _subgraphs(node):
+                walk(g, False)
+
+    walk(model.graph, True)
     return model
 
 

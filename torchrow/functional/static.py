@@ -111,14 +111,16 @@ class VoteTables:
     ``angles`` int64 ``(A,)``: the pickable angle indices (``|j*step - 90| >= horizontal_excl``;
     the others are never peaks, so they are never voted). ``order`` int32 ``(A*H*W,)``: per
     angle, the raster pixel indices sorted by rho index (stable), concatenated.
-    ``ends`` int64 ``(A*(2D+1),)``: per angle ``a`` and rho index ``r``, ``a*(H*W + 1)`` plus
-    the number of pixels whose rho index is ``<= r`` (the run end's position in the angles'
-    prefix sums, each led by a 0). ``n_rho = 2D+1``, ``d = D``.
+    ``ends`` int64 ``(A*(2D+1),)``: per angle ``a`` and rho index ``r``, the flat position
+    ``a*H*W + e - 1`` of the run end in the angles' concatenated prefix sums, ``e`` the number
+    of pixels whose rho index is ``<= r`` (0 where ``e = 0``); ``empty`` bool ``(A*(2D+1),)``
+    marks ``e = 0`` (no pixel yet: the sum is 0). ``n_rho = 2D+1``, ``d = D``.
     """
 
     angles: torch.Tensor
     order: torch.Tensor
     ends: torch.Tensor
+    empty: torch.Tensor
     n_rho: int
     d: int
 
@@ -133,16 +135,18 @@ def _vote_arrays(height: int, width: int, theta_step: int, horizontal_excl: int)
     sub = idx[angles].astype(np.int64)
     order = np.argsort(sub, axis=1, kind="stable")
     ends = np.stack([np.cumsum(np.bincount(s, minlength=n_rho)) for s in sub])
-    ends += np.arange(len(angles), dtype=np.int64)[:, None] * (height * width + 1)
-    return angles, order.reshape(-1).astype(np.int32), ends.reshape(-1).astype(np.int64), n_rho, d
+    empty = ends == 0
+    ends = np.maximum(ends - 1, 0) + np.arange(len(angles), dtype=np.int64)[:, None] * (height * width)
+    return (angles, order.reshape(-1).astype(np.int32), ends.reshape(-1).astype(np.int64), empty.reshape(-1),
+            n_rho, d)
 
 
 def vote_tables(height: int, width: int, params: Params, device: torch.device | str = "cpu") -> VoteTables:
     """The :class:`VoteTables` of a ``width x height`` working size (cached)."""
-    angles, order, ends, n_rho, d = _vote_arrays(height, width, params.theta_step, params.horizontal_excl)
+    angles, order, ends, empty, n_rho, d = _vote_arrays(height, width, params.theta_step, params.horizontal_excl)
     dev = torch.device(device)
     return VoteTables(torch.from_numpy(angles).to(dev), torch.from_numpy(order).to(dev),
-                      torch.from_numpy(ends).to(dev), n_rho, d)
+                      torch.from_numpy(ends).to(dev), torch.from_numpy(empty).to(dev), n_rho, d)
 
 
 def votes(alive: torch.Tensor, tables: VoteTables) -> torch.Tensor:
@@ -155,11 +159,11 @@ def votes(alive: torch.Tensor, tables: VoteTables) -> torch.Tensor:
     n_ang = tables.angles.shape[0]
     g = torch.index_select(alive.to(torch.int32), 1, tables.order).view(b, n_ang, hw)
     cs = torch.cumsum(g, dim=2, dtype=torch.int32)
-    # a leading 0 per angle makes "the sum of the first e pixels" cs[e] for every e in [0, HW],
-    # so one flat index_select with the constant run ends reads all cells (no per-step
-    # (B, A, 2D+1) index or zero constants in the graph)
-    cs = torch.cat([torch.zeros_like(cs[:, :, :1]), cs], dim=2).view(b, n_ang * (hw + 1))
-    upto = torch.index_select(cs, 1, tables.ends).view(b, n_ang, tables.n_rho)
+    # one flat index_select with the constant run ends reads all cells, and a constant mask
+    # zeroes the cells before an angle's first pixel: no per-step (B, A, 2D+1) index or
+    # zero constants in the graph, no copy of the prefix sums
+    upto = torch.index_select(cs.view(b, n_ang * hw), 1, tables.ends).masked_fill(tables.empty, 0)
+    upto = upto.view(b, n_ang, tables.n_rho)
     return upto - torch.cat([torch.zeros_like(upto[:, :, :1]), upto[:, :, :-1]], dim=2)
 
 
@@ -213,6 +217,7 @@ class StaticDetector(nn.Module):
         self.register_buffer("angles", t.angles, persistent=False)
         self.register_buffer("order", t.order, persistent=False)
         self.register_buffer("ends", t.ends, persistent=False)
+        self.register_buffer("empty", t.empty, persistent=False)
         c, s = hough_trig(self.params.theta_step)
         self.register_buffer("cos", torch.tensor(c), persistent=False)
         self.register_buffer("sin", torch.tensor(s), persistent=False)
@@ -230,7 +235,7 @@ class StaticDetector(nn.Module):
         bsz = hin.shape[0]
         s_max = p.n_rows
         o_max = max(p.n_rows - 1, 1) * p.max_outliers
-        tables = VoteTables(self.angles, self.order, self.ends, self.n_rho, self.d)
+        tables = VoteTables(self.angles, self.order, self.ends, self.empty, self.n_rho, self.d)
         alive0 = hin.reshape(bsz, -1)
         alive = alive0
         i64 = dict(dtype=torch.int64, device=dev)
@@ -422,6 +427,10 @@ class StaticTrackerStep(nn.Module):
     with the state fields :data:`TRACKER_STATE` (dtypes and shapes of
     :class:`~torchrow.functional.tracker.TrackerState`) returns the tuple
     :data:`TRACKER_OUTPUTS`. Inactive sequences keep their state.
+
+    Memory: the detector's (the vote gathers ``(B, A, H*W)`` int32, band temporaries
+    ``(B, n_rows, H*W)``) plus ``(B, video_k_max - video_k_min + 1, H*W)`` comparisons for
+    adaptive k: an estimated 250 MB per frame at 500x281 (three int32 copies of the vote gather).
 
     Parameters
     ----------

@@ -267,6 +267,8 @@ class Stages:
     def run(self, pred: torch.Tensor, fn: Callable, skip: Callable, operands: tuple) -> tuple:
         """``fn(*operands)`` if ``pred`` (bool scalar tensor) else ``skip(*operands)``, per
         :attr:`branches`; both return tuples of tensors of the same shapes and dtypes."""
+        if self.branches not in ("sync", "cond", "always"):
+            raise ValueError(f"branches must be 'sync', 'cond' or 'always', got {self.branches!r}")
         if self.branches == "always":
             return fn(*operands)
         if self.branches == "cond" and torch.compiler.is_exporting():
@@ -274,10 +276,7 @@ class Stages:
                 return lambda *a: tuple(t.contiguous() for t in f(*a))
 
             return tuple(torch.cond(pred, dense(fn), dense(skip), operands))
-        if self.branches == "cond":  # eager: the same choice, without compiling the branches
-            return fn(*operands) if bool(pred) else skip(*operands)
-        if self.branches != "sync":
-            raise ValueError(f"branches must be 'sync', 'cond' or 'always', got {self.branches!r}")
+        # "sync", or "cond" run eagerly: the same choice, without compiling the branches
         return fn(*operands) if bool(pred) else skip(*operands)
 
 
