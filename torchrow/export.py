@@ -34,6 +34,7 @@ int32 (values never overflow: every such tensor in the detector holds small coun
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections import Counter
 from pathlib import Path
@@ -45,7 +46,8 @@ import torch
 from .detector import STATUS_CODES, BatchResult
 from .params import Params
 
-__all__ = ["to_onnx", "OnnxDetector", "OnnxTracker", "step_differences", "legalize", "op_counts", "model_info",
+__all__ = ["to_onnx", "OnnxDetector", "OnnxTracker", "step_differences", "float64_python_constants", "legalize",
+           "op_counts", "model_info",
            "FORBIDDEN_OPS", "DEFAULT_OPSET"]
 
 DEFAULT_OPSET = 18
@@ -246,9 +248,10 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
             table = None
         else:  # re-decomposing a program with torch.cond subgraphs fails validation: translate instead
             table = {torch.ops.aten.view.dtype: _view_dtype_onnx}
-        prog = torch.onnx.export(ep, dynamo=True, opset_version=opset, input_names=names,
-                                 output_names=outputs, verbose=False, optimize=False,
-                                 custom_translation_table=table)
+        with float64_python_constants():
+            prog = torch.onnx.export(ep, dynamo=True, opset_version=opset, input_names=names,
+                                     output_names=outputs, verbose=False, optimize=False,
+                                     custom_translation_table=table)
         if optimize:
             # Constant folding and dead-node removal only: the exporter's default optimizer
             # also runs onnxscript's pattern rewriter, which took ~80% of a 9-minute export
@@ -267,6 +270,36 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         entry.key, entry.value = k, v
     onnx.save(model, str(path))
     return path
+
+
+@contextlib.contextmanager
+def float64_python_constants():
+    """Export Python float constants as float64 while this is active.
+
+    torch's ONNX exporter gives a Python ``float`` operand whose type the ONNX op does not fix
+    (``x * 0.412453``, ``frac < 1.2 * info0`` on float64 tensors) a *float32* constant and
+    casts it: 0.412453 becomes 0.41245299577713013. In this float64 pipeline that moved the
+    graph's LAB by up to 7e-6 and thresholds such as ``bushy_ratio = 0.1`` or
+    ``video_grow_below = 1.2``. Inside this context such constants are float64; the op's own
+    cast then gives float32 graphs the same float32 value as before.
+    """
+    from onnxscript import ir
+    from torch.onnx._internal.exporter import _building
+
+    orig = _building._determine_input_dtype
+
+    def determine(param, arg, type_binding):
+        dtype = orig(param, arg, type_binding)
+        if (dtype == ir.DataType.FLOAT and isinstance(arg, float) and param.type_constraint not in type_binding
+                and len(param.type_constraint.allowed_types) != 1):
+            return ir.DataType.DOUBLE
+        return dtype
+
+    _building._determine_input_dtype = determine
+    try:
+        yield
+    finally:
+        _building._determine_input_dtype = orig
 
 
 def _drop_unused_initializers(model):
@@ -637,8 +670,9 @@ def check_lab(k: Sequence[float] | None = None, params: Params | None = None, pr
         x = torch.zeros((1, 3, 256, 256), dtype=torch.uint8)
         with warnings.catch_warnings(), torch.no_grad():
             warnings.simplefilter("ignore")
-            prog = torch.onnx.export(_Lab(), (x,), dynamo=True, opset_version=DEFAULT_OPSET, input_names=["images"],
-                                     verbose=False)
+            with float64_python_constants():
+                prog = torch.onnx.export(_Lab(), (x,), dynamo=True, opset_version=DEFAULT_OPSET,
+                                         input_names=["images"], verbose=False)
         import onnx
 
         onnx.save(legalize(prog.model_proto), str(path))
