@@ -217,7 +217,7 @@ class StaticDetector(nn.Module):
         self.register_buffer("angles", t.angles, persistent=False)
         self.register_buffer("order", t.order, persistent=False)
         self.register_buffer("ends", t.ends, persistent=False)
-        self.register_buffer("empty", t.empty, persistent=False)
+        self.register_buffer("run_empty", t.empty, persistent=False)
         c, s = hough_trig(self.params.theta_step)
         self.register_buffer("cos", torch.tensor(c), persistent=False)
         self.register_buffer("sin", torch.tensor(s), persistent=False)
@@ -235,7 +235,7 @@ class StaticDetector(nn.Module):
         bsz = hin.shape[0]
         s_max = p.n_rows
         o_max = max(p.n_rows - 1, 1) * p.max_outliers
-        tables = VoteTables(self.angles, self.order, self.ends, self.empty, self.n_rho, self.d)
+        tables = VoteTables(self.angles, self.order, self.ends, self.run_empty, self.n_rho, self.d)
         alive0 = hin.reshape(bsz, -1)
         alive = alive0
         i64 = dict(dtype=torch.int64, device=dev)
