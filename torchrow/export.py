@@ -416,13 +416,7 @@ class OnnxDetector:
     """
 
     def __init__(self, model_path: str | Path, threads: int | None = None) -> None:
-        path = Path(model_path)
-        if not path.is_file():
-            raise FileNotFoundError(f"ONNX model not found: {path}")
-        self.path = path
-        info = _open(self, path, "detector", threads)
-        self.height, self.width, self.batch = info["height"], info["width"], info["batch"]
-        self.params: Params = info["params"]
+        _open(self, model_path, "detector", threads)
 
     def __call__(self, images: torch.Tensor, veg_color: torch.Tensor | None = None) -> BatchResult:
         """Detect rows in ``uint8 (N, 3, H, W)`` images (any ``N``; run in batches of the
@@ -486,10 +480,13 @@ class OnnxDetector:
         return self(x)
 
 
-def _open(runner, path: Path, kind: str, threads: int | None) -> dict:
-    """Read ``path``'s metadata (it must be a ``kind`` model) and open an onnxruntime session
-    on ``runner.session``; returns :func:`model_info`."""
+def _open(runner, model_path: str | Path, kind: str, threads: int | None) -> None:
+    """Check ``model_path`` (present, a ``kind`` model), open an onnxruntime session on
+    ``runner.session`` and set ``runner.path``, ``height``, ``width``, ``batch``, ``params``."""
     ort = _ort()
+    path = Path(model_path)
+    if not path.is_file():
+        raise FileNotFoundError(f"ONNX model not found: {path}")
     info = model_info(path)
     if info["kind"] != kind:
         other = {"detector": "OnnxDetector", "tracker": "OnnxTracker"}[info["kind"]]
@@ -499,7 +496,9 @@ def _open(runner, path: Path, kind: str, threads: int | None) -> dict:
     if threads:
         so.intra_op_num_threads = int(threads)
     runner.session = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
-    return info
+    runner.path = path
+    runner.height, runner.width, runner.batch = info["height"], info["width"], info["batch"]
+    runner.params = info["params"]
 
 
 class OnnxTracker:
@@ -523,13 +522,7 @@ class OnnxTracker:
     def __init__(self, model_path: str | Path, hfov_deg: float | None = None, threads: int | None = None) -> None:
         from .tracker import Tracker
 
-        path = Path(model_path)
-        if not path.is_file():
-            raise FileNotFoundError(f"ONNX model not found: {path}")
-        self.path = path
-        info = _open(self, path, "tracker", threads)
-        self.height, self.width, self.batch = info["height"], info["width"], info["batch"]
-        self.params: Params = info["params"]
+        _open(self, model_path, "tracker", threads)
         self._records = Tracker(self.params, hfov_deg=hfov_deg)  # records and frame loading only
 
     def forward(self, frames: torch.Tensor, state=None, active: torch.Tensor | None = None):
