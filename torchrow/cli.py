@@ -75,16 +75,71 @@ def _check_device(device: str | None) -> str | None:
     return str(dev)
 
 
+def _check_engine(args: argparse.Namespace) -> None:
+    """``--engine ray`` needs Ray Data; ``--address``/``--workers`` only go with it."""
+    if args.engine != "ray":
+        if args.address or args.workers:
+            raise CLIError("--address and --workers are only used with --engine ray")
+        return
+    try:
+        import ray.data  # noqa: F401
+    except ImportError:
+        raise CLIError("--engine ray needs Ray Data: pip install 'torchrow[ray]'") from None
+    if getattr(args, "annotate", None):
+        raise CLIError("--annotate needs --engine local (the Ray engine returns records, not images)")
+    if args.workers is not None and args.workers < 1:
+        raise CLIError(f"--workers must be >= 1, got {args.workers}")
+
+
+def _open_sink(out: Path, key, resume: bool):
+    """The streaming writer of ``--out`` (torchrow.sink); ``--resume`` keeps what is there."""
+    from .sink import RecordSink, SinkError
+
+    if out.parent and not out.parent.exists():
+        raise CLIError(f"output folder does not exist: {out.parent}")
+    if out.suffix.lower() == ".parquet":
+        try:
+            import pyarrow.parquet  # noqa: F401
+        except ImportError:
+            raise CLIError("--out *.parquet needs pyarrow: pip install pyarrow (or 'torchrow[ray]')") from None
+    try:
+        return RecordSink(out, key, resume=resume)
+    except SinkError as exc:
+        raise CLIError(f"cannot --resume: {exc}") from None
+
+
+def _split_bags(inputs: Sequence[str], topic: str | None) -> tuple[list[str], list]:
+    """ROS bag inputs (opened, ``topic`` chosen) apart from image files and folders."""
+    from .rosbag import BagError, is_bag, open_bag
+
+    others, bags = [], []
+    for raw in inputs:
+        if is_bag(raw):
+            try:
+                bags.append(open_bag(raw, topic))
+            except BagError as exc:
+                raise CLIError(str(exc)) from None
+        else:
+            others.append(raw)
+    if topic is not None and not bags:
+        raise CLIError("--topic applies to ROS bag inputs only (a rosbag2 folder or a .bag file)")
+    return others, bags
+
+
 def cmd_detect(args: argparse.Namespace) -> int:
+    import functools
+
     from .annotate import draw_result, save_rgb
     from .io import load_image
-    from .runner import run
+    from .sink import image_key
 
     params = _parse_params(args.param)
     device = _check_device(args.device)
     model = _check_model(args)
-    paths = _collect_images(args.inputs)
-    if model is not None:
+    _check_engine(args)
+    others, bags = _split_bags(args.inputs, args.topic)
+    paths = _collect_images(others) if others else []
+    if model is not None and paths:
         from .export import model_info
 
         info = model_info(model)
@@ -98,24 +153,56 @@ def cmd_detect(args: argparse.Namespace) -> int:
                            f"{first.shape[1]}x{first.shape[0]} at working width {params.image_width} "
                            f"(export a model with --width {first.shape[1]} --height {first.shape[0]})")
     out = Path(args.out)
-    if out.parent and not out.parent.exists():
-        raise CLIError(f"output folder does not exist: {out.parent}")
     ann = Path(args.annotate) if args.annotate else None
+    sink = _open_sink(out, image_key, args.resume)
     if ann is not None:
         ann.mkdir(parents=True, exist_ok=True)
+
+    def inputs():
+        """(name, loader, annotation stem, extra record keys); bag frames after the files."""
+        for p in paths:
+            yield p.name, functools.partial(load_image, p, params.image_width), p.stem, None
+        for b in bags:
+            for f in b.frames(params.image_width):
+                yield (f"{b.path.name}#{f.frame:06d}", f, f"{b.path.name}_{f.frame:06d}",
+                       {"source": b.name, "frame": f.frame, "stamp_ns": f.stamp_ns})
+
+    meta: dict[int, tuple[str, dict | None]] = {}
+
+    def todo():
+        k = 0
+        for name, loader, stem, extra in inputs():
+            if name in sink:  # --resume: already in --out
+                continue
+            meta[k] = (stem, extra)
+            k += 1
+            yield name, loader
+
+    total = max(0, len(paths) + sum(b.length for b in bags) - len(sink.done))
+    common = dict(impl=args.impl, params=params, batch_size=args.batch_size, device=device,
+                  progress=not args.quiet, model=model, total=total)
+    if args.engine == "ray":
+        from .distributed import run as ray_run
+
+        stream = ray_run(todo(), workers=args.workers, address=args.address, **common)
+    else:
+        from .runner import run
+
+        stream = run(todo(), **common)
     counts: dict[str, int] = {}
-    items = [(p.name, (lambda p=p: load_image(p, params.image_width))) for p in paths]
-    with open(out, "w") as fh:
-        for i, rgb, res, _ in run(items, args.impl, params, args.batch_size, device, progress=not args.quiet,
-                                  model=model):
-            path = paths[i]
-            fh.write(json.dumps(res.to_record()) + "\n")
-            fh.flush()
+    with sink:
+        for i, rgb, res, _ in stream:
+            stem, extra = meta.pop(i)
+            rec = res.to_record()
+            if extra:
+                rec = {"name": rec.pop("name"), **extra, **rec}
+            sink.write(rec)
             counts[res.status] = counts.get(res.status, 0) + 1
             if ann is not None and rgb is not None:
-                save_rgb(ann / f"{path.stem}.png", draw_result(rgb, res))
+                save_rgb(ann / f"{stem}.png", draw_result(rgb, res))
     summary = ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
-    print(f"torchrow: {len(paths)} image(s) -> {out} ({summary})", file=sys.stderr)
+    kept = f"; {len(sink.done)} kept from the earlier run" if args.resume else ""
+    print(f"torchrow: {sink.written} image(s) -> {out} ({summary}){kept}", file=sys.stderr)
     return 0
 
 
@@ -212,14 +299,29 @@ def cmd_eval(args: argparse.Namespace) -> int:
     device = _check_device(args.device)
     if args.impl == "onnx":
         raise CLIError("eval supports --impl tensor|reference; for ONNX use: torchrow detect --impl onnx --model M")
+    _check_engine(args)
     crbd = _open_crbd(args.data)
     indices = list(range(len(crbd)))[:: args.every]
     if args.limit:
         indices = indices[: args.limit]
-    report = evaluate(crbd, indices, args.impl, params, args.batch_size, device, progress=not args.quiet)
+    sink = None
+    if args.out:
+        from .sink import image_key
+
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        sink = _open_sink(Path(args.out) / "detections.jsonl", image_key, args.resume)
+    elif args.resume:
+        raise CLIError("--resume needs --out (the folder of an earlier eval run)")
+    try:
+        report = evaluate(crbd, indices, args.impl, params, args.batch_size, device, progress=not args.quiet,
+                          sink=sink, engine=args.engine, address=args.address, workers=args.workers)
+    finally:
+        if sink is not None:
+            sink.close(complete=False)
     print(report.format_summary())
     if args.out:
-        for p in report.write(Path(args.out)):
+        paths = report.write(Path(args.out), records=False)
+        for p in paths[:1] + [sink.path] + paths[1:]:  # type: ignore[union-attr]
             print(f"wrote {p}", file=sys.stderr)
     return 0
 
@@ -269,28 +371,20 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _open_sources(raw: Sequence[str]):
+def _open_sources(raw: Sequence[str], topic: str | None = None):
     from .io import ImageError
+    from .rosbag import is_bag
     from .video import open_source
 
+    if topic is not None and not any(is_bag(r) for r in raw):
+        raise CLIError("--topic applies to ROS bag sources only (a rosbag2 folder or a .bag file)")
     out = []
     for r in raw:
         try:
-            out.append(open_source(r))
+            out.append(open_source(r, topic=topic))
         except (FileNotFoundError, ImageError) as exc:
             raise CLIError(str(exc)) from None
     return out
-
-
-def _first_size(src, width: int) -> tuple[int, int] | None:
-    """Working (H, W) of a source's first readable frame (None if none is readable)."""
-    from .video import load_item
-
-    for item in src:
-        got = load_item(item, width)
-        if got.rgb is not None:
-            return got.rgb.shape[:2]
-    return None
 
 
 class _Annotator:
@@ -367,56 +461,66 @@ def cmd_video(args: argparse.Namespace) -> int:
     if args.fov is not None and not 0 < args.fov < 180:
         raise CLIError(f"--fov must lie in (0, 180) degrees, got {args.fov}")
     device = _check_device(args.device)
-    sources = _open_sources(args.sources)
+    _check_engine(args)
+    sources = _open_sources(args.sources, args.topic)
     out = Path(args.out)
-    if out.parent and not out.parent.exists():
-        raise CLIError(f"output folder does not exist: {out.parent}")
-    plot = Path(args.plot) if args.plot else out.with_suffix(".png")
+    plot = None if args.plot == "none" else Path(args.plot) if args.plot else out.with_suffix(".png")
+    from .sink import frame_key, read_records
+
+    sink = _open_sink(out, frame_key, args.resume)
     ann = _Annotator(args.annotate, sources)
     names = [s.name for s in sources]
-    if args.impl == "reference":
-        from .reference import Tracker as RefTracker
+    done: dict[str, set[int]] = {}
+    for src, frame in sink.done:
+        done.setdefault(src, set()).add(frame)
+    # --resume: a source with a record for each of its frames is not tracked again; one cut
+    # short is tracked from frame 0 (the tracker's state needs it) and its written frames skipped
+    todo = [i for i, s in enumerate(sources) if not set(range(s.length)) <= done.get(names[i], set())]
+    if args.engine == "ray":
+        from .distributed import track as ray_track
 
-        ref = RefTracker(params, hfov_deg=args.fov)
-        runs = [(lambda i=i: ((i, r, rgb) for r, rgb in ref.track_iter(sources[i], names[i])))
-                for i in range(len(sources))]
+        stream = ((todo[b], rec, None, None) for b, rec in ray_track(
+            [sources[i].path for i in todo], [names[i] for i in todo], args.impl, params, device, args.fov,
+            args.topic, skip={b: done.get(names[i], set()) for b, i in enumerate(todo)}, address=args.address))
     else:
-        from .tracker import Tracker
+        from .runner import track
 
-        tracker = Tracker(params, device=device, hfov_deg=args.fov)
-        groups: dict[object, list[int]] = {}
-        for i, s in enumerate(sources):  # one working size per batch
-            groups.setdefault(_first_size(s, params.video_width), []).append(i)
-        batches = [g[j:j + args.batch_size] for g in groups.values() for j in range(0, len(g), args.batch_size)]
-
-        def run_batch(batch: list[int]):
-            for b, r, rgb in tracker.track_iter([sources[i] for i in batch], [names[i] for i in batch]):
-                yield batch[b], r, rgb
-
-        runs = [(lambda batch=batch: run_batch(batch)) for batch in batches]
-    by_source: dict[str, list[dict]] = {n: [] for n in names}
+        stream = ((todo[b], None, res, rgb) for b, res, rgb in track(
+            [sources[i] for i in todo], [names[i] for i in todo], args.impl, params, args.batch_size, device,
+            args.fov))
     counts: dict[str, int] = {}
-    total = sum(s.length for s in sources)
+    total = sum(sources[i].length for i in todo)
     bar = tqdm(total=total, desc="video", file=sys.stderr, disable=args.quiet, unit="frame")
     try:
-        with open(out, "w") as fh:
-            for run in runs:
-                for i, res, rgb in run():
+        with sink:
+            for i, rec, res, rgb in stream:
+                bar.update(1)
+                if rec is None:
+                    if (names[i], res.frame) in sink:
+                        continue
                     rec = res.to_record()
-                    fh.write(json.dumps(rec) + "\n")
-                    by_source[names[i]].append(rec)
-                    counts[res.status] = counts.get(res.status, 0) + 1
                     ann.write(i, res, rgb)
-                    bar.update(1)
+                sink.write(rec)
+                counts[rec["status"]] = counts.get(rec["status"], 0) + 1
     finally:
         bar.close()
         ann.close()
+    n = sum(counts.values())
+    summary = ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
+    kept = f"; {len(sink.done)} kept from the earlier run" if args.resume else ""
+    print(f"torchrow: {n} frame(s) of {len(sources)} source(s) -> {out} ({summary}){kept}"
+          + (f"; plot {plot}" if plot else ""), file=sys.stderr)
+    if plot is None:
+        return 0
+    # the plot and the summary read the records back from --out (the run itself keeps none)
+    by_source: dict[str, list[dict]] = {nm: [] for nm in names}
+    for rec in read_records(out):
+        rec.pop("hough", None)
+        rec.pop("outliers", None)
+        by_source.setdefault(rec.get("source"), []).append(rec)
     for recs in by_source.values():
         recs.sort(key=lambda r: r["frame"])
     plot_tracks(by_source, plot)
-    n = sum(counts.values())
-    summary = ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
-    print(f"torchrow: {n} frame(s) of {len(sources)} source(s) -> {out} ({summary}); plot {plot}", file=sys.stderr)
     for src, recs in by_source.items():
         jumps = central_jumps(recs)
         hough = sum(1 for r in recs if r.get("hough_ran"))
@@ -453,9 +557,22 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--batch-size", type=int, default=64, help="images per batch for --impl tensor")
         p.add_argument("--device", default=None, help="torch device for --impl tensor (cpu, cuda, cuda:1)")
 
+    def engine(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--engine", choices=("local", "ray"), default="local",
+                       help="run here (default) or on a Ray cluster (pip install 'torchrow[ray]')")
+        p.add_argument("--address", default=None,
+                       help="--engine ray: cluster to join (auto, HOST:6379, ray://HOST:10001); default: "
+                            "$RAY_ADDRESS, else a local cluster with this machine's CPUs")
+        p.add_argument("--workers", type=int, default=None,
+                       help="--engine ray: detector actors (default: the cluster's CPUs)")
+        p.add_argument("--resume", action="store_true",
+                       help="keep the records already in --out, skip their inputs, append the rest")
+
     p = sub.add_parser("detect", help="detect rows in images, write one JSON record per file")
-    p.add_argument("inputs", nargs="+", metavar="IMAGE_OR_DIR")
-    p.add_argument("--out", required=True, help="JSONL output file")
+    p.add_argument("inputs", nargs="+", metavar="IMAGE_OR_DIR_OR_BAG")
+    p.add_argument("--out", required=True, help="JSONL output file (or .parquet)")
+    p.add_argument("--topic", default=None, help="image topic of the ROS bag inputs (default: the only one)")
+    engine(p)
     p.add_argument("--annotate", metavar="DIR", help="write annotated PNGs to DIR")
     impl(p)
     common(p)
@@ -466,6 +583,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="folder for scores.csv, detections.jsonl, summary.json, crda_histogram.png")
     p.add_argument("--every", type=int, default=1, help="use every N-th image (default 1)")
     p.add_argument("--limit", type=int, default=0, help="at most this many images")
+    engine(p)
     impl(p)
     common(p)
     p.set_defaults(func=cmd_eval)
@@ -478,17 +596,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_score)
 
     p = sub.add_parser("video", help="track rows through frame sequences (ALGORITHM.md section 8)",
-                       description="Track crop rows through folders of frames (sorted by name) or video files; "
+                       description="Track crop rows through folders of frames (sorted by name), video files or ROS bags; "
                                    "several sources are tracked as a batch of sequences. Writes one JSON record "
                                    "per frame and a PNG plot of rows and steering signals over time.")
-    p.add_argument("sources", nargs="+", metavar="SOURCE", help="folder of frames or video file")
-    p.add_argument("--out", required=True, help="JSONL output file (plot next to it, .png)")
+    p.add_argument("sources", nargs="+", metavar="SOURCE",
+                   help="folder of frames, video file, or ROS bag (rosbag2 folder, ROS 1 .bag)")
+    p.add_argument("--out", required=True, help="JSONL output file (or .parquet; plot next to it, .png)")
+    p.add_argument("--topic", default=None, help="image topic of the ROS bag sources (default: the only one)")
+    engine(p)
     p.add_argument("--annotate", metavar="OUT.mp4|DIR", help="annotated video (per source) or folder of PNGs")
     p.add_argument("--every", dest="hough_every", type=int, default=None, metavar="K",
                    help="run the Hough stage every K frames (default: Params.hough_every = 5)")
     p.add_argument("--fov", type=float, default=None, metavar="DEG",
                    help="horizontal field of view of the frames, for heading_rad (null without it)")
-    p.add_argument("--plot", default=None, help="plot file (default: --out with suffix .png)")
+    p.add_argument("--plot", default=None, help="plot file (default: --out with suffix .png); 'none': no plot")
     p.add_argument("--impl", choices=("tensor", "reference"), default="tensor",
                    help="batched tensor tracker (default) or the per-sequence reference")
     p.add_argument("--batch-size", type=int, default=8, help="sequences per batch for --impl tensor")

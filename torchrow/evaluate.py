@@ -17,6 +17,7 @@ from .metrics import crda, crda_official, crda_thesis, summarize
 from .params import Params
 from .results import ImageResult
 from .runner import _progress, run
+from .sink import RecordSink, read_records
 
 __all__ = ["EvalRow", "EvalReport", "evaluate", "score_tmg_files", "SUBSETS"]
 
@@ -66,8 +67,9 @@ class EvalReport:
                          f"{cell('crda_thesis'):>17}  {cell('tmgem_01'):>17}")
         return "\n".join(lines)
 
-    def write(self, out_dir: Path) -> list[Path]:
-        """Write ``scores.csv``, ``detections.jsonl``, ``summary.json`` and ``crda_histogram.png``."""
+    def write(self, out_dir: Path, records: bool = True) -> list[Path]:
+        """Write ``scores.csv``, ``detections.jsonl``, ``summary.json`` and ``crda_histogram.png``
+        (``records=False``: not ``detections.jsonl``, which the run streamed itself)."""
         out_dir.mkdir(parents=True, exist_ok=True)
         paths = [out_dir / "scores.csv", out_dir / "detections.jsonl", out_dir / "summary.json",
                  out_dir / "crda_histogram.png"]
@@ -78,12 +80,15 @@ class EvalReport:
             for r in self.rows:
                 wr.writerow([r.name, r.row_set, r.tmgem_set, r.status, f"{r.crda_01:.6f}", f"{r.crda_03:.6f}",
                              f"{r.crda_thesis:.6f}", f"{r.tmgem_01:.6f}", f"{r.tmgem_03:.6f}", f"{r.seconds:.4f}"])
-        with open(paths[1], "w") as fh:
-            for rec in self.records:
-                fh.write(json.dumps(rec) + "\n")
-        paths[2].write_text(json.dumps(self.summary(), indent=2) + "\n")
+        if records:
+            with open(paths[1], "w") as fh:
+                for rec in self.records:
+                    fh.write(json.dumps(rec) + "\n")
+        else:
+            paths.pop(1)
+        paths[-2].write_text(json.dumps(self.summary(), indent=2) + "\n")
         plot_cumulative([("torchrow", [r.crda_01 for r in self.rows]),
-                         ("TMGEM", [r.tmgem_01 for r in self.rows])], paths[3],
+                         ("TMGEM", [r.tmgem_01 for r in self.rows])], paths[-1],
                         title=f"CRBD, official CRDA (sigma 0.1, m 3), {len(self.rows)} images")
         return paths
 
@@ -116,32 +121,63 @@ def plot_cumulative(series: Sequence[tuple[str, Sequence[float]]], path: Path, t
     plt.close(fig)
 
 
+def _load_crbd(path: str, width: int) -> np.ndarray:
+    """A CRBD image; its width must be the working width (the ground truth is in its pixels)."""
+    from .io import load_image
+
+    rgb = load_image(path)
+    if rgb.shape[1] != width:
+        raise ImageError(f"CRBD image is {rgb.shape[1]} px wide but image_width is "
+                         f"{width}; the ground truth is in the image's own pixels")
+    return rgb
+
+
 def evaluate(crbd: CRBD, indices: Sequence[int] | None = None, impl: str = "tensor",
              params: Params | None = None, batch_size: int = 64, device: str | None = None,
-             progress: bool = True) -> EvalReport:
+             progress: bool = True, sink: RecordSink | None = None, engine: str = "local",
+             address: str | None = None, workers: int | None = None) -> EvalReport:
     """Detect CRBD images with ``impl`` ("tensor" or "reference") and score each one.
 
     A file that cannot be read or a detector failure gives an ``error`` record and scores 0;
     the run always goes on. ``seconds`` per image is the batch's wall time divided by its
-    size for the tensor path.
+    size for the tensor path. ``sink``: records are streamed to it as they come; images
+    whose record it already holds (``RecordSink(..., resume=True)``) are not detected again
+    but scored from that record (``seconds`` NaN). ``engine="ray"`` detects on a Ray cluster
+    (:func:`torchrow.distributed.run`, ``address``, ``workers``).
     """
+    import functools
+
     params = params or Params()
     indices = list(range(len(crbd))) if indices is None else list(indices)
+    prior: dict[str, dict] = {}
+    if sink is not None and sink.done:
+        wanted = {crbd.names[i] for i in indices}
+        prior = {r["name"]: r for r in read_records(sink.stream) if r.get("name") in wanted}
+    todo = [i for i in indices if crbd.names[i] not in prior]
+    items = [(crbd.names[i], functools.partial(_load_crbd, str(crbd.image_path(i)), params.image_width))
+             for i in todo]
+    if engine == "ray":
+        from .distributed import run as ray_run
 
-    def loader(i: int):
-        def load() -> np.ndarray:
-            rgb = crbd.image(i)
-            if rgb.shape[1] != params.image_width:
-                raise ImageError(f"CRBD image is {rgb.shape[1]} px wide but image_width is "
-                                 f"{params.image_width}; the ground truth is in the image's own pixels")
-            return rgb
-        return load
-
-    items = [(crbd.names[i], loader(i)) for i in indices]
+        stream = ray_run(items, impl, params, batch_size, device, progress, desc=f"eval ({impl}, ray)",
+                         workers=workers, address=address)
+    else:
+        stream = run(items, impl, params, batch_size, device, progress, desc=f"eval ({impl})")
+    got: dict[int, tuple[EvalRow, dict]] = {}
+    for k, _, res, seconds in stream:
+        rec = res.to_record()
+        if sink is not None:
+            sink.write(rec)
+        got[todo[k]] = (_score(crbd, todo[k], res, params, seconds), rec)
     report = EvalReport()
-    for k, _, res, seconds in run(items, impl, params, batch_size, device, progress, desc=f"eval ({impl})"):
-        report.rows.append(_score(crbd, indices[k], res, params, seconds))
-        report.records.append(res.to_record())
+    for i in indices:
+        if i in got:
+            row, rec = got.pop(i)
+        else:
+            rec = prior[crbd.names[i]]
+            row = _score(crbd, i, ImageResult.from_record(rec, params.theta_step), params, float("nan"))
+        report.rows.append(row)
+        report.records.append(rec)
     return report
 
 

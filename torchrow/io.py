@@ -15,7 +15,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-__all__ = ["ImageError", "IMAGE_EXTENSIONS", "to_rgb8", "resize_to_width", "load_image", "working_size"]
+__all__ = ["ImageError", "IMAGE_EXTENSIONS", "to_rgb8", "resize_to_width", "load_image", "decode_image",
+           "working_size"]
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 
@@ -79,14 +80,22 @@ def load_image(path: str | Path, width: int | None = None) -> np.ndarray:
     p = Path(path)
     if not p.is_file():
         raise ImageError(f"no such file: {p}")
-    data = np.fromfile(p, dtype=np.uint8)
-    if data.size == 0:
-        raise ImageError(f"empty file: {p}")
+    return decode_image(np.fromfile(p, dtype=np.uint8), width, what=str(p))
+
+
+def decode_image(data: bytes | np.ndarray, width: int | None = None, what: str = "image") -> np.ndarray:
+    """Decode an encoded image (JPEG, PNG, ... bytes) as :func:`load_image` decodes a file.
+
+    ``what`` names the input in error messages ("empty file: WHAT", "cannot decode image: WHAT").
+    """
+    buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data
+    if buf.size == 0:
+        raise ImageError(f"empty file: {what}")
     # ANYDEPTH|ANYCOLOR keeps 16-bit and grey data as they are and, unlike IMREAD_UNCHANGED,
     # applies the EXIF orientation as cv2.imread does; an alpha channel is dropped here.
-    img = cv2.imdecode(data, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+    img = cv2.imdecode(buf, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
     if img is None:
-        raise ImageError(f"cannot decode image: {p}")
+        raise ImageError(f"cannot decode image: {what}")
     if img.ndim == 3 and img.shape[2] == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
     rgb = to_rgb8(img)

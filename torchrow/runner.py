@@ -6,21 +6,31 @@
 seconds)`` in input order (``seconds``: detection time of the image; for a batch, its wall
 time divided by its size); an input that cannot be loaded, or a failure inside detection,
 yields an ``error`` result and the run goes on.
+
+Ordering window (``impl="tensor"``/``"onnx"``): images wait in per-working-size groups until
+a group holds ``batch_size`` images; finished results wait until every earlier input's result
+is out. So that one image of an odd size (or a rare size) cannot hold the output back, at most
+``window`` inputs (default :func:`default_window`, ``2 * batch_size``) are read ahead of the
+oldest input without a result: when the window is full, the group holding that input runs at
+once, even if it is not full. Memory is bounded by ``window`` working images (about 230 kB
+each at 320x240), whatever the length of the run; results never depend on the window, since
+images are independent of the batch they run in.
 """
 
 from __future__ import annotations
 
 import sys
 import time
-from typing import Callable, Iterator, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
 from .io import ImageError
 from .params import Params
 from .results import ImageResult
+from .steering import FrameResult
 
-__all__ = ["IMPLS", "run"]
+__all__ = ["IMPLS", "run", "default_window", "track", "first_size"]
 
 IMPLS = ("tensor", "reference", "onnx")
 
@@ -40,28 +50,44 @@ def _load(name: str, loader: Loader) -> tuple[np.ndarray | None, ImageResult | N
         return None, ImageResult.failed(name, str(exc))
 
 
-def run(items: Sequence[tuple[str, Loader]], impl: str = "tensor", params: Params | None = None,
+def default_window(batch_size: int) -> int:
+    """Default ordering window: ``2 * batch_size`` inputs (module docstring)."""
+    return 2 * batch_size
+
+
+def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Params | None = None,
         batch_size: int = 64, device: str | None = None, progress: bool = True,
-        desc: str = "detect", model: str | None = None) -> Iterator[tuple[int, np.ndarray | None, ImageResult, float]]:
+        desc: str = "detect", model: str | None = None, window: int | None = None,
+        total: int | None = None, detector=None) -> Iterator[tuple[int, np.ndarray | None, ImageResult, float]]:
     """Detect every ``(name, loader)`` item; ``loader()`` returns the working RGB image.
 
-    Results come back in input order. With ``impl="tensor"`` up to ``batch_size`` images per
-    working size are held in memory until their batch runs. ``impl="onnx"`` runs the exported
+    ``items`` may be a lazy iterable (read one item at a time; ``total`` sizes the progress
+    bar when it has no ``len``). Results come back in input order, each as soon as every
+    earlier input's result is out; ``window`` bounds the images held (module docstring). ``impl="onnx"`` runs the exported
     model ``model`` (:mod:`torchrow.export`) in onnxruntime, in batches of the model's static
     batch size (the last one padded; ``batch_size`` is ignored) with the model's parameters;
-    images of another working size than the model's get an ``error`` record.
+    images of another working size than the model's get an ``error`` record. ``detector``: an
+    already built :class:`~torchrow.detector.CropRowDetector` (or ``OnnxDetector``) to use
+    instead of a new one (the Ray engine's workers keep one each).
     """
     params = params or Params()
     if impl not in IMPLS:
         raise ValueError(f"impl must be one of {IMPLS}, got {impl!r}")
+    if total is None and hasattr(items, "__len__"):
+        total = len(items)  # type: ignore[arg-type]
     if impl == "onnx":
         if model is None:
             raise ValueError("impl='onnx' needs model= (an ONNX file written by torchrow.export.to_onnx)")
         from .export import OnnxDetector
 
-        det = OnnxDetector(model)
+        det = detector if detector is not None else OnnxDetector(model)
         batch_size = det.batch
-    bar = _progress(len(items), desc, progress)
+    else:
+        det = detector
+    window = default_window(batch_size) if window is None else window
+    if window < batch_size:
+        raise ValueError(f"window must be >= batch_size ({batch_size}), got {window}")
+    bar = _progress(total, desc, progress)
     try:
         if impl == "reference":
             from .reference import detect
@@ -77,12 +103,12 @@ def run(items: Sequence[tuple[str, Loader]], impl: str = "tensor", params: Param
                 bar.update(1)
                 yield i, rgb, err, time.perf_counter() - t0
             return
-        yield from _run_tensor(items, params, batch_size, device, bar, det if impl == "onnx" else None)
+        yield from _run_tensor(items, params, batch_size, window, device, bar, det)
     finally:
         bar.close()
 
 
-def _run_tensor(items, params, batch_size, device, bar, det=None):
+def _run_tensor(items, params, batch_size, window, device, bar, det=None):
     import torch
 
     from .detector import CropRowDetector
@@ -92,6 +118,7 @@ def _run_tensor(items, params, batch_size, device, bar, det=None):
     done: dict[int, tuple[np.ndarray | None, ImageResult, float]] = {}
     groups: dict[tuple[int, ...], list[int]] = {}
     rgbs: dict[int, np.ndarray] = {}
+    names: dict[int, str] = {}
     next_out = 0
 
     def flush(key):
@@ -99,15 +126,25 @@ def _run_tensor(items, params, batch_size, device, bar, det=None):
         batch = torch.from_numpy(np.stack([rgbs[i] for i in idx])).permute(0, 3, 1, 2).contiguous()
         t0 = time.perf_counter()
         try:
-            results = det(batch).results([items[i][0] for i in idx])
+            results = det(batch).results([names[i] for i in idx])
         except Exception as exc:  # keep the run alive; every image of the batch gets the error
-            results = [ImageResult.failed(items[i][0], f"{type(exc).__name__}: {exc}") for i in idx]
+            results = [ImageResult.failed(names[i], f"{type(exc).__name__}: {exc}") for i in idx]
         dt = (time.perf_counter() - t0) / len(idx)
         for i, res in zip(idx, results):
             done[i] = (rgbs.pop(i), res, dt)
         bar.update(len(idx))
 
+    def ready():
+        nonlocal next_out
+        while next_out in done:
+            yield (next_out, *done.pop(next_out))
+            names.pop(next_out)
+            next_out += 1
+
+    n = 0
     for i, (name, loader) in enumerate(items):
+        n = i + 1
+        names[i] = name
         rgb, err = _load(name, loader)
         if err is not None:
             done[i] = (None, err, 0.0)
@@ -117,11 +154,68 @@ def _run_tensor(items, params, batch_size, device, bar, det=None):
             groups.setdefault(rgb.shape, []).append(i)
             if len(groups[rgb.shape]) >= batch_size:
                 flush(rgb.shape)
-        while next_out in done:
-            yield (next_out, *done.pop(next_out))
-            next_out += 1
-    for key in list(groups):
+        yield from ready()
+        if n - next_out >= window:  # the window is full: run the group of the oldest waiting input
+            flush(rgbs[next_out].shape)
+            yield from ready()
+    for key in sorted(groups, key=lambda k: groups[k][0]):
         flush(key)
-    while next_out in done:
-        yield (next_out, *done.pop(next_out))
-        next_out += 1
+        yield from ready()
+    assert next_out == n and not done
+
+
+def first_size(src, width: int) -> tuple[int, int] | None:
+    """Working (H, W) of a source's first readable frame (None if none is readable)."""
+    from .video import load_item
+
+    for item in src:
+        got = load_item(item, width)
+        if got.rgb is not None:
+            return got.rgb.shape[:2]
+    return None
+
+
+def track(sources: Sequence, names: Sequence[str], impl: str = "tensor", params: Params | None = None,
+          batch_size: int = 8, device: str | None = None, hfov_deg: float | None = None
+          ) -> Iterator[tuple[int, FrameResult, np.ndarray | None]]:
+    """Track frame sources (:func:`torchrow.video.open_source`); yields ``(source index,
+    FrameResult, working RGB or None)``.
+
+    ``impl="reference"`` tracks the sources one after the other; ``"tensor"`` in batches of
+    up to ``batch_size`` sources of one working size (lock-step order within a batch).
+    Frames that carry a ``stamp_ns`` (ROS bag messages) pass it to their result. Results
+    stream as the trackers make them.
+    """
+    params = params or Params()
+    stamps: dict[tuple[int, int], int] = {}
+
+    def tapped(b: int):
+        for j, item in enumerate(sources[b]):
+            st = getattr(item[1], "stamp_ns", None) if isinstance(item, tuple) else None
+            if st is not None:
+                stamps[(b, j)] = st
+            yield item
+
+    def stamped(b: int, res: FrameResult) -> FrameResult:
+        res.stamp_ns = stamps.pop((b, res.frame), None)
+        return res
+
+    if impl == "reference":
+        from .reference import Tracker as RefTracker
+
+        ref = RefTracker(params, hfov_deg=hfov_deg)
+        for b in range(len(sources)):
+            for res, rgb in ref.track_iter(tapped(b), names[b]):
+                yield b, stamped(b, res), rgb
+        return
+    from .tracker import Tracker
+
+    tracker = Tracker(params, device=device, hfov_deg=hfov_deg)
+    groups: dict[object, list[int]] = {}
+    for b, s in enumerate(sources):  # one working size per batch
+        groups.setdefault(first_size(s, params.video_width), []).append(b)
+    for g in groups.values():
+        for j in range(0, len(g), batch_size):
+            batch = g[j:j + batch_size]
+            for k, res, rgb in tracker.track_iter([tapped(b) for b in batch], [names[b] for b in batch]):
+                yield batch[k], stamped(batch[k], res), rgb

@@ -163,12 +163,16 @@ class FrameResult(ImageResult):
     heading_rad: float | None = None
     lateral_px: float | None = None
     lateral_frac: float | None = None
+    stamp_ns: int | None = None
 
     def to_record(self) -> dict[str, Any]:
         """``torchrow detect``'s record keys plus ``source``, ``frame``, ``hough_ran``,
         ``hough_redo``, ``confidence``, ``heading_px``, ``heading_rad``, ``lateral_px``,
-        ``lateral_frac`` (``None`` -> JSON null)."""
-        rec = {"source": self.source, "frame": int(self.frame)}
+        ``lateral_frac`` (``None`` -> JSON null); ``stamp_ns`` after ``frame`` for frames of
+        a ROS bag (the message's header stamp), absent otherwise."""
+        rec: dict[str, Any] = {"source": self.source, "frame": int(self.frame)}
+        if self.stamp_ns is not None:
+            rec["stamp_ns"] = int(self.stamp_ns)
         rec.update(super().to_record())
 
         def num(v: float | None) -> float | None:

@@ -84,17 +84,24 @@ class FrameSource:
             cap.release()
 
 
-def open_source(path: str | Path) -> FrameSource:
-    """A folder holding image files, or a video file readable by OpenCV.
+def open_source(path: str | Path, topic: str | None = None):
+    """A folder holding image files, a video file readable by OpenCV, or a ROS bag
+    (:func:`torchrow.rosbag.open_bag`: a rosbag2 folder or a ROS 1 ``.bag``; ``topic``
+    chooses its image topic, by default the only one).
 
     Raises
     ------
     FileNotFoundError
         If the path does not exist.
     ImageError
-        If a folder holds no images or a video cannot be opened.
+        If a folder holds no images or a video cannot be opened (a bag:
+        :class:`torchrow.rosbag.BagError`, a subclass).
     """
+    from .rosbag import is_bag, open_bag
+
     p = Path(path)
+    if is_bag(p):
+        return open_bag(p, topic)
     if p.is_dir():
         files = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_EXTENSIONS)
         if not files:
