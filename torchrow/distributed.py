@@ -112,7 +112,7 @@ def run(items: Iterable[tuple[str, Callable[[], np.ndarray]]], impl: str = "tens
     """:func:`torchrow.runner.run` on a Ray cluster: yields ``(index, None, result, seconds)``
     in input order (no RGB comes back). ``workers``: actors in the pool (default: the
     cluster's CPUs // ``cpus_per_worker``); ``batch_size``: rows per ``map_batches`` call."""
-    import cloudpickle
+    from ray import cloudpickle
 
     ray = init(address)
     params = params or Params()
@@ -123,6 +123,8 @@ def run(items: Iterable[tuple[str, Callable[[], np.ndarray]]], impl: str = "tens
     ctx = ray.data.DataContext.get_current()
     ctx.execution_options.preserve_order = True
     ctx.enable_progress_bars = progress
+    # at least one block per worker, so that a short (e.g. resumed) run still spreads out
+    batch_size = max(1, min(batch_size, -(-len(rows) // n_workers)))
     blocks = max(1, min(len(rows), -(-len(rows) // batch_size)))
     ds = ray.data.from_items(rows, override_num_blocks=blocks)
     ds = ds.map_batches(_Detect, batch_size=batch_size, batch_format="numpy", concurrency=n_workers,

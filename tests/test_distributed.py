@@ -1,0 +1,117 @@
+"""The Ray engine on a local 2-CPU cluster (started once for this module): records equal the
+local engine's for detect (CRBD images, or synthetic ones without the data), eval and video."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import pytest
+
+ray = pytest.importorskip("ray")
+pytest.importorskip("ray.data")
+
+from conftest import data_root  # noqa: E402
+
+from torchrow.cli import main  # noqa: E402
+from torchrow.synthetic import FieldSpec, render, sequence  # noqa: E402
+
+
+@pytest.fixture(scope="module", autouse=True)
+def cluster():
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield
+    ray.shutdown()
+
+
+def _lines(path: Path) -> list[str]:
+    return path.read_text().splitlines()
+
+
+@pytest.fixture(scope="module")
+def images(tmp_path_factory) -> Path:
+    """12 CRBD images (synthetic fields where the data is absent), one of another size sorted
+    first, and an unreadable file."""
+    d = tmp_path_factory.mktemp("ray_images")
+    root = data_root()
+    crbd = sorted((root / "crbd" / "Images").glob("crop_row_*")) if root else []
+    if crbd:
+        for f in crbd[::24][:12]:
+            shutil.copy(f, d / f.name)
+    else:
+        for i in range(12):
+            cv2.imwrite(str(d / f"f{i:02d}.png"), cv2.cvtColor(render(FieldSpec(seed=i)).image, cv2.COLOR_RGB2BGR))
+    wide = render(FieldSpec(seed=50, width=640, height=360)).image
+    cv2.imwrite(str(d / "a_wide.png"), cv2.cvtColor(wide, cv2.COLOR_RGB2BGR))
+    (d / "z_bad.jpg").write_bytes(b"not an image")
+    return d
+
+
+def test_detect_ray_equals_local(images: Path, tmp_path: Path) -> None:
+    local, dist = tmp_path / "local.jsonl", tmp_path / "ray.jsonl"
+    assert main(["detect", str(images), "--out", str(local), "-q", "--batch-size", "4"]) == 0
+    assert main(["detect", str(images), "--out", str(dist), "-q", "--batch-size", "4", "--engine", "ray",
+                 "--workers", "2"]) == 0
+    assert _lines(dist) == _lines(local)  # same records, same (input) order
+    assert len(_lines(local)) == 14
+
+
+def test_detect_ray_resume_and_parquet(images: Path, tmp_path: Path) -> None:
+    pytest.importorskip("pyarrow")
+    from torchrow.sink import read_records
+
+    local = tmp_path / "local.jsonl"
+    assert main(["detect", str(images), "--out", str(local), "-q"]) == 0
+    out = tmp_path / "ray.jsonl"
+    out.write_text("\n".join(_lines(local)[:5]) + "\n" + _lines(local)[5][:20])
+    assert main(["detect", str(images), "--out", str(out), "-q", "--engine", "ray", "--resume"]) == 0
+    assert _lines(out) == _lines(local)
+    pq = tmp_path / "ray.parquet"
+    assert main(["detect", str(images), "--out", str(pq), "-q", "--engine", "ray", "--workers", "1"]) == 0
+    assert list(read_records(pq)) == [json.loads(s) for s in _lines(local)]
+
+
+def test_video_ray_equals_local(tmp_path: Path) -> None:
+    srcs = []
+    for k, n in enumerate((5, 8, 3)):
+        d = tmp_path / f"seq{k}"
+        d.mkdir()
+        for t, f in enumerate(sequence(FieldSpec(seed=10 + k, width=200, height=120), n, drift_px_per_frame=1.0)):
+            cv2.imwrite(str(d / f"{t:03d}.png"), cv2.cvtColor(f.image, cv2.COLOR_RGB2BGR))
+        srcs.append(str(d))
+    base = ["video", *srcs, "-q", "--plot", "none", "--param", "video_width=200", "--param", "hough_every=3"]
+    local, dist = tmp_path / "local.jsonl", tmp_path / "ray.jsonl"
+    assert main([*base, "--out", str(local)]) == 0
+    assert main([*base, "--out", str(dist), "--engine", "ray"]) == 0
+    key = lambda s: (json.loads(s)["source"], json.loads(s)["frame"])  # noqa: E731
+    # sequences interleave differently (one task each vs lock-step); each record is the same
+    assert sorted(_lines(dist), key=key) == sorted(_lines(local), key=key)
+    assert len(_lines(dist)) == 16
+    # within a sequence, frames come in order
+    for src in srcs:
+        frames = [json.loads(s)["frame"] for s in _lines(dist) if json.loads(s)["source"] == src]
+        assert frames == sorted(frames)
+
+
+@pytest.mark.data
+def test_eval_ray_equals_local(crbd_dir: Path, tmp_path: Path, capsys) -> None:
+    a, b = tmp_path / "local", tmp_path / "ray"
+    assert main(["eval", "--data", str(crbd_dir), "--every", "40", "--out", str(a), "-q"]) == 0
+    local_summary = capsys.readouterr().out
+    assert main(["eval", "--data", str(crbd_dir), "--every", "40", "--out", str(b), "-q", "--engine", "ray"]) == 0
+    assert capsys.readouterr().out == local_summary
+    assert _lines(b / "detections.jsonl") == _lines(a / "detections.jsonl")
+    assert json.loads((b / "summary.json").read_text()) == json.loads((a / "summary.json").read_text())
+
+
+def test_engine_arguments_are_checked(images: Path, tmp_path: Path, capsys) -> None:
+    out = str(tmp_path / "r.jsonl")
+    for argv, msg in ((["detect", str(images), "--address", "auto"], "--address and --workers are only used"),
+                      (["detect", str(images), "--engine", "ray", "--annotate", str(tmp_path)], "--annotate needs"),
+                      (["detect", str(images), "--engine", "ray", "--workers", "0"], "--workers must be >= 1")):
+        capsys.readouterr()
+        assert main([*argv, "--out", out, "-q"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("torchrow: error: ") and msg in err, err
