@@ -12,7 +12,6 @@ import time
 from pathlib import Path
 
 import cv2
-import numpy as np
 import pytest
 
 from torchrow.cli import main
@@ -88,11 +87,11 @@ def _cli_records(folder: Path, out: Path, *extra: str) -> None:
 
 @pytest.fixture(scope="module")
 def field_folder(tmp_path_factory) -> Path:
-    """Six synthetic fields (one of another size, sorted first) and one unreadable file."""
+    """Three synthetic fields (one of another size, sorted first) and one unreadable file."""
     d = tmp_path_factory.mktemp("fields")
     cv2.imwrite(str(d / "a_wide.png"), cv2.cvtColor(render(FieldSpec(seed=9, width=640, height=360)).image,
                                                     cv2.COLOR_RGB2BGR))
-    for i in range(3):
+    for i in range(2):
         cv2.imwrite(str(d / f"f{i}.png"), cv2.cvtColor(render(FieldSpec(seed=i)).image, cv2.COLOR_RGB2BGR))
     (d / "z_bad.jpg").write_bytes(b"not an image")
     return d
@@ -112,11 +111,14 @@ def test_parquet_output_holds_the_jsonl_records(field_folder: Path, tmp_path: Pa
 
 # -- the runner's ordering window --------------------------------------------------------
 
+_SMALL = [render(FieldSpec(seed=s, width=64, height=48)).image for s in range(3)]
+_ODD = render(FieldSpec(seed=7, width=64, height=40)).image
+
+
 def _small_items(n: int, odd_first: bool, pulled: list[int]):
-    rng = np.random.default_rng(0)
-    imgs = [rng.integers(0, 256, (48, 64, 3), dtype=np.uint8) for _ in range(n)]
+    imgs = [_SMALL[i % 3] for i in range(n)]
     if odd_first:
-        imgs[0] = rng.integers(0, 256, (40, 64, 3), dtype=np.uint8)
+        imgs[0] = _ODD
     for i, im in enumerate(imgs):
         pulled.append(i)
         yield f"im{i}", (lambda im=im: im)
@@ -157,7 +159,7 @@ def _spawn_detect(folder: Path, out: Path, *extra: str) -> subprocess.Popen:
 @pytest.fixture(scope="module")
 def many_fields(tmp_path_factory) -> Path:
     d = tmp_path_factory.mktemp("many")
-    for i in range(16):
+    for i in range(10):
         img = render(FieldSpec(seed=100 + i, width=320, height=160)).image
         cv2.imwrite(str(d / f"im{i:02d}.png"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
     (d / "im99_bad.png").write_bytes(b"")
@@ -174,13 +176,11 @@ def test_killed_run_resumed_equals_a_clean_run(many_fields: Path, tmp_path: Path
         if out.exists() and len(out.read_bytes().splitlines()) >= 3:
             break
         time.sleep(0.01)
-    killed = proc.poll() is None
-    if killed:
-        os.kill(proc.pid, signal.SIGKILL)
+    assert proc.poll() is None, proc.stderr.read().decode() if proc.stderr else ""  # still running
+    os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     n_before = len(out.read_bytes().splitlines())
-    if killed:
-        assert 3 <= n_before < 17, n_before  # streamed, not held back to the end
+    assert 3 <= n_before < 11, n_before  # streamed, not held back to the end
     with open(out, "ab") as fh:
         fh.write(b'{"name": "im2')  # and a torn line, as a kill during a write leaves
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
@@ -190,7 +190,7 @@ def test_killed_run_resumed_equals_a_clean_run(many_fields: Path, tmp_path: Path
     assert "kept from the earlier run" in res.stderr
     got = _lines(out)
     names = [json.loads(s)["name"] for s in got]
-    assert len(names) == len(set(names)) == 17
+    assert len(names) == len(set(names)) == 11
     assert got == _lines(clean)  # records in input order: the same file as a clean run
 
 
