@@ -81,6 +81,12 @@ def test_video_ray_equals_local(tmp_path: Path) -> None:
         for t, f in enumerate(sequence(FieldSpec(seed=10 + k, width=200, height=120), n, drift_px_per_frame=1.0)):
             cv2.imwrite(str(d / f"{t:03d}.png"), cv2.cvtColor(f.image, cv2.COLOR_RGB2BGR))
         srcs.append(str(d))
+    if _has_rosbags():
+        from bags import write_bag
+
+        frames = sequence(FieldSpec(seed=20, width=200, height=120), 4, drift_px_per_frame=2.0)
+        srcs.append(str(write_bag(tmp_path / "bag", {"/cam": [(10**9 * (t + 1), "rgb8", f.image)
+                                                             for t, f in enumerate(frames)]}, "mcap")))
     base = ["video", *srcs, "-q", "--plot", "none", "--param", "video_width=200", "--param", "hough_every=3"]
     local, dist = tmp_path / "local.jsonl", tmp_path / "ray.jsonl"
     assert main([*base, "--out", str(local)]) == 0
@@ -88,11 +94,36 @@ def test_video_ray_equals_local(tmp_path: Path) -> None:
     key = lambda s: (json.loads(s)["source"], json.loads(s)["frame"])  # noqa: E731
     # sequences interleave differently (one task each vs lock-step); each record is the same
     assert sorted(_lines(dist), key=key) == sorted(_lines(local), key=key)
-    assert len(_lines(dist)) == 16
+    assert len(_lines(dist)) == 16 + 4 * _has_rosbags()
+    if _has_rosbags():
+        stamps = [json.loads(s).get("stamp_ns") for s in _lines(dist) if json.loads(s)["source"] == srcs[-1]]
+        assert stamps == [10**9 * (t + 1) for t in range(4)]
     # within a sequence, frames come in order
     for src in srcs:
         frames = [json.loads(s)["frame"] for s in _lines(dist) if json.loads(s)["source"] == src]
         assert frames == sorted(frames)
+
+
+def _has_rosbags() -> bool:
+    try:
+        import rosbags  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def test_detect_ray_on_a_bag_equals_local(tmp_path: Path) -> None:
+    pytest.importorskip("rosbags")
+    from bags import encode, write_bag
+
+    msgs = [(10**9 + k, "png", encode(render(FieldSpec(seed=30 + k)).image)) for k in range(3)]
+    msgs.append((10**9 + 3, "jpeg", b"broken"))
+    bag = write_bag(tmp_path / "b.bag", {"/cam": msgs}, "ros1")
+    local, dist = tmp_path / "local.jsonl", tmp_path / "ray.jsonl"
+    assert main(["detect", str(bag), "--out", str(local), "-q"]) == 0
+    assert main(["detect", str(bag), "--out", str(dist), "-q", "--engine", "ray"]) == 0
+    assert _lines(dist) == _lines(local) and len(_lines(local)) == 4
+    assert [json.loads(s)["stamp_ns"] for s in _lines(dist)] == [m[0] for m in msgs]
 
 
 @pytest.mark.data

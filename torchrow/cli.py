@@ -473,15 +473,23 @@ def cmd_video(args: argparse.Namespace) -> int:
     done: dict[str, set[int]] = {}
     for src, frame in sink.done:
         done.setdefault(src, set()).add(frame)
-    # --resume: a source with a record for each of its frames is not tracked again; one cut
-    # short is tracked from frame 0 (the tracker's state needs it) and its written frames skipped
-    todo = [i for i, s in enumerate(sources) if not set(range(s.length)) <= done.get(names[i], set())]
+    # --resume: a batch of sources (runner.track_batches) with a record for each frame is not
+    # tracked again; any other batch is tracked from frame 0 (the tracker's state needs it, and
+    # the same batch gives the same bits) and its written frames are skipped
+    todo = list(range(len(sources)))
+    if args.resume:
+        from .runner import track_batches
+
+        complete = [set(range(s.length)) <= done.get(names[i], set()) for i, s in enumerate(sources)]
+        todo = [i for batch in track_batches(sources, args.impl, params, args.batch_size)
+                if not all(complete[j] for j in batch) for i in batch]
     if args.engine == "ray":
         from .distributed import track as ray_track
 
         stream = ((todo[b], rec, None, None) for b, rec in ray_track(
             [sources[i].path for i in todo], [names[i] for i in todo], args.impl, params, device, args.fov,
-            args.topic, skip={b: done.get(names[i], set()) for b, i in enumerate(todo)}, address=args.address))
+            args.topic, skip={b: done.get(names[i], set()) for b, i in enumerate(todo)},
+            batch_size=args.batch_size, address=args.address))
     else:
         from .runner import track
 

@@ -15,9 +15,10 @@ image's or a sequence's result never depends on what else is in its batch.
   must be readable there (one machine, a shared file system, or object storage read by the
   loader, see :func:`read_binary`). Results come back in input order
   (``preserve_order``), as Ray's streaming executor produces them.
-* **Video** (:func:`track`): one Ray task per sequence (a streaming generator task), which
-  opens the source itself and runs :func:`torchrow.runner.track` on it; records of a
-  sequence come back in frame order, sequences interleaved as they finish chunks.
+* **Video** (:func:`track`): one Ray task (a streaming generator) per batch of sequences
+  that the local engine would track together (``batch_size`` 1: one task per sequence); it
+  opens its sources itself and runs :func:`torchrow.runner.track` on them; records of a
+  sequence come back in frame order, tasks interleaved as they finish chunks.
 
 ``address``: ``None`` joins the cluster of ``RAY_ADDRESS`` if set, else starts a local one
 with this machine's CPUs; ``"auto"`` or ``"HOST:6379"`` joins a running one (``ray start
@@ -150,21 +151,22 @@ def run(items: Iterable[tuple[str, Callable[[], np.ndarray]]], impl: str = "tens
         raise RuntimeError(f"Ray returned {nxt} of {len(rows)} results")
 
 
-def _track_task(path: str, topic: str | None, name: str, impl: str, params: Params, device: str | None,
-                hfov_deg: float | None, skip: frozenset, threads: int):
-    """One sequence, on a worker: yields lists of up to RECORDS_PER_CHUNK records."""
+def _track_task(paths: list[str], topic: str | None, names: list[str], impl: str, params: Params,
+                device: str | None, hfov_deg: float | None, skip: list[frozenset], threads: int):
+    """One batch of sequences, on a worker: yields lists of up to RECORDS_PER_CHUNK
+    ``(position in the batch, record)``."""
     import torch
 
     from .runner import track as track_local
     from .video import open_source
 
     torch.set_num_threads(threads)
-    src = open_source(path, topic=topic)
-    chunk: list[dict] = []
-    for _, res, _ in track_local([src], [name], impl, params, 1, device, hfov_deg):
-        if res.frame in skip:
+    srcs = [open_source(p, topic=topic) for p in paths]
+    chunk: list[tuple[int, dict]] = []
+    for b, res, _ in track_local(srcs, names, impl, params, max(len(srcs), 1), device, hfov_deg):
+        if res.frame in skip[b]:
             continue
-        chunk.append(res.to_record())
+        chunk.append((b, res.to_record()))
         if len(chunk) >= RECORDS_PER_CHUNK:
             yield chunk
             chunk = []
@@ -174,17 +176,28 @@ def _track_task(path: str, topic: str | None, name: str, impl: str, params: Para
 
 def track(sources: Sequence[str | Path], names: Sequence[str] | None = None, impl: str = "tensor",
           params: Params | None = None, device: str | None = None, hfov_deg: float | None = None,
-          topic: str | None = None, skip: dict[int, set[int]] | None = None, cpus_per_task: int = 1,
-          address: str | None = None) -> Iterator[tuple[int, dict]]:
+          topic: str | None = None, skip: dict[int, set[int]] | None = None, batch_size: int = 8,
+          cpus_per_task: int = 1, address: str | None = None) -> Iterator[tuple[int, dict]]:
     """Track every source (folder, video file or ROS bag, :func:`torchrow.video.open_source`)
-    in its own Ray task; yields ``(source index, record)`` as records arrive (frame order
-    within a source). ``skip[i]``: frame indices of source ``i`` not to return (resume)."""
+    on a Ray cluster; yields ``(source index, record)`` as records arrive (frame order within
+    a source).
+
+    One Ray task per batch of :func:`torchrow.runner.track_batches` (the local engine's
+    batches: sources of one working size, up to ``batch_size``), so that records are the
+    local engine's bit for bit; ``batch_size=1`` gives one task per sequence, the most
+    parallel. ``skip[i]``: frame indices of source ``i`` not to return (resume).
+    """
+    from .runner import track_batches
+    from .video import open_source
+
     ray = init(address)
     params = params or Params()
     names = [str(s) for s in sources] if names is None else list(names)
+    batches = track_batches([open_source(s, topic=topic) for s in sources], impl, params, batch_size)
     task = ray.remote(num_returns="streaming", num_cpus=cpus_per_task)(_track_task)
-    gens = {task.remote(str(s), topic, names[i], impl, params, device, hfov_deg,
-                        frozenset((skip or {}).get(i, ())), cpus_per_task): i for i, s in enumerate(sources)}
+    gens = {task.remote([str(sources[i]) for i in batch], topic, [names[i] for i in batch], impl, params, device,
+                        hfov_deg, [frozenset((skip or {}).get(i, ())) for i in batch], cpus_per_task): batch
+            for batch in batches}
     while gens:
         ready, _ = ray.wait(list(gens), num_returns=1)
         for gen in ready:
@@ -193,8 +206,8 @@ def track(sources: Sequence[str | Path], names: Sequence[str] | None = None, imp
             except StopIteration:
                 del gens[gen]
                 continue
-            for rec in ray.get(ref):
-                yield gens[gen], rec
+            for b, rec in ray.get(ref):
+                yield gens[gen][b], rec
 
 
 def read_binary(uri: str | Sequence[str], width: int | None = None) -> Iterator[tuple[str, Callable[[], np.ndarray]]]:
