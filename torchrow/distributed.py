@@ -152,7 +152,7 @@ def run(items: Iterable[tuple[str, Callable[[], np.ndarray]]], impl: str = "tens
 
 
 def _track_task(paths: list[str], topic: str | None, names: list[str], impl: str, params: Params,
-                device: str | None, hfov_deg: float | None, skip: list[frozenset], threads: int):
+                device: str | None, hfov_deg: float | None, skip: list[frozenset], workers: int):
     """One batch of sequences, on a worker: yields lists of up to RECORDS_PER_CHUNK
     ``(position in the batch, record)``."""
     import torch
@@ -160,10 +160,10 @@ def _track_task(paths: list[str], topic: str | None, names: list[str], impl: str
     from .runner import track as track_local
     from .video import open_source
 
-    torch.set_num_threads(threads)
+    torch.set_num_threads(max(1, min(workers, len(paths))))
     srcs = [open_source(p, topic=topic) for p in paths]
     chunk: list[tuple[int, dict]] = []
-    for b, res, _ in track_local(srcs, names, impl, params, max(len(srcs), 1), device, hfov_deg):
+    for b, res, _ in track_local(srcs, names, impl, params, max(len(srcs), 1), device, hfov_deg, workers):
         if res.frame in skip[b]:
             continue
         chunk.append((b, res.to_record()))
@@ -177,16 +177,21 @@ def _track_task(paths: list[str], topic: str | None, names: list[str], impl: str
 def track(sources: Sequence[str | Path], names: Sequence[str] | None = None, impl: str = "tensor",
           params: Params | None = None, device: str | None = None, hfov_deg: float | None = None,
           topic: str | None = None, skip: dict[int, set[int]] | None = None, batch_size: int = 8,
-          cpus_per_task: int = 1, address: str | None = None) -> Iterator[tuple[int, dict]]:
+          workers: int | None = None, address: str | None = None) -> Iterator[tuple[int, dict]]:
     """Track every source (folder, video file or ROS bag, :func:`torchrow.video.open_source`)
     on a Ray cluster; yields ``(source index, record)`` as records arrive (frame order within
     a source).
 
     One Ray task per batch of :func:`torchrow.runner.track_batches` (the local engine's
     batches: sources of one working size, up to ``batch_size``), so that records are the
-    local engine's bit for bit; ``batch_size=1`` gives one task per sequence, the most
-    parallel. ``skip[i]``: frame indices of source ``i`` not to return (resume).
+    local engine's bit for bit; each task runs its batch in groups on ``workers`` threads
+    (default: this process's torch thread count, the local engine's grouping) and reserves
+    one CPU per group. ``batch_size=1`` gives one task per sequence, the most parallel (rows
+    may then differ from a local batched run in a last bit, see ``track_batches``).
+    ``skip[i]``: frame indices of source ``i`` not to return (resume).
     """
+    import torch
+
     from .runner import track_batches
     from .video import open_source
 
@@ -194,10 +199,12 @@ def track(sources: Sequence[str | Path], names: Sequence[str] | None = None, imp
     params = params or Params()
     names = [str(s) for s in sources] if names is None else list(names)
     batches = track_batches([open_source(s, topic=topic) for s in sources], impl, params, batch_size)
-    task = ray.remote(num_returns="streaming", num_cpus=cpus_per_task)(_track_task)
-    gens = {task.remote([str(sources[i]) for i in batch], topic, [names[i] for i in batch], impl, params, device,
-                        hfov_deg, [frozenset((skip or {}).get(i, ())) for i in batch], cpus_per_task): batch
-            for batch in batches}
+    workers = workers or torch.get_num_threads()
+    task = ray.remote(num_returns="streaming")(_track_task)
+    cpus = _cluster_cpus(ray)
+    gens = {task.options(num_cpus=min(cpus, max(1, min(workers, len(batch))) if impl == "tensor" else 1)).remote(
+        [str(sources[i]) for i in batch], topic, [names[i] for i in batch], impl, params, device, hfov_deg,
+        [frozenset((skip or {}).get(i, ())) for i in batch], workers): batch for batch in batches}
     while gens:
         ready, _ = ray.wait(list(gens), num_returns=1)
         for gen in ready:

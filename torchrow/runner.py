@@ -176,15 +176,16 @@ def first_size(src, width: int) -> tuple[int, int] | None:
 
 
 def track(sources: Sequence, names: Sequence[str], impl: str = "tensor", params: Params | None = None,
-          batch_size: int = 8, device: str | None = None, hfov_deg: float | None = None
-          ) -> Iterator[tuple[int, FrameResult, np.ndarray | None]]:
+          batch_size: int = 8, device: str | None = None, hfov_deg: float | None = None,
+          workers: int | None = None) -> Iterator[tuple[int, FrameResult, np.ndarray | None]]:
     """Track frame sources (:func:`torchrow.video.open_source`); yields ``(source index,
     FrameResult, working RGB or None)``.
 
     ``impl="reference"`` tracks the sources one after the other; ``"tensor"`` in batches of
     up to ``batch_size`` sources of one working size (lock-step order within a batch).
     Frames that carry a ``stamp_ns`` (ROS bag messages) pass it to their result. Results
-    stream as the trackers make them.
+    stream as the trackers make them. ``workers``: :class:`~torchrow.tracker.Tracker`'s
+    (default: torch's thread count on a CPU).
     """
     params = params or Params()
     stamps: dict[tuple[int, int], int] = {}
@@ -210,7 +211,7 @@ def track(sources: Sequence, names: Sequence[str], impl: str = "tensor", params:
         return
     from .tracker import Tracker
 
-    tracker = Tracker(params, device=device, hfov_deg=hfov_deg)
+    tracker = Tracker(params, device=device, hfov_deg=hfov_deg, workers=workers)
     for batch in track_batches(sources, impl, params, batch_size):
         for k, res, rgb in tracker.track_iter([tapped(b) for b in batch], [names[b] for b in batch]):
             yield batch[k], stamped(batch[k], res), rgb
@@ -221,9 +222,10 @@ def track_batches(sources: Sequence, impl: str = "tensor", params: Params | None
     """The batches :func:`track` runs: source indices grouped by the working size of their
     first readable frame, in runs of up to ``batch_size`` (one source each for the reference).
 
-    The Ray engine sends each batch to one task: the tensor tracker's float64 reductions run
-    over the batch, and a row can differ in its last bit (about 1e-16 relative; 2 of 100
-    Caterra frames between 4 sequences in a batch and one) with another batch composition.
+    The Ray engine sends each batch to one task, with the same ``workers``: the tensor
+    tracker's float64 reductions run over the sequences of a worker's group, and a row can
+    differ in its last bit (about 1e-16 relative; 2 of 100 Caterra frames between 4
+    sequences in groups of 2 and one sequence alone) with another grouping.
     """
     params = params or Params()
     if impl == "reference":
