@@ -58,6 +58,17 @@ def test_detect_ray_equals_local(images: Path, tmp_path: Path) -> None:
     assert len(_lines(local)) == 14
 
 
+def test_read_binary_items_on_ray_equal_the_cli(images: Path, tmp_path: Path) -> None:
+    from torchrow import distributed
+
+    local = tmp_path / "local.jsonl"
+    assert main(["detect", str(images), "--out", str(local), "-q"]) == 0
+    items = list(distributed.read_binary(str(images), width=320))
+    assert [n for n, _ in items] == [json.loads(s)["name"] for s in _lines(local)]
+    got = [json.dumps(r.to_record()) for _, _, r, _ in distributed.run(items, progress=False, batch_size=4)]
+    assert got == _lines(local)
+
+
 def test_detect_ray_resume_and_parquet(images: Path, tmp_path: Path) -> None:
     pytest.importorskip("pyarrow")
     from torchrow.sink import read_records

@@ -112,7 +112,10 @@ def run(items: Iterable[tuple[str, Callable[[], np.ndarray]]], impl: str = "tens
         ) -> Iterator[tuple[int, None, ImageResult, float]]:
     """:func:`torchrow.runner.run` on a Ray cluster: yields ``(index, None, result, seconds)``
     in input order (no RGB comes back). ``workers``: actors in the pool (default: the
-    cluster's CPUs // ``cpus_per_worker``); ``batch_size``: rows per ``map_batches`` call."""
+    cluster's CPUs // ``cpus_per_worker``); ``batch_size``: rows per ``map_batches`` call
+    (made smaller for short runs, so that every worker gets a batch). The driver holds one
+    row per input (name and pickled loader, a few hundred bytes) and the results that
+    arrive ahead of an earlier one; Ray's streaming executor bounds the rest."""
     from ray import cloudpickle
 
     ray = init(address)
