@@ -124,7 +124,9 @@ def run(items: Iterable[tuple[str, Callable[[], np.ndarray]]], impl: str = "tens
     if not rows:
         return
     n_workers = workers or max(1, _cluster_cpus(ray) // cpus_per_worker)
+    # DataContext is per process: set what this run needs, put the caller's values back after
     ctx = ray.data.DataContext.get_current()
+    saved = (ctx.execution_options.preserve_order, ctx.enable_progress_bars)
     ctx.execution_options.preserve_order = True
     ctx.enable_progress_bars = progress
     # at least one block per worker, so that a short (e.g. resumed) run still spreads out
@@ -150,6 +152,7 @@ def run(items: Iterable[tuple[str, Callable[[], np.ndarray]]], impl: str = "tens
                 nxt += 1
     finally:
         bar.close()
+        ctx.execution_options.preserve_order, ctx.enable_progress_bars = saved
     if nxt != len(rows):
         raise RuntimeError(f"Ray returned {nxt} of {len(rows)} results")
 
