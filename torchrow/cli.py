@@ -90,7 +90,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
         info = model_info(model)
         params = info["params"]
         try:
-            first = load_image(paths[0], params.image_width)
+            first = load_image(paths[0], params.image_width, params.max_pixels)
         except Exception:  # an unreadable first file gets its error record later
             first = None
         if first is not None and first.shape[:2] != (info["height"], info["width"]):
@@ -104,7 +104,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     if ann is not None:
         ann.mkdir(parents=True, exist_ok=True)
     counts: dict[str, int] = {}
-    items = [(p.name, (lambda p=p: load_image(p, params.image_width))) for p in paths]
+    items = [(p.name, (lambda p=p: load_image(p, params.image_width, params.max_pixels))) for p in paths]
     with open(out, "w") as fh:
         for i, rgb, res, _ in run(items, args.impl, params, args.batch_size, device, progress=not args.quiet,
                                   model=model):

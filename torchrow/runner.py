@@ -101,7 +101,7 @@ def _run_tensor(items, params, batch_size, device, bar, det=None):
         try:
             results = det(batch).results([items[i][0] for i in idx])
         except Exception as exc:  # keep the run alive; every image of the batch gets the error
-            results = [ImageResult.failed(items[i][0], f"{type(exc).__name__}: {exc}") for i in idx]
+            results = [ImageResult.failed(items[i][0], f"{type(exc).__name__}: {exc}", key[1], key[0]) for i in idx]
         dt = (time.perf_counter() - t0) / len(idx)
         for i, res in zip(idx, results):
             done[i] = (rgbs.pop(i), res, dt)

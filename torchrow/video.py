@@ -30,8 +30,11 @@ class LoadedFrame:
     error: str | None = None
 
 
-def load_item(item: object, width: int) -> LoadedFrame:
-    """Load and resize one sequence item (module docstring) to the working ``width``."""
+def load_item(item: object, width: int, max_pixels: int | None = None) -> LoadedFrame:
+    """Load and resize one sequence item (module docstring) to the working ``width``.
+
+    A frame whose working size exceeds ``max_pixels`` (``Params.max_pixels``) is unreadable.
+    """
     name = None
     if isinstance(item, tuple) and len(item) == 2 and (item[0] is None or isinstance(item[0], str)):
         name, item = item
@@ -41,7 +44,7 @@ def load_item(item: object, width: int) -> LoadedFrame:
         frame = item() if callable(item) else item
         if not isinstance(frame, np.ndarray):
             raise ImageError(f"expected a numpy array (H, W, 3), got {type(frame).__name__}")
-        return LoadedFrame(name, resize_to_width(to_rgb8(frame), width))
+        return LoadedFrame(name, resize_to_width(to_rgb8(frame), width, max_pixels))
     except (ImageError, OSError) as exc:
         return LoadedFrame(name, None, str(exc))
 

@@ -110,7 +110,7 @@ class Tracker:
         """Convert to ``uint8 (H, W, 3)`` RGB and resize to ``params.video_width``."""
         if not isinstance(frame, np.ndarray):
             raise TypeError(f"expected a numpy array (H, W, 3), got {type(frame).__name__}")
-        return resize_to_width(to_rgb8(frame), self.params.video_width)
+        return resize_to_width(to_rgb8(frame), self.params.video_width, self.params.max_pixels)
 
     def init(self, rgb: np.ndarray) -> TrackerState:
         """State from frame 0 (a working-size RGB image): sky, colour, info0."""
@@ -219,7 +219,7 @@ class Tracker:
         """
         state: TrackerState | None = None
         for i, item in enumerate(items):
-            got = load_item(item, self.params.video_width)
+            got = load_item(item, self.params.video_width, self.params.max_pixels)
             if got.rgb is not None and state is not None and got.rgb.shape[:2] != (state.height, state.width):
                 got.error = (f"frame of working size {got.rgb.shape[1]}x{got.rgb.shape[0]} in a sequence of "
                              f"{state.width}x{state.height}")
