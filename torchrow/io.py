@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 __all__ = ["ImageError", "IMAGE_EXTENSIONS", "MAX_DECODE_PIXELS", "to_rgb8", "resize_to_width", "load_image",
-           "working_size", "check_working_size", "check_color"]
+           "working_size", "check_working_size", "check_color", "header_size"]
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 
@@ -98,14 +98,19 @@ def resize_to_width(rgb: np.ndarray, width: int, max_pixels: int | None = None) 
     return cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
 
 
-def _header_pixels(path: Path) -> tuple[int, int] | None:
-    """``(W0, H0)`` from the file's header without decoding it (None if Pillow cannot tell)."""
+def header_size(path: str | Path) -> tuple[int, int] | None:
+    """``(W0, H0)`` of an image file as :func:`load_image` decodes it (EXIF orientations 5-8
+    swap the axes), read from its header with Pillow without decoding the pixels; ``None``
+    if Pillow cannot read the header (OpenCV then decides)."""
     try:
         from PIL import Image
 
         with Image.open(path) as im:
-            return im.size
-    except Exception:  # not a format Pillow knows, or damaged: OpenCV decides below
+            w, h = im.size
+            if im.getexif().get(0x0112, 1) in (5, 6, 7, 8):
+                w, h = h, w
+            return w, h
+    except Exception:  # not a format Pillow knows, or a damaged header
         return None
 
 
@@ -128,7 +133,7 @@ def load_image(path: str | Path, width: int | None = None, max_pixels: int | Non
     data = np.fromfile(p, dtype=np.uint8)
     if data.size == 0:
         raise ImageError(f"empty file: {p}")
-    size = _header_pixels(p)
+    size = header_size(p)
     if size is not None and size[0] * size[1] > MAX_DECODE_PIXELS:
         raise ImageError(f"image of {size[0]}x{size[1]} pixels is larger than torchrow decodes "
                          f"({MAX_DECODE_PIXELS} px): {p}")

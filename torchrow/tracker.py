@@ -249,8 +249,8 @@ class Tracker(nn.Module):
         res = self.results(stepped, new, x.shape[3], x.shape[2], names)
         return [r for r in res if r is not None], new
 
-    def track_iter(self, sequences: Sequence[Iterable[object]], sources: Sequence[str | None] | None = None
-                   ) -> Iterator[tuple[int, FrameResult, np.ndarray | None]]:
+    def track_iter(self, sequences: Sequence[Iterable[object]], sources: Sequence[str | None] | None = None,
+                   size: tuple[int, int] | None = None) -> Iterator[tuple[int, FrameResult, np.ndarray | None]]:
         """Track ``B`` sequences in lock-step, lazily.
 
         Parameters
@@ -260,13 +260,17 @@ class Tracker(nn.Module):
             :mod:`torchrow.video`); lengths may differ.
         sources : sequence of str, optional
             Sequence names stored in the records.
+        size : (int, int), optional
+            Working ``(H, W)`` of the batch (e.g. the sequences'
+            :meth:`torchrow.video.FrameSource.working_size`); default: the first loaded
+            frame's.
 
         Yields
         ------
         (sequence index, FrameResult, working RGB or None)
             In lock-step order: frame ``t`` of every sequence before frame ``t + 1``. Every
             item gets a record: unreadable frames, and frames whose working size differs from
-            the batch's (the first loaded frame's), get ``error`` records and are skipped.
+            the batch's, get ``error`` records and are skipped.
         """
         p = self.params
         bsz = len(sequences)
@@ -275,7 +279,6 @@ class Tracker(nn.Module):
         next_index = [0] * bsz
         state = TrackerState.empty(bsz, p, self.device)
         ready = [False] * bsz
-        size: tuple[int, int] | None = None
         srcs = list(sources) if sources is not None else [None] * bsz
         while any(alive):
             # pull up to `chunk` items of every sequence

@@ -210,19 +210,25 @@ class Tracker:
         return res
 
     # -- whole sequences --------------------------------------------------------------------
-    def track_iter(self, items: Iterable[object], source: str | None = None
-                   ) -> Iterator[tuple[FrameResult, np.ndarray | None]]:
+    def track_iter(self, items: Iterable[object], source: str | None = None,
+                   size: tuple[int, int] | None = None) -> Iterator[tuple[FrameResult, np.ndarray | None]]:
         """Track one sequence lazily: yields ``(result, working RGB or None)`` per item.
 
         Items are frames or ``(name, frame)`` (:mod:`torchrow.video`); unreadable frames,
-        and frames whose working size differs from frame 0's, get ``error`` records.
+        and frames whose working size differs from the sequence's, get ``error`` records.
+        The sequence's working ``size`` ``(H, W)`` is given (e.g.
+        :meth:`torchrow.video.FrameSource.working_size`, the size most frames have) or, by
+        default, that of the first readable frame; frame 0 is the first readable frame of it.
         """
         state: TrackerState | None = None
         for i, item in enumerate(items):
             got = load_item(item, self.params.video_width, self.params.max_pixels)
-            if got.rgb is not None and state is not None and got.rgb.shape[:2] != (state.height, state.width):
+            if got.rgb is not None and size is None:
+                size = got.rgb.shape[:2]
+            if got.rgb is not None and got.rgb.shape[:2] != size:
+                assert size is not None
                 got.error = (f"frame of working size {got.rgb.shape[1]}x{got.rgb.shape[0]} in a sequence of "
-                             f"{state.width}x{state.height}")
+                             f"{size[1]}x{size[0]}")
                 got.rgb = None
             if got.rgb is None:
                 yield FrameResult.failed_frame(source, i, got.name, got.error or "unreadable frame"), None
