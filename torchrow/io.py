@@ -163,8 +163,8 @@ def check_color(color: object, name: str = "veg_color", batched: bool = False) -
     """
     if hasattr(color, "detach") and hasattr(color, "cpu"):  # a torch tensor, without importing torch
         color = color.detach().cpu().numpy()
-    try:
-        a = np.asarray(color)
+    try:  # sequences element by element (numpy would turn True into 1 and mix in floats)
+        a = color if isinstance(color, np.ndarray) else np.asarray(color, dtype=object)
     except Exception as exc:  # ragged lists and the like
         raise ValueError(f"{name} must be RGB integers in [0, 255], got {color!r} ({exc})") from None
     if a.dtype == np.bool_ or not (np.issubdtype(a.dtype, np.integer) or a.dtype == object):
