@@ -25,10 +25,16 @@ class Params:
     Bands given as ``None`` are derived from the working width ``W`` as the table says:
     ``hough_band = int(W / 30)``, ``ransac_band = int(W / 20)`` (``int(W / 10)`` when bushy).
 
+    Every field is checked on construction by its rule in ``_RULES`` (below the class);
+    integral numbers become ``int`` and lists for ``(width, height)`` fields become tuples.
+
     Raises
     ------
+    TypeError
+        Naming the field, for a value of the wrong kind (a float or bool for an integer...).
     ValueError
-        On construction, naming the field, for values outside their meaningful range.
+        Naming the field, for a value outside its range (ALGORITHM.md section 0.1 for the
+        upper bounds that keep costs bounded).
     """
 
     # --- table of ALGORITHM.md -------------------------------------------------------

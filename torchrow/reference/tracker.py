@@ -18,6 +18,9 @@ Rules (the spec's, plus the choices it leaves open, marked *choice*):
   untouched; it does not count towards K (K counts the frames the tracker processed, so the
   schedule is the same as if the bad frame had been cut out of the video). If frame 0 is
   unreadable, the first readable frame becomes frame 0.
+* *choice*: a frame whose working size differs from the sequence's is unreadable in that
+  sense. The sequence's size is given to :meth:`Tracker.track_iter` (the CLI gives the size
+  most frames have, :meth:`torchrow.video.FrameSource.working_size`) or is frame 0's.
 * *choice*: tracked frames carry all rows of the previous frame (it was ``ok``, so all of
   them are valid); ``n_rows`` of a tracked frame is their number.
 
