@@ -119,6 +119,10 @@ def test_derived_bands():
     ("video_width", 10**6),
     ("max_pixels", 0),
     ("max_pixels", 1 << 30),
+    ("ransac_trials", 10**9),
+    ("n_colors", 10**9),
+    ("n_rows", 1000),
+    ("video_k_max", 10**9),
 ])
 def test_invalid_values_raise_naming_the_field(field, value):
     with pytest.raises(ValueError) as info:

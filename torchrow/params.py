@@ -182,21 +182,27 @@ def _odd(v: object) -> bool:
 
 
 _INT1, _INT0, _F0 = _Rule("int", 1), _Rule("int", 0), _Rule("float", 0)
-_COST = "its time or memory grows without bound"
+_COST = "the tensor path's cost grows with it; ALGORITHM.md 0.1"
 
 #: Every field's rule. Upper bounds exist where the tensor path's cost grows with the value
 #: faster than the reference's (ALGORITHM.md section 0, "Bounds"); defaults are far inside.
 _RULES: dict[str, _Rule] = {
-    "n_rows": _INT1, "hough_every": _INT1, "n_colors": _INT1, "ransac_trials": _INT1,
+    # shapes of the padded tensors and static loop bounds grow with these (max_steps ~ n_rows**2)
+    "n_rows": _Rule("int", 1, 64, why=_COST), "max_outliers": _Rule("int", 1, 64, why=_COST),
+    "n_colors": _Rule("int", 1, 1024, why=_COST),
+    "ransac_trials": _Rule("int", 1, 100_000, why="the hypothesis table holds 16 bytes per trial"),
+    "hough_every": _INT1,
     "theta_step": _Rule("int", 1, 180, (lambda v: 180 % v == 0, "must divide 180 degrees")),
-    "ransac_subsample": _INT1, "ransac_max_points": _INT1, "max_outliers": _INT1,
+    "ransac_subsample": _INT1, "ransac_max_points": _INT1,
     "image_width": _Rule("int", 1, 4096, why=_COST), "video_width": _Rule("int", 1, 4096, why=_COST),
     "sky_median": _Rule("int", 1, 15, (_odd, "must be odd (cv2.medianBlur)"),
                         why="the exact median network's cost explodes above 15"),
     "sky_col_median": _Rule("int", 1, 255, (_odd, "must be odd (medfilt)"), why=_COST),
     "veg_tol": _INT0, "track_band": _INT0, "ransac_min_points": _INT0, "horizontal_excl": _INT0,
-    "angle_excl": _INT0, "sky_lap_max": _INT0, "sky_min_zero_row": _INT0, "video_k_start": _INT0,
-    "video_k_min": _INT0, "video_k_max": _INT0, "canny_low": _INT0, "canny_high": _INT0,
+    "angle_excl": _INT0, "sky_lap_max": _INT0, "sky_min_zero_row": _INT0,
+    # adaptive k evaluates every k in [video_k_min, video_k_max]; 255 already boxes all of LAB
+    "video_k_start": _Rule("int", 0, 255, why=_COST), "video_k_min": _Rule("int", 0, 255, why=_COST),
+    "video_k_max": _Rule("int", 0, 255, why=_COST), "canny_low": _INT0, "canny_high": _INT0,
     "seed": _Rule("int", 0, 2**63 - 1),
     "hough_band": _Rule("int?", 0), "ransac_band": _Rule("int?", 0), "ransac_band_bushy": _Rule("int?", 0),
     "bushy_ratio": _F0, "horizon_angle": _F0, "min_angle_diff": _F0, "outlier_ratio": _F0,
