@@ -182,3 +182,21 @@ def test_subsample_hash_cli_is_a_one_line_error(tmp_path: Path, capsys) -> None:
         assert main(["detect", str(p), "--out", str(tmp_path / "r.jsonl"), "--param", f"subsample_hash={value}"]) == 2
         err = capsys.readouterr().err
         assert err.startswith("torchrow: error: Params.subsample_hash") and err.count("\n") == 1
+
+
+def test_header_size_matches_the_decoded_image(tmp_path: Path) -> None:
+    """The sequence size and the decode bound come from headers: EXIF rotation included."""
+    from PIL import Image
+
+    from torchrow.io import header_size
+
+    im = Image.fromarray(np.zeros((30, 50, 3), np.uint8))
+    exif = im.getexif()
+    exif[0x0112] = 6  # rotate 90: decoded 30 wide, 50 high
+    im.save(tmp_path / "rot.jpg", exif=exif)
+    w, h = header_size(tmp_path / "rot.jpg")
+    assert load_image(tmp_path / "rot.jpg").shape[:2] == (h, w) == (50, 30)
+    cv2.imwrite(str(tmp_path / "p.png"), np.zeros((7, 9, 3), np.uint8))
+    assert header_size(tmp_path / "p.png") == (9, 7)
+    (tmp_path / "junk.png").write_bytes(b"not an image")
+    assert header_size(tmp_path / "junk.png") is None

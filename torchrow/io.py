@@ -23,8 +23,9 @@ IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 
 #: Largest image file (W0 * H0 pixels, read from its header) that :func:`load_image` decodes:
 #: decoding allocates ``3 * W0 * H0`` bytes (twice, with the BGR->RGB copy) before any
-#: resizing, so this bounds the peak memory of loading (2 x 768 MiB) whatever the file's size.
-MAX_DECODE_PIXELS = 1 << 28
+#: resizing, so this bounds the peak memory of loading (2 x 384 MiB) whatever the file's size.
+#: (Below Pillow's own bound, ``2 * PIL.Image.MAX_IMAGE_PIXELS``, above which the header read fails.)
+MAX_DECODE_PIXELS = 1 << 27
 
 
 class ImageError(ValueError):
@@ -101,15 +102,25 @@ def resize_to_width(rgb: np.ndarray, width: int, max_pixels: int | None = None) 
 def header_size(path: str | Path) -> tuple[int, int] | None:
     """``(W0, H0)`` of an image file as :func:`load_image` decodes it (EXIF orientations 5-8
     swap the axes), read from its header with Pillow without decoding the pixels; ``None``
-    if Pillow cannot read the header (OpenCV then decides)."""
-    try:
-        from PIL import Image
+    if Pillow cannot read the header (OpenCV then decides).
 
-        with Image.open(path) as im:
-            w, h = im.size
-            if im.getexif().get(0x0112, 1) in (5, 6, 7, 8):
-                w, h = h, w
-            return w, h
+    Raises :class:`ImageError` for headers beyond Pillow's decompression-bomb bound
+    (``2 * PIL.Image.MAX_IMAGE_PIXELS``), which is above :data:`MAX_DECODE_PIXELS`."""
+    import warnings
+
+    from PIL import Image
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # only the size is read
+            with Image.open(path) as im:
+                w, h = im.size
+                # Pillow finds a PNG's EXIF only by decoding it: PNG orientation is not read
+                if im.format != "PNG" and im.getexif().get(0x0112, 1) in (5, 6, 7, 8):
+                    w, h = h, w
+                return w, h
+    except Image.DecompressionBombError as exc:  # above 2 * Image.MAX_IMAGE_PIXELS: far too large
+        raise ImageError(f"image too large to decode ({exc}): {path}") from None
     except Exception:  # not a format Pillow knows, or a damaged header
         return None
 
