@@ -128,7 +128,7 @@ def main() -> None:
             "| size | reference ms / image | tensor ms / image | ratio |", "|---|---|---|---|"]
     sizes = [(320, 240), (640, 480)] if args.quick else [(320, 240), (640, 480), (1280, 960)]
     for w, h in sizes:
-        p = Params(image_width=w)
+        p = Params(image_width=w, max_pixels=max(w * h, Params().max_pixels))  # 1280x960 is above the default bound
         fields = [render(FieldSpec(seed=s).at_size(w, h)).image for s in range(8)]
         d = CropRowDetector(p)
         d(to_batch(fields[:1]))

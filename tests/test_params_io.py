@@ -88,10 +88,7 @@ def test_derived_bands():
 @pytest.mark.parametrize("field,value", [
     ("n_rows", 0),
     ("n_rows", -3),
-    ("n_rows", 2.5),
-    ("n_rows", True),
     ("veg_tol", -1),
-    ("veg_tol", True),
     ("color_tol", -1),
     ("color_tol", float("nan")),
     ("color_tol", float("inf")),
@@ -103,12 +100,29 @@ def test_derived_bands():
     ("crda_sigma", 0.0),
     ("ransac_subsample", 701),
     ("hough_band", -1),
-    ("ransac_band", 2.5),
     ("sky_blur", (9,)),
     ("sky_erode", (0, 3)),
     ("video_k_start", 14),
     ("image_width", 0),
     ("seed", -1),
+    # issue 11: keys would tie (0, even) or overflow the 32-bit hash, and the paths disagreed
+    ("subsample_hash", 0),
+    ("subsample_hash", 2**32),
+    ("subsample_hash", 2**70),
+    ("subsample_hash", 2654435760),
+    # issue 11: parameters whose tensor-path cost explodes have a documented range
+    ("sky_median", 31),
+    ("sky_median", 255),
+    ("sky_blur", (1000, 1000)),
+    ("color_tol", 0.0),
+    ("image_width", 4000 + 97),
+    ("video_width", 10**6),
+    ("max_pixels", 0),
+    ("max_pixels", 1 << 30),
+    ("ransac_trials", 10**9),
+    ("n_colors", 10**9),
+    ("n_rows", 1000),
+    ("video_k_max", 10**9),
 ])
 def test_invalid_values_raise_naming_the_field(field, value):
     with pytest.raises(ValueError) as info:
@@ -116,6 +130,31 @@ def test_invalid_values_raise_naming_the_field(field, value):
     msg = str(info.value)
     assert field in msg
     assert "\n" not in msg
+
+
+@pytest.mark.parametrize("field,value", [
+    ("n_rows", 2.5),
+    ("n_rows", True),
+    ("veg_tol", True),
+    ("ransac_band", 2.5),
+    ("subsample_hash", 1.5),
+    ("subsample_hash", "x"),
+    ("color_tol", "6"),
+    ("sky_blur", 9),
+    ("sky_blur", (9, 3.0)),
+])
+def test_wrong_kinds_raise_type_error_naming_the_field(field, value):
+    with pytest.raises(TypeError) as info:
+        Params(**{field: value})
+    assert field in str(info.value) and "\n" not in str(info.value)
+
+
+def test_values_are_normalised_so_equal_params_hash_equal():
+    import numpy as np
+
+    p = Params(n_rows=np.int64(4), sky_blur=[9, 3], subsample_hash=np.uint32(2654435761))
+    assert type(p.n_rows) is int and p.sky_blur == (9, 3) and type(p.subsample_hash) is int
+    assert p == Params(n_rows=4) and hash(p) == hash(Params(n_rows=4))
 
 
 def test_replace_validates_and_copies():
@@ -136,7 +175,7 @@ def test_params_frozen_and_hashable():
 
 
 def test_valid_edge_values_are_accepted():
-    Params(veg_tol=0, bushy_ratio=0.0, color_tol=0.0, theta_step=180, n_rows=1, seed=2**63 - 1,
+    Params(veg_tol=0, bushy_ratio=0.0, color_tol=1.0, theta_step=180, sky_median=15, subsample_hash=1, n_rows=1, seed=2**63 - 1,
            ransac_subsample=700, video_k_min=4, video_k_start=4, video_k_max=4)
 
 

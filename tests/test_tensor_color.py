@@ -219,10 +219,11 @@ def test_greedy_chain_order_matters() -> None:
     check_image_equal(to_batch([img, img2]))
 
 
-def test_zero_tolerance_every_colour_its_own_cluster() -> None:
+def test_smallest_tolerance_every_colour_its_own_cluster() -> None:
+    """color_tol at its lower bound (1, Params): colours 60 apart never merge."""
     rng = np.random.default_rng(3)
     img = rng.integers(0, 4, (6, 6, 3), dtype=np.uint8) * 60
-    params = P.replace(color_tol=0.0, n_colors=100)
+    params = P.replace(color_tol=1.0, n_colors=100)
     dc = fc.distinct_colors(to_batch([img]))
     cl = fc.cluster_colors(*dc, params)
     n = int(dc.valid.sum())

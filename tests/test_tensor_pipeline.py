@@ -187,11 +187,14 @@ def test_given_vegetation_color_equals_reference(detector: CropRowDetector) -> N
     per_image = torch.tensor([color, (0, 255, 0)], dtype=torch.uint8)
     got = detector(to_batch(images), veg_color=per_image).results()
     assert_same(detect(images[1], veg_color=(0, 255, 0)), got[1], "per-image colour")
-    with pytest.raises(TypeError, match="uint8"):
-        detector(to_batch(images), veg_color=torch.tensor(color))
+    # one rule in both paths (issue 11): integers of any dtype, never floats, in [0, 255]
+    assert_same(detect(images[0], veg_color=color),
+                detector(to_batch(images), veg_color=torch.tensor(color)).results()[0], "int64 colour")
+    with pytest.raises(TypeError, match="veg_color"):
+        detector(to_batch(images), veg_color=torch.tensor(color, dtype=torch.float32))
     with pytest.raises(ValueError, match=r"\(3,\) or \(B, 3\)"):
         detector(to_batch(images), veg_color=torch.zeros(3, 3, dtype=torch.uint8))
-    with pytest.raises(ValueError, match="three integers"):
+    with pytest.raises(ValueError, match=r"\[0, 255\]"):
         detect(images[0], veg_color=(0, 300, 0))
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Sequence
@@ -46,19 +47,85 @@ def _parse_params(items: Sequence[str] | None) -> Params:
 
 
 def _collect_images(inputs: Sequence[str]) -> list[Path]:
+    """Image files of the inputs (folders: their images sorted by name), each file once."""
     paths: list[Path] = []
+    seen: set[str] = set()
     for raw in inputs:
         p = Path(raw)
         if p.is_dir():
             found = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_EXTENSIONS)
             if not found:
                 raise CLIError(f"no images ({', '.join(IMAGE_EXTENSIONS)}) in folder {p}")
-            paths.extend(found)
         elif p.is_file():
-            paths.append(p)
+            found = [p]
         else:
             raise CLIError(f"no such file or folder: {p}")
+        for q in found:  # the same file named twice (a.jpg and dir/ holding it) is one input
+            key = os.path.realpath(q)
+            if key not in seen:
+                seen.add(key)
+                paths.append(q)
     return paths
+
+
+def _record_names(paths: Sequence[Path]) -> list[str]:
+    """Record names: each file's path relative to the common folder of all inputs, ``/``-separated.
+
+    Unique per input (``s1/x.jpg``, ``s2/x.jpg``); for the files of one folder, or one
+    file, this is the file name, as before.
+    """
+    if not paths:
+        return []
+    absolute = [os.path.abspath(p) for p in paths]
+    root = os.path.commonpath([os.path.dirname(a) for a in absolute])
+    return [Path(os.path.relpath(a, root)).as_posix() for a in absolute]
+
+
+def _annotation_names(names: Sequence[str]) -> list[str]:
+    """Annotated-picture paths (relative to ``--annotate``) for record names: the name with
+    its suffix replaced by ``.png``; where two names would meet (``x.jpg``, ``x.png``), the
+    whole name plus ``.png`` (``x.jpg.png``, ``x.png.png``), so pictures never overwrite each other."""
+    stems = [Path(n).with_suffix(".png").as_posix() for n in names]
+    taken: dict[str, int] = {}
+    for s in stems:
+        taken[s] = taken.get(s, 0) + 1
+    return [s if taken[s] == 1 else n + ".png" for n, s in zip(names, stems)]
+
+
+def _check_targets(inputs: Sequence[Path], targets: Sequence[tuple[str, Path]]) -> None:
+    """Refuse output targets that are inputs or lie inside an input folder (``CLIError``).
+
+    Called at the start of a command, before any output is opened. ``inputs``: the files and
+    folders the command reads; ``targets``: ``(option, path)`` of everything it will write.
+    Paths are compared after resolving symbolic links, and existing files by identity
+    (device and inode), so a hard link or another spelling of an input is caught too.
+    """
+    def ident(p: Path) -> tuple[int, int] | None:
+        try:
+            st = p.stat()
+        except OSError:
+            return None
+        return st.st_dev, st.st_ino
+
+    files, folders = {}, []
+    for p in inputs:
+        real = Path(os.path.realpath(p))
+        if real.is_dir():
+            folders.append(real)
+        else:
+            files[real] = ident(real)
+    ids = {i for i in files.values() if i is not None}
+    written: dict[Path, str] = {}
+    for flag, target in targets:
+        real = Path(os.path.realpath(target))
+        if real in written and written[real] != flag:
+            raise CLIError(f"{written[real]} and {flag} are the same file {target}; give them different names")
+        written[real] = flag
+        if real in files or (real.is_file() and ident(real) in ids):
+            raise CLIError(f"{flag} {target} is an input; torchrow never writes over its inputs")
+        for f in folders:
+            if real == f or f in real.parents:
+                raise CLIError(f"{flag} {target} is inside the input folder {f}; write the output elsewhere")
 
 
 def _check_device(device: str | None) -> str | None:
@@ -145,7 +212,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
         info = model_info(model)
         params = info["params"]
         try:
-            first = load_image(paths[0], params.image_width)
+            first = load_image(paths[0], params.image_width, params.max_pixels)
         except Exception:  # an unreadable first file gets its error record later
             first = None
         if first is not None and first.shape[:2] != (info["height"], info["width"]):
@@ -153,28 +220,35 @@ def cmd_detect(args: argparse.Namespace) -> int:
                            f"{first.shape[1]}x{first.shape[0]} at working width {params.image_width} "
                            f"(export a model with --width {first.shape[1]} --height {first.shape[0]})")
     out = Path(args.out)
+    names = _record_names(paths)
     ann = Path(args.annotate) if args.annotate else None
+    ann_paths = [ann / n for n in _annotation_names(names)] if ann is not None else []
+    _check_targets([*map(Path, args.inputs), *paths, *([Path(model)] if model else [])],
+                   [("--out", out)] + ([("--annotate", ann)] if ann is not None else [])
+                   + [("--annotate", a) for a in ann_paths])
     sink = _open_sink(out, image_key, args.resume)
     if ann is not None:
         ann.mkdir(parents=True, exist_ok=True)
 
     def inputs():
-        """(name, loader, annotation stem, extra record keys); bag frames after the files."""
-        for p in paths:
-            yield p.name, functools.partial(load_image, p, params.image_width), p.stem, None
+        """(name, loader, annotated picture, extra record keys); bag frames after the files."""
+        for j, (p, name) in enumerate(zip(paths, names)):
+            yield (name, functools.partial(load_image, p, params.image_width, params.max_pixels),
+                   ann_paths[j] if ann is not None else None, None)
         for b in bags:
             for f in b.frames(params.image_width):
-                yield (f"{b.path.name}#{f.frame:06d}", f, f"{b.path.name}_{f.frame:06d}",
+                yield (f"{b.path.name}#{f.frame:06d}", f,
+                       ann / f"{b.path.name}_{f.frame:06d}.png" if ann is not None else None,
                        {"source": b.name, "frame": f.frame, "stamp_ns": f.stamp_ns})
 
-    meta: dict[int, tuple[str, dict | None]] = {}
+    meta: dict[int, tuple[Path | None, dict | None]] = {}
 
     def todo():
         k = 0
-        for name, loader, stem, extra in inputs():
+        for name, loader, picture, extra in inputs():
             if name in sink:  # --resume: already in --out
                 continue
-            meta[k] = (stem, extra)
+            meta[k] = (picture, extra)
             k += 1
             yield name, loader
 
@@ -192,14 +266,15 @@ def cmd_detect(args: argparse.Namespace) -> int:
     counts: dict[str, int] = {}
     with sink:
         for i, rgb, res, _ in stream:
-            stem, extra = meta.pop(i)
+            picture, extra = meta.pop(i)
             rec = res.to_record()
             if extra:
                 rec = {"name": rec.pop("name"), **extra, **rec}
             sink.write(rec)
             counts[res.status] = counts.get(res.status, 0) + 1
-            if ann is not None and rgb is not None:
-                save_rgb(ann / f"{stem}.png", draw_result(rgb, res))
+            if picture is not None and rgb is not None:
+                picture.parent.mkdir(parents=True, exist_ok=True)
+                save_rgb(picture, draw_result(rgb, res))
     summary = ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
     kept = f"; {len(sink.done)} kept from the earlier run" if args.resume else ""
     print(f"torchrow: {sink.written} image(s) -> {out} ({summary}){kept}", file=sys.stderr)
@@ -301,6 +376,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         raise CLIError("eval supports --impl tensor|reference; for ONNX use: torchrow detect --impl onnx --model M")
     _check_engine(args)
     crbd = _open_crbd(args.data)
+    if args.out:
+        _check_targets([Path(crbd.root)], [("--out", Path(args.out))])
     indices = list(range(len(crbd)))[:: args.every]
     if args.limit:
         indices = indices[: args.limit]
@@ -337,10 +414,15 @@ def cmd_score(args: argparse.Namespace) -> int:
     if not results.is_dir():
         raise CLIError(f"results folder not found: {results}")
     ext = args.ext if args.ext.startswith(".") else "." + args.ext
+    present = sum((results / f"{crbd[i].stem}{ext}").is_file() for i in range(len(crbd)))
+    if present == 0:
+        raise CLIError(f"no result files (<image name>{ext}) for the {len(crbd)} CRBD images in {results}")
     scores = score_tmg_files(crbd, results, ext, progress=not args.quiet)
+    missing = len(crbd) - present
+    note = f"; {missing} image(s) without a result file scored 0" if missing else ""
     for label, col in (("sigma 0.1", 1), ("sigma 0.3", 2)):
         s = summarize(np.array([r[col] for r in scores]))
-        print(f"CRDA {label}: mean {s['mean']:.3f}  median {s['median']:.3f}  (n={s['n']})")
+        print(f"CRDA {label}: mean {s['mean']:.3f}  median {s['median']:.3f}  (n={s['n']}{note})")
     return 0
 
 
@@ -398,11 +480,7 @@ class _Annotator:
         self.writers: dict[int, object] = {}
         self.size: dict[int, tuple[int, int]] = {}
         self.fps = fps
-        stems: list[str] = []
-        for i, s in enumerate(sources):
-            stem = s.path.stem or f"source{i}"
-            stems.append(stem if stem not in stems else f"{stem}_{i}")
-        self.stems = stems
+        self.stems = self._stems(sources)
         self.n = len(sources)
         if self.target is not None:
             folder = self.target.parent if self.is_video else self.target
@@ -415,6 +493,26 @@ class _Annotator:
         if self.n == 1:
             return self.target
         return self.target.with_name(f"{self.target.stem}_{self.stems[i]}{self.target.suffix}")
+
+    @classmethod
+    def targets(cls, target: str, sources: list) -> list[Path]:
+        """What ``--annotate target`` writes to, without creating anything: the folder of
+        PNGs, or the video file of every source."""
+        t = Path(target)
+        if t.suffix.lower() not in cls.VIDEO:
+            return [t]
+        probe = cls.__new__(cls)
+        probe.target, probe.n = t, len(sources)
+        probe.stems = cls._stems(sources)
+        return [probe._video_path(i) for i in range(len(sources))]
+
+    @staticmethod
+    def _stems(sources: list) -> list[str]:
+        stems: list[str] = []
+        for i, s in enumerate(sources):
+            stem = s.path.stem or f"source{i}"
+            stems.append(stem if stem not in stems else f"{stem}_{i}")
+        return stems
 
     def write(self, i: int, res, rgb) -> None:
         import cv2
@@ -448,6 +546,19 @@ class _Annotator:
             vw.release()
 
 
+def _check_plot(plot: Path) -> None:
+    """``--plot`` must name a format matplotlib writes (checked before the run, not after it)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    kinds = FigureCanvasAgg(Figure()).get_supported_filetypes()
+    if plot.suffix.lower().lstrip(".") not in kinds:
+        raise CLIError(f"--plot {plot}: matplotlib cannot write {plot.suffix or 'a file without a suffix'}; "
+                       f"use one of {', '.join('.' + k for k in sorted(kinds))}")
+    if not plot.parent.exists():
+        raise CLIError(f"folder of --plot does not exist: {plot.parent}")
+
+
 def cmd_video(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
@@ -467,6 +578,12 @@ def cmd_video(args: argparse.Namespace) -> int:
     plot = None if args.plot == "none" else Path(args.plot) if args.plot else out.with_suffix(".png")
     from .sink import frame_key, read_records
 
+    if plot is not None:
+        _check_plot(plot)
+    targets = [("--out", out)] + ([("--plot", plot)] if plot is not None else [])
+    if args.annotate:
+        targets += [("--annotate", t) for t in _Annotator.targets(args.annotate, sources)]
+    _check_targets([s.path for s in sources], targets)
     sink = _open_sink(out, frame_key, args.resume)
     ann = _Annotator(args.annotate, sources)
     names = [s.name for s in sources]

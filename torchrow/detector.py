@@ -24,8 +24,8 @@ from .functional import ransac as fransac
 from .functional import sky as fsky
 from .functional import vanishing as fvan
 from .functional import vegetation as fveg
-from .functional._checks import check_images
-from .io import load_image, resize_to_width, to_rgb8
+from .functional._checks import check_device, check_images
+from .io import check_color, check_working_size, load_image, resize_to_width, to_rgb8
 from .params import Params
 from .results import REASONS, STATUSES, HoughLine, ImageResult, Row
 
@@ -78,7 +78,12 @@ class BatchResult:
         return int(self.status.shape[0])
 
     def results(self, names: Sequence[str | None] | None = None) -> list[ImageResult]:
-        """Per-image records, equal to what :func:`torchrow.reference.detect` returns."""
+        """Per-image records, equal to what :func:`torchrow.reference.detect` returns.
+
+        ``names``: one per image (``ValueError`` otherwise), stored in the records.
+        """
+        if names is not None and len(names) != len(self):
+            raise ValueError(f"results: names must hold one name per image ({len(self)}), got {len(names)}")
         cpu = {k: (v.cpu() if isinstance(v, torch.Tensor) else v) for k, v in self.__dict__.items()}
         out = []
         for b in range(len(self)):
@@ -100,17 +105,15 @@ class BatchResult:
         return out
 
 
-def _color_override(color: torch.Tensor, batch: int, device: torch.device) -> torch.Tensor:
-    """Validate a given vegetation colour and broadcast it to ``uint8 (B, 3)``."""
-    if not isinstance(color, torch.Tensor):
-        color = torch.as_tensor(color)
-    if color.dtype != torch.uint8:
-        raise TypeError(f"veg_color must be uint8 RGB, got dtype {color.dtype}")
-    if color.shape == (3,):
-        color = color.expand(batch, 3)
-    if color.shape != (batch, 3):
-        raise ValueError(f"veg_color must have shape (3,) or (B, 3) = ({batch}, 3), got {tuple(color.shape)}")
-    return color.to(device).contiguous()
+def _color_override(color: object, batch: int, device: torch.device) -> torch.Tensor:
+    """Validate a given vegetation colour (:func:`torchrow.io.check_color`, the reference's
+    rule: integers in [0, 255], any integer dtype or a list) and broadcast it to ``uint8 (B, 3)``."""
+    a = check_color(color, batched=True)
+    if a.shape == (3,):
+        a = np.broadcast_to(a, (batch, 3))
+    if a.shape != (batch, 3):
+        raise ValueError(f"veg_color must have shape (3,) or (B, 3) = ({batch}, 3), got {a.shape}")
+    return torch.from_numpy(np.ascontiguousarray(a, dtype=np.uint8)).to(device)
 
 
 def _cat_results(parts: list[BatchResult]) -> BatchResult:
@@ -149,7 +152,7 @@ class CropRowDetector(nn.Module):
                  chunk: int | None = None, workers: int | None = None) -> None:
         super().__init__()
         self.params = params or Params()
-        self.device = torch.device(device) if device is not None else torch.device("cpu")
+        self.device = check_device(device)
         if chunk is not None and chunk < 1:
             raise ValueError(f"chunk must be None or >= 1, got {chunk}")
         if workers is not None and workers < 1:
@@ -172,7 +175,8 @@ class CropRowDetector(nn.Module):
 
         With ``profile=True`` the result's ``timings`` holds seconds per stage (this adds a
         device synchronisation after each stage, and runs the chunks one after the other).
-        ``veg_color`` (``uint8 (B, 3)`` or ``(3,)`` RGB) replaces section 2's per-image colour
+        ``veg_color`` (``(B, 3)`` or ``(3,)`` RGB integers in [0, 255]: a tensor of any
+        integer dtype, an array or a list) replaces section 2's per-image colour
         clustering, e.g. a colour calibrated once for a field, or the frame-0 colour of a
         video.
 
@@ -182,6 +186,7 @@ class CropRowDetector(nn.Module):
         flight, plus the LAB table pages touched (a shared read-only memory map).
         """
         check_images(images)
+        check_working_size(images.shape[3], images.shape[2], self.params.max_pixels)
         bsz = images.shape[0]
         color = None if veg_color is None else _color_override(veg_color, bsz, self.device)
         step = self.chunk or max(bsz, 1)
@@ -274,10 +279,10 @@ class CropRowDetector(nn.Module):
     def prepare(self, image: np.ndarray | str | Path) -> np.ndarray:
         """Section 0 for one input: load a path or convert an array, resize to the working width."""
         if isinstance(image, (str, Path)):
-            return load_image(image, self.params.image_width)
+            return load_image(image, self.params.image_width, self.params.max_pixels)
         if not isinstance(image, np.ndarray):
             raise TypeError(f"expected a path or a numpy array (H, W, 3), got {type(image).__name__}")
-        return resize_to_width(to_rgb8(image), self.params.image_width)
+        return resize_to_width(to_rgb8(image), self.params.image_width, self.params.max_pixels)
 
     def detect(self, images: torch.Tensor | Sequence[np.ndarray | str | Path]) -> BatchResult:
         """Detect rows in a ``uint8 (B, 3, H, W)`` tensor, or a list of same-sized arrays or paths.

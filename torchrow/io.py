@@ -10,19 +10,41 @@ Conversion rule for images that are not 8-bit RGB (documented in the README):
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-__all__ = ["ImageError", "IMAGE_EXTENSIONS", "to_rgb8", "resize_to_width", "load_image", "decode_image",
-           "working_size"]
+__all__ = ["ImageError", "IMAGE_EXTENSIONS", "MAX_DECODE_PIXELS", "to_rgb8", "resize_to_width", "load_image",
+           "decode_image", "working_size", "check_working_size", "check_color", "header_size"]
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 
 
+#: Largest image file (W0 * H0 pixels, read from its header) that :func:`load_image` decodes:
+#: decoding allocates ``3 * W0 * H0`` bytes (twice, with the BGR->RGB copy) before any
+#: resizing, so this bounds the peak memory of loading (2 x 384 MiB) whatever the file's size.
+#: (Below Pillow's own bound, ``2 * PIL.Image.MAX_IMAGE_PIXELS``, above which the header read fails.)
+MAX_DECODE_PIXELS = 1 << 27
+
+
 class ImageError(ValueError):
     """An input image that cannot be read or converted to 8-bit RGB."""
+
+
+def check_working_size(width: int, height: int, max_pixels: int | None) -> None:
+    """The working-size bound (ALGORITHM.md section 0, torchrow extension), one rule for both paths.
+
+    Raises
+    ------
+    ImageError
+        If ``width * height > max_pixels`` (``Params.max_pixels``; ``None``: no bound).
+    """
+    if max_pixels is not None and width * height > max_pixels:
+        raise ImageError(f"working size {width}x{height} ({width * height} px) exceeds Params.max_pixels = "
+                         f"{max_pixels} (ALGORITHM.md section 0: at width {width}, at most "
+                         f"{max_pixels // max(width, 1)} rows)")
 
 
 def to_rgb8(image: np.ndarray) -> np.ndarray:
@@ -50,47 +72,90 @@ def to_rgb8(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(a)
 
 
-def working_size(width0: int, height0: int, width: int) -> tuple[int, int]:
-    """Working ``(W, H)`` for an image of ``width0 x height0``: ``h = int(H0 * width / W0)``."""
+def working_size(width0: int, height0: int, width: int, max_pixels: int | None = None) -> tuple[int, int]:
+    """Working ``(W, H)`` for an image of ``width0 x height0``: ``h = int(H0 * width / W0)``.
+
+    Raises :class:`ImageError` if ``h < 1`` or ``W * H > max_pixels`` (:func:`check_working_size`).
+    """
     if width0 == width:
-        return width0, height0
-    h = int(height0 * width / width0)
-    if h < 1:
-        raise ImageError(f"image of {width0}x{height0} is too flat to resize to width {width}")
-    return width, h
+        w, h = width0, height0
+    else:
+        w, h = width, int(height0 * width / width0)
+        if h < 1:
+            raise ImageError(f"image of {width0}x{height0} is too flat to resize to width {width}")
+    check_working_size(w, h, max_pixels)
+    return w, h
 
 
-def resize_to_width(rgb: np.ndarray, width: int) -> np.ndarray:
-    """Resize to the working width keeping the aspect ratio (``cv2.INTER_AREA``)."""
+def resize_to_width(rgb: np.ndarray, width: int, max_pixels: int | None = None) -> np.ndarray:
+    """Resize to the working width keeping the aspect ratio (``cv2.INTER_AREA``).
+
+    ``max_pixels`` (``Params.max_pixels``) bounds the working size: larger raises
+    :class:`ImageError` before anything is allocated.
+    """
     h0, w0 = rgb.shape[:2]
-    w, h = working_size(w0, h0, width)
+    w, h = working_size(w0, h0, width, max_pixels)
     if (w, h) == (w0, h0):
         return rgb
     return cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
 
 
-def load_image(path: str | Path, width: int | None = None) -> np.ndarray:
+def header_size(path: str | Path | bytes, what: str | None = None) -> tuple[int, int] | None:
+    """``(W0, H0)`` of an image file as :func:`load_image` decodes it (EXIF orientations 5-8
+    swap the axes), read from its header with Pillow without decoding the pixels; ``None``
+    if Pillow cannot read the header (OpenCV then decides).
+
+    Raises :class:`ImageError` for headers beyond Pillow's decompression-bomb bound
+    (``2 * PIL.Image.MAX_IMAGE_PIXELS``), which is above :data:`MAX_DECODE_PIXELS`."""
+    import warnings
+
+    from PIL import Image
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # only the size is read
+            with Image.open(io.BytesIO(path) if isinstance(path, bytes) else path) as im:
+                w, h = im.size
+                # Pillow finds a PNG's EXIF only by decoding it: PNG orientation is not read
+                if im.format != "PNG" and im.getexif().get(0x0112, 1) in (5, 6, 7, 8):
+                    w, h = h, w
+                return w, h
+    except Image.DecompressionBombError as exc:  # above 2 * Image.MAX_IMAGE_PIXELS: far too large
+        raise ImageError(f"image too large to decode ({exc}): {what or path}") from None
+    except Exception:  # not a format Pillow knows, or a damaged header
+        return None
+
+
+def load_image(path: str | Path, width: int | None = None, max_pixels: int | None = None) -> np.ndarray:
     """Read an image file as ``uint8 (H, W, 3)`` RGB, resized to ``width`` if given.
+
+    ``max_pixels`` bounds the working size (:func:`check_working_size`, checked before the
+    resize allocates it); files of more than :data:`MAX_DECODE_PIXELS` pixels (by their
+    header, read with Pillow) are refused before decoding.
 
     Raises
     ------
     ImageError
-        If the file is missing, unreadable, truncated or of an unsupported pixel type.
+        If the file is missing, unreadable, truncated, of an unsupported pixel type, or
+        outside the bounds above.
     """
     p = Path(path)
     if not p.is_file():
         raise ImageError(f"no such file: {p}")
-    return decode_image(np.fromfile(p, dtype=np.uint8), width, what=str(p))
+    return decode_image(np.fromfile(p, dtype=np.uint8), width, max_pixels, what=str(p))
 
 
-def decode_image(data: bytes | np.ndarray, width: int | None = None, what: str = "image") -> np.ndarray:
-    """Decode an encoded image (JPEG, PNG, ... bytes) as :func:`load_image` decodes a file.
-
-    ``what`` names the input in error messages ("empty file: WHAT", "cannot decode image: WHAT").
-    """
+def decode_image(data: bytes | np.ndarray, width: int | None = None, max_pixels: int | None = None,
+                 what: str = "image") -> np.ndarray:
+    """Decode an encoded image (JPEG, PNG, ... bytes) exactly as :func:`load_image` decodes a
+    file with these bytes (same bounds, same errors). ``what`` names the input in messages."""
     buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data
     if buf.size == 0:
         raise ImageError(f"empty file: {what}")
+    size = header_size(buf.tobytes(), what)
+    if size is not None and size[0] * size[1] > MAX_DECODE_PIXELS:
+        raise ImageError(f"image of {size[0]}x{size[1]} pixels is larger than torchrow decodes "
+                         f"({MAX_DECODE_PIXELS} px): {what}")
     # ANYDEPTH|ANYCOLOR keeps 16-bit and grey data as they are and, unlike IMREAD_UNCHANGED,
     # applies the EXIF orientation as cv2.imread does; an alpha channel is dropped here.
     img = cv2.imdecode(buf, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
@@ -99,4 +164,38 @@ def decode_image(data: bytes | np.ndarray, width: int | None = None, what: str =
     if img.ndim == 3 and img.shape[2] == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
     rgb = to_rgb8(img)
-    return resize_to_width(rgb, width) if width is not None else rgb
+    return resize_to_width(rgb, width, max_pixels) if width is not None else rgb
+
+
+def check_color(color: object, name: str = "veg_color", batched: bool = False) -> np.ndarray:
+    """A given RGB colour, validated the same way by both paths: ``int64 (3,)`` (or ``(B, 3)``
+    when ``batched``) with every entry an integer in ``[0, 255]``.
+
+    Accepts a sequence, a numpy array or a torch tensor of integers (any integer dtype).
+
+    Raises
+    ------
+    TypeError
+        For non-integer entries (floats are not truncated, bools are not numbers).
+    ValueError
+        For a wrong shape or an entry outside ``[0, 255]``.
+    """
+    if hasattr(color, "detach") and hasattr(color, "cpu"):  # a torch tensor, without importing torch
+        color = color.detach().cpu().numpy()
+    try:  # sequences element by element (numpy would turn True into 1 and mix in floats)
+        a = color if isinstance(color, np.ndarray) else np.asarray(color, dtype=object)
+    except Exception as exc:  # ragged lists and the like
+        raise ValueError(f"{name} must be RGB integers in [0, 255], got {color!r} ({exc})") from None
+    if a.dtype == np.bool_ or not (np.issubdtype(a.dtype, np.integer) or a.dtype == object):
+        raise TypeError(f"{name} must be RGB integers in [0, 255], got dtype {a.dtype}: {color!r}")
+    if a.dtype == object:
+        if not all(isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_)) for v in a.flat):
+            raise TypeError(f"{name} must be RGB integers in [0, 255], got {color!r}")
+        a = a.astype(np.int64)
+    shapes = "(3,) or (B, 3)" if batched else "(3,)"
+    if not (a.shape == (3,) or (batched and a.ndim == 2 and a.shape[1] == 3)):
+        raise ValueError(f"{name} must have shape {shapes}, got {a.shape}")
+    a = a.astype(np.int64)
+    if a.size and (a.min() < 0 or a.max() > 255):
+        raise ValueError(f"{name} must be RGB integers in [0, 255], got {color!r}")
+    return a

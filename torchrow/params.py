@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from dataclasses import dataclass
+from typing import Callable
 
 __all__ = ["Params"]
 
@@ -23,10 +25,16 @@ class Params:
     Bands given as ``None`` are derived from the working width ``W`` as the table says:
     ``hough_band = int(W / 30)``, ``ransac_band = int(W / 20)`` (``int(W / 10)`` when bushy).
 
+    Every field is checked on construction by its rule in ``_RULES`` (below the class);
+    integral numbers become ``int`` and lists for ``(width, height)`` fields become tuples.
+
     Raises
     ------
+    TypeError
+        Naming the field, for a value of the wrong kind (a float or bool for an integer...).
     ValueError
-        On construction, naming the field, for values outside their meaningful range.
+        Naming the field, for a value outside its range (ALGORITHM.md section 0.1 for the
+        upper bounds that keep costs bounded).
     """
 
     # --- table of ALGORITHM.md -------------------------------------------------------
@@ -82,48 +90,16 @@ class Params:
     # --- section 7, RANSAC subsampling key ----------------------------------------------
     subsample_hash: int = 2654435761
 
-    def __post_init__(self) -> None:
-        def need(cond: bool, field: str, what: str) -> None:
-            if not cond:
-                raise ValueError(f"Params.{field} {what}; got {getattr(self, field)!r}")
+    # --- section 0, working-size bound (torchrow extension, ALGORITHM.md section 0) ----------
+    max_pixels: int = 1 << 19  # working W*H above this: status "error" (memory bound)
 
+    def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
-            if isinstance(v, bool):
-                raise ValueError(f"Params.{f.name} must be a number, not a bool; got {v!r}")
-        for name in ("n_rows", "hough_every", "n_colors", "ransac_trials", "image_width",
-                     "video_width", "theta_step", "sky_median", "sky_col_median",
-                     "ransac_subsample", "ransac_max_points", "max_outliers"):
-            v = getattr(self, name)
-            need(isinstance(v, int) and v >= 1, name, "must be an integer >= 1")
-        for name in ("veg_tol", "track_band", "ransac_min_points", "horizontal_excl", "angle_excl",
-                     "sky_lap_max", "sky_min_zero_row", "seed", "video_k_start", "video_k_min",
-                     "video_k_max", "canny_low", "canny_high"):
-            v = getattr(self, name)
-            need(isinstance(v, int) and v >= 0, name, "must be an integer >= 0")
-        for name in ("hough_band", "ransac_band", "ransac_band_bushy"):
-            v = getattr(self, name)
-            need(v is None or (isinstance(v, int) and v >= 0), name, "must be None or an integer >= 0")
-        for name in ("bushy_ratio", "crda_sigma", "horizon_angle", "min_angle_diff", "color_tol",
-                     "outlier_ratio", "outlier_min_px", "ransac_threshold", "singular_tol",
-                     "video_shrink_above", "video_grow_below"):
-            v = getattr(self, name)
-            need(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0, name,
-                 "must be a finite number >= 0")
-        need(self.crda_sigma > 0, "crda_sigma", "must be > 0")
-        need(self.ransac_threshold > 0, "ransac_threshold", "must be > 0")
-        need(180 % self.theta_step == 0, "theta_step", "must divide 180 degrees")
-        need(self.sky_median % 2 == 1, "sky_median", "must be odd (cv2.medianBlur)")
-        need(self.sky_col_median % 2 == 1, "sky_col_median", "must be odd (medfilt)")
-        need(self.ransac_subsample <= self.ransac_max_points, "ransac_subsample",
-             "must be <= ransac_max_points")
-        need(self.video_k_min <= self.video_k_start <= self.video_k_max, "video_k_start",
-             "must lie in [video_k_min, video_k_max]")
-        need(self.seed < 2**63, "seed", "must be < 2**63")
-        for name in ("sky_blur", "sky_erode", "bushy_erode"):
-            v = getattr(self, name)
-            need(isinstance(v, tuple) and len(v) == 2 and all(isinstance(e, int) and e >= 1 for e in v),
-                 name, "must be a (width, height) tuple of integers >= 1")
+            rule = _RULES[f.name]
+            object.__setattr__(self, f.name, rule.check(f.name, getattr(self, f.name)))
+        for field, ok, what in _CROSS_RULES:
+            if not ok(self):
+                raise ValueError(f"Params.{field} {what}; got {getattr(self, field)!r}")
 
     # --- derived quantities -------------------------------------------------------------
     @property
@@ -144,3 +120,108 @@ class Params:
     def replace(self, **changes: object) -> "Params":
         """A copy with some fields changed (validated like a new object)."""
         return dataclasses.replace(self, **changes)
+
+
+# --- validation: one rule per field ---------------------------------------------------------
+@dataclass(frozen=True)
+class _Rule:
+    """How one field is checked: ``kind`` (``int``, ``int?`` = int or None, ``float``, ``pair``
+    = ``(width, height)`` of ints), inclusive bounds ``lo``/``hi`` (``None``: unbounded; for a
+    pair they bound each entry) and an optional extra condition with its wording.
+
+    A value of the wrong kind raises ``TypeError``; a value of the right kind outside the
+    rule raises ``ValueError``; both name the field. Integral numbers (``numpy.int64``) become
+    ``int``, a list for a pair becomes a tuple, so equal parameters compare and hash equal.
+    """
+
+    kind: str
+    lo: float | None = None
+    hi: float | None = None
+    extra: "tuple[Callable[[object], bool], str] | None" = None
+    why: str = ""  # reason for an upper bound, quoted in the error
+
+    def _bounds(self) -> str:
+        def f(b: float) -> str:
+            return f"{b:d}" if isinstance(b, int) else f"{b:g}"
+
+        if self.lo is not None and self.hi is not None:
+            return f"in [{f(self.lo)}, {f(self.hi)}]"
+        return f">= {f(self.lo)}" if self.lo is not None else f"<= {f(self.hi)}"  # type: ignore[arg-type]
+
+    def _number(self, field: str, v: object, integral: bool) -> object:
+        what = "an integer" if integral else "a finite number"
+        if isinstance(v, bool) or not isinstance(v, numbers.Integral if integral else numbers.Real):
+            raise TypeError(f"Params.{field} must be {what}, not {type(v).__name__}; got {v!r}")
+        v = int(v) if integral else v
+        if not integral and not math.isfinite(v):  # type: ignore[arg-type]
+            raise ValueError(f"Params.{field} must be {what} {self._bounds()}; got {v!r}")
+        if (self.lo is not None and v < self.lo) or (self.hi is not None and v > self.hi):  # type: ignore[operator]
+            why = f" ({self.why})" if self.why and self.hi is not None and v > self.hi else ""  # type: ignore[operator]
+            raise ValueError(f"Params.{field} must be {what} {self._bounds()}{why}; got {v!r}")
+        return v
+
+    def check(self, field: str, v: object) -> object:
+        if self.kind == "int?" and v is None:
+            return v
+        if self.kind == "pair":
+            if not isinstance(v, (tuple, list)):
+                raise TypeError(f"Params.{field} must be a (width, height) tuple of integers, "
+                                f"not {type(v).__name__}; got {v!r}")
+            if len(v) != 2:
+                raise ValueError(f"Params.{field} must be a (width, height) tuple of 2 integers; got {v!r}")
+            v = tuple(self._number(f"{field}[{i}]", e, True) for i, e in enumerate(v))
+        else:
+            v = self._number(field, v, self.kind != "float")
+        if self.extra is not None and not self.extra[0](v):
+            raise ValueError(f"Params.{field} {self.extra[1]}; got {v!r}")
+        return v
+
+
+def _odd(v: object) -> bool:
+    return int(v) % 2 == 1  # type: ignore[call-overload]
+
+
+_INT1, _INT0, _F0 = _Rule("int", 1), _Rule("int", 0), _Rule("float", 0)
+_COST = "the tensor path's cost grows with it; ALGORITHM.md 0.1"
+
+#: Every field's rule. Upper bounds exist where the tensor path's cost grows with the value
+#: faster than the reference's (ALGORITHM.md section 0, "Bounds"); defaults are far inside.
+_RULES: dict[str, _Rule] = {
+    # shapes of the padded tensors and static loop bounds grow with these (max_steps ~ n_rows**2)
+    "n_rows": _Rule("int", 1, 64, why=_COST), "max_outliers": _Rule("int", 1, 64, why=_COST),
+    "n_colors": _Rule("int", 1, 1024, why=_COST),
+    "ransac_trials": _Rule("int", 1, 100_000, why="the hypothesis table holds 16 bytes per trial"),
+    "hough_every": _INT1,
+    "theta_step": _Rule("int", 1, 180, (lambda v: 180 % v == 0, "must divide 180 degrees")),
+    "ransac_subsample": _INT1, "ransac_max_points": _INT1,
+    "image_width": _Rule("int", 1, 4096, why=_COST), "video_width": _Rule("int", 1, 4096, why=_COST),
+    "sky_median": _Rule("int", 1, 15, (_odd, "must be odd (cv2.medianBlur)"),
+                        why="the exact median network's cost explodes above 15"),
+    "sky_col_median": _Rule("int", 1, 255, (_odd, "must be odd (medfilt)"), why=_COST),
+    "veg_tol": _INT0, "track_band": _INT0, "ransac_min_points": _INT0, "horizontal_excl": _INT0,
+    "angle_excl": _INT0, "sky_lap_max": _INT0, "sky_min_zero_row": _INT0,
+    # adaptive k evaluates every k in [video_k_min, video_k_max]; 255 already boxes all of LAB
+    "video_k_start": _Rule("int", 0, 255, why=_COST), "video_k_min": _Rule("int", 0, 255, why=_COST),
+    "video_k_max": _Rule("int", 0, 255, why=_COST), "canny_low": _INT0, "canny_high": _INT0,
+    "seed": _Rule("int", 0, 2**63 - 1),
+    "hough_band": _Rule("int?", 0), "ransac_band": _Rule("int?", 0), "ransac_band_bushy": _Rule("int?", 0),
+    "bushy_ratio": _F0, "horizon_angle": _F0, "min_angle_diff": _F0, "outlier_ratio": _F0,
+    "outlier_min_px": _F0, "singular_tol": _F0, "video_shrink_above": _F0, "video_grow_below": _F0,
+    # below ~1 LAB unit (the spacing of 8-bit colours) clusters degenerate to single colours
+    # and section 2 loops once per distinct colour of the image
+    "color_tol": _Rule("float", 1.0),
+    "crda_sigma": _Rule("float", 0, extra=(lambda v: v > 0, "must be > 0")),  # type: ignore[operator]
+    "ransac_threshold": _Rule("float", 0, extra=(lambda v: v > 0, "must be > 0")),  # type: ignore[operator]
+    "sky_blur": _Rule("pair", 1, 64, why="cv2.blur's division table has 255*w*h entries"),
+    "sky_erode": _Rule("pair", 1, 255, why=_COST), "bushy_erode": _Rule("pair", 1, 255, why=_COST),
+    # odd: x -> x*mult mod 2**32 is then a bijection, so subsampling keys never tie (section 7.2)
+    "subsample_hash": _Rule("int", 1, 2**32 - 1, (_odd, "must be odd (distinct subsampling keys)")),
+    "max_pixels": _Rule("int", 1, 1 << 22, why="peak memory is about 2.5 KB per working pixel"),
+}
+
+#: Rules that tie fields together: (field named in the error, condition, wording).
+_CROSS_RULES: tuple[tuple[str, Callable[[Params], bool], str], ...] = (
+    ("ransac_subsample", lambda p: p.ransac_subsample <= p.ransac_max_points, "must be <= ransac_max_points"),
+    ("video_k_start", lambda p: p.video_k_min <= p.video_k_start <= p.video_k_max,
+     "must lie in [video_k_min, video_k_max]"),
+)

@@ -30,7 +30,7 @@ from .params import Params
 from .results import ImageResult
 from .steering import FrameResult
 
-__all__ = ["IMPLS", "run", "default_window", "track", "track_batches", "first_size"]
+__all__ = ["IMPLS", "run", "default_window", "track", "track_batches", "source_size"]
 
 IMPLS = ("tensor", "reference", "onnx")
 
@@ -128,7 +128,7 @@ def _run_tensor(items, params, batch_size, window, device, bar, det=None):
         try:
             results = det(batch).results([names[i] for i in idx])
         except Exception as exc:  # keep the run alive; every image of the batch gets the error
-            results = [ImageResult.failed(names[i], f"{type(exc).__name__}: {exc}") for i in idx]
+            results = [ImageResult.failed(names[i], f"{type(exc).__name__}: {exc}", key[1], key[0]) for i in idx]
         dt = (time.perf_counter() - t0) / len(idx)
         for i, res in zip(idx, results):
             done[i] = (rgbs.pop(i), res, dt)
@@ -164,12 +164,16 @@ def _run_tensor(items, params, batch_size, window, device, bar, det=None):
     assert next_out == n and not done
 
 
-def first_size(src, width: int) -> tuple[int, int] | None:
-    """Working (H, W) of a source's first readable frame (None if none is readable)."""
+def source_size(src, params: Params) -> tuple[int, int] | None:
+    """A sequence's working ``(H, W)``: :meth:`torchrow.video.FrameSource.working_size` (the
+    size most of its frames have) where the source has one, else that of its first readable
+    frame; ``None`` if no frame is readable."""
     from .video import load_item
 
+    if hasattr(src, "working_size"):
+        return src.working_size(params.video_width, params.max_pixels)
     for item in src:
-        got = load_item(item, width)
+        got = load_item(item, params.video_width, params.max_pixels)
         if got.rgb is not None:
             return got.rgb.shape[:2]
     return None
@@ -206,21 +210,24 @@ def track(sources: Sequence, names: Sequence[str], impl: str = "tensor", params:
 
         ref = RefTracker(params, hfov_deg=hfov_deg)
         for b in range(len(sources)):
-            for res, rgb in ref.track_iter(tapped(b), names[b]):
+            for res, rgb in ref.track_iter(tapped(b), names[b], source_size(sources[b], params)):
                 yield b, stamped(b, res), rgb
         return
     from .tracker import Tracker
 
     tracker = Tracker(params, device=device, hfov_deg=hfov_deg, workers=workers)
-    for batch in track_batches(sources, impl, params, batch_size):
-        for k, res, rgb in tracker.track_iter([tapped(b) for b in batch], [names[b] for b in batch]):
+    sizes: dict[int, tuple[int, int] | None] = {}
+    for batch in track_batches(sources, impl, params, batch_size, sizes):
+        for k, res, rgb in tracker.track_iter([tapped(b) for b in batch], [names[b] for b in batch],
+                                              sizes[batch[0]]):
             yield batch[k], stamped(batch[k], res), rgb
 
 
 def track_batches(sources: Sequence, impl: str = "tensor", params: Params | None = None,
-                  batch_size: int = 8) -> list[list[int]]:
-    """The batches :func:`track` runs: source indices grouped by the working size of their
-    first readable frame, in runs of up to ``batch_size`` (one source each for the reference).
+                  batch_size: int = 8, sizes: dict | None = None) -> list[list[int]]:
+    """The batches :func:`track` runs: source indices grouped by their working size
+    (:func:`source_size`, stored into ``sizes`` if given), in runs of up to ``batch_size``
+    (one source each for the reference).
 
     The Ray engine sends each batch to one task, with the same ``workers``: the tensor
     tracker's float64 reductions run over the sequences of a worker's group, and a row can
@@ -232,5 +239,8 @@ def track_batches(sources: Sequence, impl: str = "tensor", params: Params | None
         return [[b] for b in range(len(sources))]
     groups: dict[object, list[int]] = {}
     for b, s in enumerate(sources):  # one working size per batch
-        groups.setdefault(first_size(s, params.video_width), []).append(b)
+        size = source_size(s, params)
+        if sizes is not None:
+            sizes[b] = size
+        groups.setdefault(size, []).append(b)
     return [g[j:j + batch_size] for g in groups.values() for j in range(0, len(g), batch_size)]

@@ -9,7 +9,8 @@ discrete output. Three quantities are therefore computed exactly once, here:
   input tensor (SIMD tails and BLAS blocking; measured: 6 of ~90k random colours differ by
   1 ulp between layouts), so two calls on differently shaped inputs would not agree. The
   table is built in canonical slabs (one ``(1, 3, 256, 256)`` call per red value), cached on
-  disk (about 400 MB, ``TORCHROW_CACHE`` or ``~/.cache/torchrow``) and memory-mapped;
+  disk (about 400 MB, ``TORCHROW_CACHE`` or ``~/.cache/torchrow``), verified by a CRC-32
+  recorded beside it, and memory-mapped;
 * the Hough angle cosines and sines ``numpy.cos/sin(numpy.deg2rad(j))`` (section 5);
 * the RANSAC hypothesis table ``numpy.random.default_rng(seed).random((trials, 2))``
   (section 7).
@@ -18,9 +19,12 @@ discrete output. Three quantities are therefore computed exactly once, here:
 from __future__ import annotations
 
 import functools
+import json
 import os
 import sys
 import tempfile
+import warnings
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +32,7 @@ import numpy as np
 from .params import Params
 
 __all__ = [
+    "CacheWarning",
     "lab_table",
     "lab_table_torch",
     "rgb_to_lab",
@@ -74,33 +79,128 @@ def _build_lab_table(out: np.ndarray) -> None:
             out[r << 16:(r + 1) << 16] = lab.reshape(3, -1).T.numpy()
 
 
+class CacheWarning(UserWarning):
+    """The on-disk LAB table was damaged (and is rebuilt) or cannot be written (built in memory)."""
+
+
+def _check_path(path: Path) -> Path:
+    """The verification record beside the table: ``<table>.check`` (JSON)."""
+    return path.with_name(path.name + ".check")
+
+
+def _crc32(path: Path) -> int:
+    """CRC-32 of a whole file, read in 16 MiB blocks (bounded memory, ~0.4 s for the table)."""
+    crc = 0
+    with open(path, "rb") as fh:
+        while block := fh.read(1 << 24):
+            crc = zlib.crc32(block, crc)
+    return crc
+
+
+def _stamp(path: Path) -> dict:
+    st = path.stat()
+    return {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "inode": st.st_ino}
+
+
+def _write_atomic(path: Path, write) -> None:
+    """``write(file)`` into a temporary file beside ``path``, then rename it over ``path``
+    (mode 0644: the cache is meant to be shared). The temporary file never outlives a failure."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            write(fh)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def _record_check(path: Path, crc: int) -> None:
+    record = {"crc32": crc, **_stamp(path)}
+    _write_atomic(_check_path(path), lambda fh: fh.write(json.dumps(record).encode()))
+
+
+def _damage(path: Path) -> str | None:
+    """Why the cached table at ``path`` cannot be used (``None``: it is sound).
+
+    Cheap when nothing changed: the size, modification time and inode recorded beside the
+    table at its last verification are compared with the file's. Otherwise the file's CRC-32
+    is recomputed (0.4 s) and compared with the recorded one, and the new stamp is recorded.
+    """
+    try:
+        record = json.loads(_check_path(path).read_text())
+        crc, size = int(record["crc32"]), int(record["size"])
+    except FileNotFoundError:
+        return f"no verification record {_check_path(path).name} beside it"
+    except (OSError, ValueError, KeyError, TypeError):
+        return f"its verification record {_check_path(path).name} is unreadable"
+    stamp = _stamp(path)
+    if stamp["size"] != size:
+        return f"it has {stamp['size']} bytes, {size} expected"
+    if stamp == {k: record.get(k) for k in stamp}:
+        return None
+    if _crc32(path) != crc:
+        return "its checksum does not match"
+    try:
+        _record_check(path, crc)  # verified: the next load is cheap again
+    except OSError:
+        pass
+    return None
+
+
+def _open_cached(path: Path) -> tuple[np.ndarray | None, str | None]:
+    """The verified memory-mapped table, or ``(None, why it is unusable)`` (``why`` is
+    ``None`` when there is no file at all)."""
+    if not path.exists():
+        return None, None
+    try:
+        why = _damage(path)
+        if why is None:
+            table = np.load(path, mmap_mode="r")
+            if table.shape == (_N_COLORS, 3) and table.dtype == np.float64:
+                return table, None
+            why = f"it holds {table.dtype} {table.shape}, float64 ({_N_COLORS}, 3) expected"
+    except Exception as exc:  # empty or truncated file, bad header: all mean "rebuild"
+        why = f"{type(exc).__name__}: {exc}"
+    return None, why
+
+
 @functools.lru_cache(maxsize=1)
 def lab_table() -> np.ndarray:
     """LAB of every 8-bit sRGB colour, ``(2**24, 3)`` float64, index ``(R<<16)|(G<<8)|B``.
 
-    Read-only memory map of the on-disk cache (built on first use, ~10 s on 2 cores). If
-    the cache directory cannot be written, the table is built in memory for this process.
+    Read-only memory map of the on-disk cache (``TORCHROW_CACHE`` or ``~/.cache/torchrow``),
+    verified against the CRC-32 recorded beside it (:func:`_damage`). A missing or damaged
+    table is built (~10 s on 2 cores; one line on stderr says so and where) and written
+    atomically with mode 0644; a damaged one is reported by a one-line :class:`CacheWarning`.
+    If the folder cannot be written, one :class:`CacheWarning` says so and the table lives
+    in memory for this process (400 MB).
     """
     path = _cache_dir() / _table_name()
-    if path.is_file():
-        try:
-            table = np.load(path, mmap_mode="r")
-            if table.shape == (_N_COLORS, 3) and table.dtype == np.float64:
-                return table
-        except (OSError, ValueError):
-            pass
+    table, why = _open_cached(path)
+    if table is not None:
+        return table
+    if why is not None:
+        warnings.warn(f"torchrow: the cached LAB table {path} cannot be used ({why}); rebuilding it",
+                      CacheWarning, stacklevel=2)
+    print(f"torchrow: building the shared LAB table (once, about 10 s): {path}", file=sys.stderr)
     table = np.empty((_N_COLORS, 3), dtype=np.float64)
     _build_lab_table(table)
+    table.setflags(write=False)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npy.tmp")
-        with os.fdopen(fd, "wb") as fh:
-            np.save(fh, table)
-        os.replace(tmp, path)
-    except OSError:
-        pass
-    table.setflags(write=False)
-    return table
+        _write_atomic(path, lambda fh: np.save(fh, table))
+        _record_check(path, _crc32(path))
+    except OSError as exc:
+        warnings.warn(f"torchrow: cannot write the LAB table to {path.parent} ({exc}); it is kept in memory "
+                      "for this process only (set TORCHROW_CACHE to a writable folder)", CacheWarning, stacklevel=2)
+        return table
+    mapped, _ = _open_cached(path)
+    return mapped if mapped is not None else table
 
 
 _TORCH_TABLES: dict = {}

@@ -20,14 +20,18 @@ from torch import nn
 
 from .detector import BatchResult
 from .functional import tracker as ftrack
-from .functional._checks import check_images
+from .functional._checks import check_device, check_images
 from .functional.tracker import TrackerState, TrackStep
-from .io import load_image, resize_to_width, to_rgb8
+from .io import check_working_size, load_image, resize_to_width, to_rgb8
 from .params import Params
 from .steering import FrameResult
 from .video import load_item
 
 __all__ = ["Tracker", "TrackerState", "TrackStep"]
+
+#: Attribute of a state returned by :meth:`Tracker.forward`: the ``(H, W)`` working size its
+#: sequences were started at (not a tensor field: the exported graph's state has no size).
+_SIZE = "_working_size"
 
 
 class Tracker(nn.Module):
@@ -64,7 +68,7 @@ class Tracker(nn.Module):
                  hfov_deg: float | None = None, chunk: int = 8, workers: int | None = None) -> None:
         super().__init__()
         self.params = params or Params()
-        self.device = torch.device(device) if device is not None else torch.device("cpu")
+        self.device = check_device(device)
         self.hfov_deg = hfov_deg
         if chunk < 1:
             raise ValueError(f"chunk must be >= 1, got {chunk}")
@@ -97,8 +101,16 @@ class Tracker(nn.Module):
         Returns
         -------
         (TrackStep, TrackerState)
+            The new state remembers the working size; a later call with frames of another
+            size raises ``ValueError`` (as :meth:`torchrow.reference.Tracker.step`): the
+            sky row and rows of the state belong to that size.
         """
         check_images(frames, "frames")
+        h, w = frames.shape[2], frames.shape[3]
+        check_working_size(w, h, self.params.max_pixels)
+        size = getattr(state, _SIZE, None)
+        if size is not None and size != (h, w):
+            raise ValueError(f"frame of working size {w}x{h} in a sequence of {size[1]}x{size[0]}")
         x = frames.to(self.device)
         bsz = x.shape[0]
         if state is None:
@@ -108,7 +120,10 @@ class Tracker(nn.Module):
         act = torch.ones(bsz, dtype=torch.bool, device=self.device) if active is None else active.to(self.device)
         state = self._start(x, state, act)
         veg, k, bushy = self._segment(x, state.sky, state.veg_color, state.info0)
-        return self._advance(veg, k, bushy, act, state)
+        stepped, new = self._advance(veg, k, bushy, act, state)
+        if bool(new.ready.any()):
+            setattr(new, _SIZE, (h, w))
+        return stepped, new
 
     # -- sequences in groups on worker threads (CPU) ---------------------------------------
     def _groups(self, batch: int) -> list[slice]:
@@ -213,8 +228,8 @@ class Tracker(nn.Module):
     def prepare(self, frame: np.ndarray | str | Path) -> np.ndarray:
         """Load a path or convert an array; resize to ``params.video_width``."""
         if isinstance(frame, (str, Path)):
-            return load_image(frame, self.params.video_width)
-        return resize_to_width(to_rgb8(frame), self.params.video_width)
+            return load_image(frame, self.params.video_width, self.params.max_pixels)
+        return resize_to_width(to_rgb8(frame), self.params.video_width, self.params.max_pixels)
 
     def step(self, frames: Sequence[np.ndarray] | torch.Tensor, state: TrackerState | None = None,
              names: Sequence[str | None] | None = None) -> tuple[list[FrameResult], TrackerState]:
@@ -234,8 +249,8 @@ class Tracker(nn.Module):
         res = self.results(stepped, new, x.shape[3], x.shape[2], names)
         return [r for r in res if r is not None], new
 
-    def track_iter(self, sequences: Sequence[Iterable[object]], sources: Sequence[str | None] | None = None
-                   ) -> Iterator[tuple[int, FrameResult, np.ndarray | None]]:
+    def track_iter(self, sequences: Sequence[Iterable[object]], sources: Sequence[str | None] | None = None,
+                   size: tuple[int, int] | None = None) -> Iterator[tuple[int, FrameResult, np.ndarray | None]]:
         """Track ``B`` sequences in lock-step, lazily.
 
         Parameters
@@ -245,13 +260,17 @@ class Tracker(nn.Module):
             :mod:`torchrow.video`); lengths may differ.
         sources : sequence of str, optional
             Sequence names stored in the records.
+        size : (int, int), optional
+            Working ``(H, W)`` of the batch (e.g. the sequences'
+            :meth:`torchrow.video.FrameSource.working_size`); default: the first loaded
+            frame's.
 
         Yields
         ------
         (sequence index, FrameResult, working RGB or None)
             In lock-step order: frame ``t`` of every sequence before frame ``t + 1``. Every
             item gets a record: unreadable frames, and frames whose working size differs from
-            the batch's (the first loaded frame's), get ``error`` records and are skipped.
+            the batch's, get ``error`` records and are skipped.
         """
         p = self.params
         bsz = len(sequences)
@@ -260,7 +279,6 @@ class Tracker(nn.Module):
         next_index = [0] * bsz
         state = TrackerState.empty(bsz, p, self.device)
         ready = [False] * bsz
-        size: tuple[int, int] | None = None
         srcs = list(sources) if sources is not None else [None] * bsz
         while any(alive):
             # pull up to `chunk` items of every sequence
@@ -272,7 +290,7 @@ class Tracker(nn.Module):
                     except StopIteration:
                         alive[b] = False
                         break
-                    fr = load_item(item, p.video_width)
+                    fr = load_item(item, p.video_width, p.max_pixels)
                     if fr.rgb is not None:
                         if size is None:
                             size = fr.rgb.shape[:2]

@@ -14,7 +14,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from .io import IMAGE_EXTENSIONS, ImageError, load_image, resize_to_width, to_rgb8
+from .io import IMAGE_EXTENSIONS, ImageError, header_size, load_image, resize_to_width, to_rgb8, working_size
 
 __all__ = ["LoadedFrame", "load_item", "VIDEO_EXTENSIONS", "FrameSource", "open_source"]
 
@@ -30,8 +30,11 @@ class LoadedFrame:
     error: str | None = None
 
 
-def load_item(item: object, width: int) -> LoadedFrame:
-    """Load and resize one sequence item (module docstring) to the working ``width``."""
+def load_item(item: object, width: int, max_pixels: int | None = None) -> LoadedFrame:
+    """Load and resize one sequence item (module docstring) to the working ``width``.
+
+    A frame whose working size exceeds ``max_pixels`` (``Params.max_pixels``) is unreadable.
+    """
     name = None
     if isinstance(item, tuple) and len(item) == 2 and (item[0] is None or isinstance(item[0], str)):
         name, item = item
@@ -41,7 +44,7 @@ def load_item(item: object, width: int) -> LoadedFrame:
         frame = item() if callable(item) else item
         if not isinstance(frame, np.ndarray):
             raise ImageError(f"expected a numpy array (H, W, 3), got {type(frame).__name__}")
-        return LoadedFrame(name, resize_to_width(to_rgb8(frame), width))
+        return LoadedFrame(name, resize_to_width(to_rgb8(frame), width, max_pixels))
     except (ImageError, OSError) as exc:
         return LoadedFrame(name, None, str(exc))
 
@@ -64,11 +67,20 @@ class FrameSource:
         return str(self.path)
 
     def __iter__(self) -> Iterator[tuple[str, Callable[[], np.ndarray]]]:
+        """Items of every frame. A video is read to its real end: a frame that does not
+        decode (OpenCV goes on with the next one) is an item that raises :class:`ImageError`,
+        and reading stops only after the container's frame count (``length``) when a read
+        fails; with an unknown count (0), at the first failed read."""
         if self.kind == "folder":
             for f in self.files:
                 yield f.name, (lambda f=f: load_image(f))
             return
         import cv2
+
+        def unreadable(i: int) -> Callable[[], np.ndarray]:
+            def fail() -> np.ndarray:
+                raise ImageError(f"frame {i} of {self.path} cannot be decoded")
+            return fail
 
         cap = cv2.VideoCapture(str(self.path))
         try:
@@ -76,12 +88,43 @@ class FrameSource:
             while True:
                 ok, bgr = cap.read()
                 if not ok:
-                    break
-                rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-                yield f"{i:06d}", (lambda rgb=rgb: rgb)
+                    if i >= self.length:
+                        break
+                    yield f"{i:06d}", unreadable(i)
+                else:
+                    rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+                    yield f"{i:06d}", (lambda rgb=rgb: rgb)
                 i += 1
         finally:
             cap.release()
+
+    def working_size(self, width: int, max_pixels: int | None = None) -> tuple[int, int] | None:
+        """The sequence's working ``(H, W)``: the one most of its frames have (ties: the
+        earliest), so one odd frame, even frame 0, cannot make every other frame an error.
+
+        Folders: from the files' headers (Pillow, EXIF rotation applied), decoding only the
+        files whose header cannot be read; videos: the first readable frame (all frames of a
+        video have one size). ``None`` if no frame is readable.
+        """
+        counts: dict[tuple[int, int], int] = {}
+        if self.kind == "folder":
+            for f in self.files:
+                try:
+                    size0 = header_size(f)
+                    if size0 is None:
+                        h0, w0 = load_image(f).shape[:2]
+                    else:
+                        w0, h0 = size0
+                    w, h = working_size(w0, h0, width, max_pixels)
+                except (ImageError, OSError):
+                    continue
+                counts[(h, w)] = counts.get((h, w), 0) + 1
+        else:
+            for item in self:
+                got = load_item(item, width, max_pixels)
+                if got.rgb is not None:
+                    return got.rgb.shape[:2]
+        return max(counts, key=lambda s: counts[s]) if counts else None  # first of the most common
 
 
 def open_source(path: str | Path, topic: str | None = None):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["check_images", "check_masks", "check_rows"]
+__all__ = ["check_images", "check_masks", "check_rows", "check_device"]
 
 
 def check_images(images: torch.Tensor, name: str = "images") -> None:
@@ -29,3 +29,27 @@ def check_rows(sky: torch.Tensor, batch: int, name: str = "sky") -> None:
     if not isinstance(sky, torch.Tensor) or sky.shape != (batch,) or sky.dtype.is_floating_point:
         got = f"{sky.dtype} {tuple(sky.shape)}" if isinstance(sky, torch.Tensor) else type(sky).__name__
         raise ValueError(f"{name}: expected an integer tensor of shape ({batch},), got {got}")
+
+
+def check_device(device: "str | torch.device | None", name: str = "device") -> torch.device:
+    """``device`` as a ``torch.device`` that exists here (default CPU), else ``ValueError``.
+
+    Checked when a module is built, so that a missing CUDA device is one clear error and not
+    a failure deep inside the first batch.
+    """
+    if device is None:
+        return torch.device("cpu")
+    if not isinstance(device, (str, torch.device)):
+        raise TypeError(f"{name}: expected a str or torch.device, got {type(device).__name__}")
+    try:
+        dev = torch.device(device)
+    except RuntimeError as exc:
+        raise ValueError(f"{name}: not a torch device: {device!r} ({exc})") from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"{name}: {device!r} asked for, but torch sees no CUDA device here")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"{name}: {device!r} asked for, but torch sees {torch.cuda.device_count()} CUDA device(s)")
+    elif dev.type == "mps" and not (hasattr(torch.backends, "mps") and torch.backends.mps.is_available()):
+        raise ValueError(f"{name}: {device!r} asked for, but MPS is not available here")
+    return dev

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..io import resize_to_width, to_rgb8
+from ..io import check_color, resize_to_width, to_rgb8
 from ..params import Params
 from ..results import ImageResult
 from .color import vegetation_color
@@ -24,11 +24,12 @@ def prepare(image: np.ndarray, params: Params) -> np.ndarray:
     TypeError
         If ``image`` is not a numpy array.
     ImageError
-        (a ``ValueError``) if it is empty or not convertible to ``uint8 (H, W, 3)``.
+        (a ``ValueError``) if it is empty, not convertible to ``uint8 (H, W, 3)``, or its
+        working size exceeds ``params.max_pixels`` (:func:`torchrow.io.check_working_size`).
     """
     if not isinstance(image, np.ndarray):
         raise TypeError(f"detect expects a numpy array of shape (H, W, 3), got {type(image).__name__}")
-    return resize_to_width(to_rgb8(image), params.image_width)
+    return resize_to_width(to_rgb8(image), params.image_width, params.max_pixels)
 
 
 def detect(image: np.ndarray, params: Params | None = None, name: str | None = None,
@@ -46,7 +47,8 @@ def detect(image: np.ndarray, params: Params | None = None, name: str | None = N
         Stored in the result (e.g. the file name).
     veg_color : (int, int, int), optional
         RGB vegetation colour to use instead of section 2's clustering (a colour calibrated
-        once for a field, or a video's frame-0 colour).
+        once for a field, or a video's frame-0 colour): integers in [0, 255], checked by
+        :func:`torchrow.io.check_color` as in the tensor path (floats raise ``TypeError``).
 
     Returns
     -------
@@ -60,9 +62,7 @@ def detect(image: np.ndarray, params: Params | None = None, name: str | None = N
     if veg_color is None:
         color, _ = vegetation_color(rgb, params)
     else:
-        color = tuple(int(c) for c in veg_color)
-        if len(color) != 3 or not all(0 <= c <= 255 for c in color):
-            raise ValueError(f"veg_color must be three integers in [0, 255], got {veg_color!r}")
+        color = tuple(int(c) for c in check_color(veg_color))
     k = params.veg_tol
     veg = remove_bushy(raw_mask(rgb, color, k, sky), sky, params)
     res = ImageResult(width=w, height=h, status="no_vp", sky=sky, veg_color=color, k=k, name=name)

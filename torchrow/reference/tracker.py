@@ -18,6 +18,9 @@ Rules (the spec's, plus the choices it leaves open, marked *choice*):
   untouched; it does not count towards K (K counts the frames the tracker processed, so the
   schedule is the same as if the bad frame had been cut out of the video). If frame 0 is
   unreadable, the first readable frame becomes frame 0.
+* *choice*: a frame whose working size differs from the sequence's is unreadable in that
+  sense. The sequence's size is given to :meth:`Tracker.track_iter` (the CLI gives the size
+  most frames have, :meth:`torchrow.video.FrameSource.working_size`) or is frame 0's.
 * *choice*: tracked frames carry all rows of the previous frame (it was ``ok``, so all of
   them are valid); ``n_rows`` of a tracked frame is their number.
 
@@ -110,7 +113,7 @@ class Tracker:
         """Convert to ``uint8 (H, W, 3)`` RGB and resize to ``params.video_width``."""
         if not isinstance(frame, np.ndarray):
             raise TypeError(f"expected a numpy array (H, W, 3), got {type(frame).__name__}")
-        return resize_to_width(to_rgb8(frame), self.params.video_width)
+        return resize_to_width(to_rgb8(frame), self.params.video_width, self.params.max_pixels)
 
     def init(self, rgb: np.ndarray) -> TrackerState:
         """State from frame 0 (a working-size RGB image): sky, colour, info0."""
@@ -210,19 +213,25 @@ class Tracker:
         return res
 
     # -- whole sequences --------------------------------------------------------------------
-    def track_iter(self, items: Iterable[object], source: str | None = None
-                   ) -> Iterator[tuple[FrameResult, np.ndarray | None]]:
+    def track_iter(self, items: Iterable[object], source: str | None = None,
+                   size: tuple[int, int] | None = None) -> Iterator[tuple[FrameResult, np.ndarray | None]]:
         """Track one sequence lazily: yields ``(result, working RGB or None)`` per item.
 
         Items are frames or ``(name, frame)`` (:mod:`torchrow.video`); unreadable frames,
-        and frames whose working size differs from frame 0's, get ``error`` records.
+        and frames whose working size differs from the sequence's, get ``error`` records.
+        The sequence's working ``size`` ``(H, W)`` is given (e.g.
+        :meth:`torchrow.video.FrameSource.working_size`, the size most frames have) or, by
+        default, that of the first readable frame; frame 0 is the first readable frame of it.
         """
         state: TrackerState | None = None
         for i, item in enumerate(items):
-            got = load_item(item, self.params.video_width)
-            if got.rgb is not None and state is not None and got.rgb.shape[:2] != (state.height, state.width):
+            got = load_item(item, self.params.video_width, self.params.max_pixels)
+            if got.rgb is not None and size is None:
+                size = got.rgb.shape[:2]
+            if got.rgb is not None and got.rgb.shape[:2] != size:
+                assert size is not None
                 got.error = (f"frame of working size {got.rgb.shape[1]}x{got.rgb.shape[0]} in a sequence of "
-                             f"{state.width}x{state.height}")
+                             f"{size[1]}x{size[0]}")
                 got.rgb = None
             if got.rgb is None:
                 yield FrameResult.failed_frame(source, i, got.name, got.error or "unreadable frame"), None
