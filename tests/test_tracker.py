@@ -217,7 +217,7 @@ def test_cli_video_folder_and_file(tmp_path, moving) -> None:
     vw.release()
     out = tmp_path / "res.jsonl"
     ann = tmp_path / "ann"
-    rc = main(["video", str(folder), str(video), "--out", str(out), "--annotate", str(ann), "--every", "3",
+    rc = main(["video", str(folder), str(video), "--out", str(out), "--annotate", str(ann), "--hough-every", "3",
                "--fov", "70", "--param", "video_width=320", "-q"])
     assert rc == 0
     recs = [json.loads(line) for line in out.read_text().splitlines()]
@@ -236,7 +236,7 @@ def test_cli_video_folder_and_file(tmp_path, moving) -> None:
     assert len(list(ann.glob("*.png"))) == 10  # every frame; the unreadable one as an error picture
     # the reference implementation writes the same records
     out2 = tmp_path / "ref.jsonl"
-    assert main(["video", str(folder), "--out", str(out2), "--impl", "reference", "--every", "3",
+    assert main(["video", str(folder), "--out", str(out2), "--impl", "reference", "--hough-every", "3",
                  "--fov", "70", "--param", "video_width=320", "-q"]) == 0
     ref = [json.loads(line) for line in out2.read_text().splitlines()]
     assert [(r["status"], r["hough_ran"], r["k"]) for r in ref] == [(r["status"], r["hough_ran"], r["k"]) for r in a]
@@ -259,8 +259,8 @@ def test_cli_video_bad_inputs(tmp_path, capsys) -> None:
     bad.write_bytes(b"junk")
     assert main(["video", str(bad), "--out", str(tmp_path / "o.jsonl")]) == 2
     assert "cannot open video" in capsys.readouterr().err
-    assert main(["video", str(tmp_path), "--out", str(tmp_path / "o.jsonl"), "--every", "0"]) == 2
-    assert "--every must be >= 1" in capsys.readouterr().err
+    assert main(["video", str(tmp_path), "--out", str(tmp_path / "o.jsonl"), "--hough-every", "0"]) == 2
+    assert "--hough-every must be >= 1" in capsys.readouterr().err
     assert main(["video", str(tmp_path / "empty"), "--out", str(tmp_path / "o.jsonl"), "--fov", "200"]) == 2
 
 

@@ -31,7 +31,8 @@ def _parse_params(items: Sequence[str] | None) -> Params:
     for item in items or []:
         name, sep, raw = item.partition("=")
         if not sep or name not in fields:
-            raise CLIError(f"--param expects NAME=VALUE with NAME one of Params' fields; got {item!r}")
+            what = "expects NAME=VALUE" if not sep else f"has no field {name!r}"
+            raise CLIError(f"--param {what} (got {item!r}); valid names: {', '.join(sorted(fields))}")
         try:
             value = json.loads(raw)
         except json.JSONDecodeError:
@@ -202,7 +203,9 @@ def _open_crbd(data: str | None):
     try:
         return CRBD(data)
     except FileNotFoundError as exc:
-        raise CLIError(str(exc).splitlines()[0]) from None
+        if data is None:
+            raise CLIError("no CRBD data: pass --data CRBD_DIR or set TORCHROW_DATA") from None
+        raise CLIError(f"{str(exc).splitlines()[0]} (--data {data})") from None
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
@@ -218,9 +221,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         indices = indices[: args.limit]
     report = evaluate(crbd, indices, args.impl, params, args.batch_size, device, progress=not args.quiet)
     print(report.format_summary())
-    if args.out:
-        for p in report.write(Path(args.out)):
-            print(f"wrote {p}", file=sys.stderr)
+    for p in report.write(Path(args.out)):
+        print(f"wrote {p}", file=sys.stderr)
     return 0
 
 
@@ -294,16 +296,19 @@ def _first_size(src, width: int) -> tuple[int, int] | None:
 
 
 class _Annotator:
-    """Writes annotated frames: one video per source (``OUT.mp4``) or PNGs in a folder."""
+    """Writes annotated frames: one video per source (``OUT.mp4``: H.264; ``OUT.avi``: MJPG) or
+    PNGs in a folder. A video's frame rate is ``fps`` if given, else its source's (a video file's
+    own rate; ``DEFAULT_FPS`` for a folder of frames)."""
 
     VIDEO = (".mp4", ".avi", ".mov", ".mkv", ".m4v")
+    DEFAULT_FPS = 10.0
 
-    def __init__(self, target: str | None, sources: list, fps: float = 10.0) -> None:
+    def __init__(self, target: str | None, sources: list, fps: float | None = None) -> None:
         self.target = Path(target) if target else None
         self.is_video = self.target is not None and self.target.suffix.lower() in self.VIDEO
         self.writers: dict[int, object] = {}
         self.size: dict[int, tuple[int, int]] = {}
-        self.fps = fps
+        self.fps = [fps or getattr(s, "fps", None) or self.DEFAULT_FPS for s in sources]
         stems: list[str] = []
         for i, s in enumerate(sources):
             stem = s.path.stem or f"source{i}"
@@ -323,35 +328,28 @@ class _Annotator:
         return self.target.with_name(f"{self.target.stem}_{self.stems[i]}{self.target.suffix}")
 
     def write(self, i: int, res, rgb) -> None:
-        import cv2
-
         from .annotate import save_rgb
-        from .video import draw_frame, error_frame
+        from .video import VideoWriter, draw_frame, error_frame
 
         if self.target is None:
             return
         if rgb is not None:
             img = draw_frame(rgb, res)
-            self.size.setdefault(i, (rgb.shape[1], rgb.shape[0]))
-        elif i in self.size:
-            img = error_frame(*self.size[i], f"frame {res.frame}: {res.error}")
+            self.size.setdefault(i, (img.shape[1], img.shape[0]))
+        elif i in self.size:  # same size as the drawn frames, so that a video keeps its timing
+            img = error_frame(*self.size[i], f"frame {res.frame}: {res.error}", scale=1)
         else:
             return
         if not self.is_video:
             save_rgb(self.target / f"{self.stems[i]}_{res.frame:05d}.png", img)
             return
         if i not in self.writers:
-            path = self._video_path(i)
-            fourcc = cv2.VideoWriter_fourcc(*("mp4v" if path.suffix.lower() in (".mp4", ".m4v", ".mov") else "MJPG"))
-            vw = cv2.VideoWriter(str(path), fourcc, self.fps, (img.shape[1], img.shape[0]))
-            if not vw.isOpened():
-                raise CLIError(f"cannot write video {path}")
-            self.writers[i] = vw
-        self.writers[i].write(cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+            self.writers[i] = VideoWriter(self._video_path(i), self.fps[i])
+        self.writers[i].write(img)  # type: ignore[attr-defined]
 
     def close(self) -> None:
         for vw in self.writers.values():
-            vw.release()
+            vw.close()  # type: ignore[attr-defined]
 
 
 def cmd_video(args: argparse.Namespace) -> int:
@@ -362,7 +360,7 @@ def cmd_video(args: argparse.Namespace) -> int:
     params = _parse_params(args.param)
     if args.hough_every is not None:
         if args.hough_every < 1:
-            raise CLIError(f"--every must be >= 1, got {args.hough_every}")
+            raise CLIError(f"--hough-every must be >= 1, got {args.hough_every}")
         params = params.replace(hough_every=args.hough_every)
     if args.fov is not None and not 0 < args.fov < 180:
         raise CLIError(f"--fov must lie in (0, 180) degrees, got {args.fov}")
@@ -372,7 +370,9 @@ def cmd_video(args: argparse.Namespace) -> int:
     if out.parent and not out.parent.exists():
         raise CLIError(f"output folder does not exist: {out.parent}")
     plot = Path(args.plot) if args.plot else out.with_suffix(".png")
-    ann = _Annotator(args.annotate, sources)
+    if args.fps is not None and not args.fps > 0:
+        raise CLIError(f"--fps must be > 0, got {args.fps}")
+    ann = _Annotator(args.annotate, sources, args.fps)
     names = [s.name for s in sources]
     if args.impl == "reference":
         from .reference import Tracker as RefTracker
@@ -450,8 +450,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="batched tensor path (default), the per-image reference, or an exported ONNX "
                             "model in onnxruntime (--model)")
         p.add_argument("--model", help="ONNX file for --impl onnx (torchrow export onnx)")
-        p.add_argument("--batch-size", type=int, default=64, help="images per batch for --impl tensor")
-        p.add_argument("--device", default=None, help="torch device for --impl tensor (cpu, cuda, cuda:1)")
+        p.add_argument("--batch-size", type=int, default=64, help="images per batch for --impl tensor (default 64)")
+        p.add_argument("--device", default=None,
+                       help="torch device for --impl tensor (cpu, cuda, cuda:1; default cpu)")
 
     p = sub.add_parser("detect", help="detect rows in images, write one JSON record per file")
     p.add_argument("inputs", nargs="+", metavar="IMAGE_OR_DIR")
@@ -463,9 +464,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("eval", help="run on CRBD and report CRDA (official and thesis variant)")
     p.add_argument("--data", help="CRBD folder (or a folder holding crbd/); default $TORCHROW_DATA")
-    p.add_argument("--out", help="folder for scores.csv, detections.jsonl, summary.json, crda_histogram.png")
-    p.add_argument("--every", type=int, default=1, help="use every N-th image (default 1)")
-    p.add_argument("--limit", type=int, default=0, help="at most this many images")
+    p.add_argument("--out", default="torchrow-eval",
+                   help="folder for scores.csv, detections.jsonl, summary.json, crda_histogram.png "
+                        "(default torchrow-eval)")
+    p.add_argument("--every", type=int, default=1, help="use every N-th image (default 1: all)")
+    p.add_argument("--limit", type=int, default=0, help="at most this many images (default 0: no limit)")
     impl(p)
     common(p)
     p.set_defaults(func=cmd_eval)
@@ -484,15 +487,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("sources", nargs="+", metavar="SOURCE", help="folder of frames or video file")
     p.add_argument("--out", required=True, help="JSONL output file (plot next to it, .png)")
     p.add_argument("--annotate", metavar="OUT.mp4|DIR", help="annotated video (per source) or folder of PNGs")
-    p.add_argument("--every", dest="hough_every", type=int, default=None, metavar="K",
-                   help="run the Hough stage every K frames (default: Params.hough_every = 5)")
+    p.add_argument("--hough-every", dest="hough_every", type=int, default=None, metavar="K",
+                   help="run the Hough stage every K frames (default: Params.hough_every, 5)")
+    p.add_argument("--fps", type=float, default=None,
+                   help="frame rate of an annotated video (default: the source's; 10 for a folder of frames)")
     p.add_argument("--fov", type=float, default=None, metavar="DEG",
                    help="horizontal field of view of the frames, for heading_rad (null without it)")
     p.add_argument("--plot", default=None, help="plot file (default: --out with suffix .png)")
     p.add_argument("--impl", choices=("tensor", "reference"), default="tensor",
                    help="batched tensor tracker (default) or the per-sequence reference")
-    p.add_argument("--batch-size", type=int, default=8, help="sequences per batch for --impl tensor")
-    p.add_argument("--device", default=None, help="torch device for --impl tensor (cpu, cuda, cuda:1)")
+    p.add_argument("--batch-size", type=int, default=8, help="sequences per batch for --impl tensor (default 8)")
+    p.add_argument("--device", default=None,
+                   help="torch device for --impl tensor (cpu, cuda, cuda:1; default cpu)")
     common(p)
     p.set_defaults(func=cmd_video)
 
