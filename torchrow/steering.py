@@ -168,7 +168,7 @@ class FrameResult(ImageResult):
         """``torchrow detect``'s record keys plus ``source``, ``frame``, ``hough_ran``,
         ``hough_redo``, ``confidence``, ``heading_px``, ``heading_rad``, ``lateral_px``,
         ``lateral_frac`` (``None`` -> JSON null)."""
-        rec = {"source": self.source, "frame": int(self.frame)}
+        rec: dict[str, Any] = {"source": self.source, "frame": int(self.frame)}
         rec.update(super().to_record())
 
         def num(v: float | None) -> float | None:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -133,8 +133,8 @@ class VideoWriter:
         self.path = Path(path)
         self.fps = float(fps)
         self._h264 = self.path.suffix.lower() in self.H264
-        self._out = None
-        self._stream = None
+        self._out: Any = None  # av.OutputContainer or cv2.VideoWriter
+        self._stream: Any = None
         self._size: tuple[int, int] | None = None
 
     def _open(self, height: int, width: int) -> None:
@@ -163,13 +163,14 @@ class VideoWriter:
         """Append one frame (``(H, W, 3)`` uint8 RGB, the size of the first frame)."""
         if self._size is None:
             self._open(*rgb.shape[:2])
-        if rgb.shape[:2] != self._size:
-            raise ValueError(f"frame of size {rgb.shape[1]}x{rgb.shape[0]} in a video of "
-                             f"{self._size[1]}x{self._size[0]}")
+        size = self._size
+        assert size is not None
+        if rgb.shape[:2] != size:
+            raise ValueError(f"frame of size {rgb.shape[1]}x{rgb.shape[0]} in a video of {size[1]}x{size[0]}")
         if self._h264:
             import av
 
-            h, w = self._size
+            h, w = rgb.shape[:2]
             if h % 2 or w % 2:
                 rgb = np.pad(rgb, ((0, h % 2), (0, w % 2), (0, 0)))
             frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")
@@ -230,8 +231,9 @@ def central_jumps(records: list[dict]) -> dict[str, list[float]]:
             continue
         _, c, x = min(valid_p)
         if not cur.get("hough_ran"):
-            if c < len(cb) and cb[c] is not None:
-                out["tracked"].append(abs(cb[c] - x))
+            xc = cb[c] if c < len(cb) else None
+            if xc is not None:
+                out["tracked"].append(abs(xc - x))
         else:
             out["hough"].append(min(abs(v - x) for v in valid_c))
     return out

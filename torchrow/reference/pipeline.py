@@ -60,7 +60,7 @@ def detect(image: np.ndarray, params: Params | None = None, name: str | None = N
     if veg_color is None:
         color, _ = vegetation_color(rgb, params)
     else:
-        color = tuple(int(c) for c in veg_color)
+        color = tuple(int(c) for c in veg_color)  # type: ignore[assignment]  # length checked next
         if len(color) != 3 or not all(0 <= c <= 255 for c in color):
             raise ValueError(f"veg_color must be three integers in [0, 255], got {veg_color!r}")
     k = params.veg_tol
