@@ -102,3 +102,23 @@ def test_eval_without_out_leaves_its_report(crbd_dir, monkeypatch, tmp_path: Pat
     assert main(["eval", "--data", str(crbd_dir), "--every", "140", "-q", "--impl", "reference"]) == 0
     assert (tmp_path / "torchrow-eval" / "summary.json").is_file()
     assert "torchrow-eval" in capsys.readouterr().err
+
+
+def test_progress_plain_lines_when_not_a_terminal():
+    import io
+
+    from torchrow.progress import PlainProgress, progress
+
+    buf = io.StringIO()  # not a terminal
+    bar = progress(100, "detect", unit="image", file=buf)
+    assert isinstance(bar, PlainProgress)
+    with bar:
+        for _ in range(100):
+            bar.update(1)
+    text = buf.getvalue()
+    assert "\r" not in text and text.count("\n") <= 12
+    assert text.splitlines()[0] == "detect: started, 100 image(s)" and "100/100" in text.splitlines()[-1]
+    silent = io.StringIO()
+    with progress(10, "x", enabled=False, file=silent) as s:
+        s.update(10)
+    assert silent.getvalue() == ""

@@ -353,8 +353,7 @@ class _Annotator:
 
 
 def cmd_video(args: argparse.Namespace) -> int:
-    from tqdm.auto import tqdm
-
+    from .progress import progress
     from .video import central_jumps, plot_tracks
 
     params = _parse_params(args.param)
@@ -397,7 +396,7 @@ def cmd_video(args: argparse.Namespace) -> int:
     by_source: dict[str, list[dict]] = {n: [] for n in names}
     counts: dict[str, int] = {}
     total = sum(s.length for s in sources)
-    bar = tqdm(total=total, desc="video", file=sys.stderr, disable=args.quiet, unit="frame")
+    bar = progress(total, "video", enabled=not args.quiet, unit="frame")
     try:
         with open(out, "w") as fh:
             for run in runs:

@@ -10,7 +10,6 @@ yields an ``error`` result and the run goes on.
 
 from __future__ import annotations
 
-import sys
 import time
 from typing import Callable, Iterator, Sequence
 
@@ -28,9 +27,9 @@ Loader = Callable[[], np.ndarray]
 
 
 def _progress(total: int, desc: str, enabled: bool):
-    from tqdm.auto import tqdm
+    from .progress import progress
 
-    return tqdm(total=total, desc=desc, file=sys.stderr, disable=not enabled, unit="img")
+    return progress(total, desc, enabled, unit="image")
 
 
 def _load(name: str, loader: Loader) -> tuple[np.ndarray | None, ImageResult | None]:
