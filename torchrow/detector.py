@@ -110,7 +110,7 @@ def _color_override(color: torch.Tensor, batch: int, device: torch.device) -> to
         color = color.expand(batch, 3)
     if color.shape != (batch, 3):
         raise ValueError(f"veg_color must have shape (3,) or (B, 3) = ({batch}, 3), got {tuple(color.shape)}")
-    return color.to(device).contiguous()
+    return color.to(device, copy=True).contiguous()  # the result never aliases the caller's tensor
 
 
 def _cat_results(parts: list[BatchResult]) -> BatchResult:
