@@ -25,9 +25,8 @@ import time
 from functools import partial
 from pathlib import Path
 
-from _common import append_results, data_root  # type: ignore[import-not-found]
-
 import torch
+from _common import append_results, data_root  # type: ignore[import-not-found]
 
 from torchrow import Params
 from torchrow.datasets import CRBD

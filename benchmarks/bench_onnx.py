@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
 from _common import append_results, data_root  # type: ignore[import-not-found]
 
 from torchrow import Params

@@ -18,7 +18,6 @@ import time
 from pathlib import Path
 
 import torch
-
 from _common import append_results, data_root  # type: ignore[import-not-found]
 
 import torchrow

@@ -17,7 +17,6 @@ import statistics as st
 import time
 
 import numpy as np
-
 from _common import append_results, data_root  # type: ignore[import-not-found]
 
 from torchrow import ImageResult, Params, Row

@@ -18,7 +18,6 @@ import argparse
 import time
 
 import torch
-
 from _common import append_results, data_root  # type: ignore[import-not-found]
 
 import torchrow

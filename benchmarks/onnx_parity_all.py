@@ -11,11 +11,14 @@ import time
 
 import numpy as np
 import torch
+
 sys.path.insert(0, 'tests')
 from test_export import _same  # noqa: E402
+
 from torchrow.datasets import CRBD  # noqa: E402
 from torchrow.detector import CropRowDetector  # noqa: E402
 from torchrow.export import OnnxDetector  # noqa: E402
+
 ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 ap.add_argument("model")
 ap.add_argument("--data", default=None)

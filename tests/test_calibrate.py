@@ -7,8 +7,7 @@ import pytest
 import torch
 
 from torchrow import Params
-from torchrow.calibrate import (band_loss, compare_colors, fit_vegetation_color, load_training_set,
-                                mask_precision, row_band_target)
+from torchrow.calibrate import band_loss, compare_colors, fit_vegetation_color, load_training_set, mask_precision, row_band_target
 from torchrow.datasets import GroundTruth
 from torchrow.synthetic import FieldSpec, render
 

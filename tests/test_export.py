@@ -21,11 +21,13 @@ pytest.importorskip("onnxruntime")
 pytest.importorskip("onnx")
 pytest.importorskip("onnxscript")
 
+from onnx_models import ALLOWED_OPS  # noqa: E402
+from onnx_models import exported as _exported
+
 from torchrow import Params  # noqa: E402
 from torchrow.cli import main  # noqa: E402
 from torchrow.detector import CropRowDetector  # noqa: E402
 from torchrow.export import FORBIDDEN_OPS, OnnxDetector, model_info, op_counts, to_onnx  # noqa: E402
-from onnx_models import ALLOWED_OPS, exported as _exported  # noqa: E402
 
 SMALL = Params(n_rows=3, max_outliers=2)
 BATCH = 2

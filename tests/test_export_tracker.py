@@ -20,16 +20,16 @@ pytest.importorskip("onnxruntime")
 pytest.importorskip("onnx")
 pytest.importorskip("onnxscript")
 
+from onnx_models import ALLOWED_OPS, exported  # noqa: E402
+
 import torchrow  # noqa: E402
 from torchrow import Params  # noqa: E402
 from torchrow.cli import main  # noqa: E402
-from torchrow.export import (FORBIDDEN_OPS, OnnxDetector, OnnxTracker, model_info, op_counts,  # noqa: E402
-                             step_differences, to_onnx)
+from torchrow.export import FORBIDDEN_OPS, OnnxDetector, OnnxTracker, model_info, op_counts, step_differences, to_onnx  # noqa: E402
 from torchrow.functional.static import TRACKER_INPUTS, TRACKER_OUTPUTS  # noqa: E402
 from torchrow.functional.tracker import TrackerState  # noqa: E402
 from torchrow.io import resize_to_width  # noqa: E402
 from torchrow.synthetic import FieldSpec, sequence  # noqa: E402
-from onnx_models import ALLOWED_OPS, exported  # noqa: E402
 
 SMALL = Params(n_rows=3, max_outliers=2, video_width=160)
 BATCH = 2

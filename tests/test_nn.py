@@ -14,8 +14,15 @@ from torch.func import functional_call
 from torchrow import Params
 from torchrow.functional import hough as fhough
 from torchrow.functional import vanishing as fvan
-from torchrow.nn import (HoughVoting, SoftVegetationMask, WeightedVanishingPoint, hough_voting,
-                         soft_lab_box, soft_vegetation_mask, weighted_vanishing_point)
+from torchrow.nn import (
+    HoughVoting,
+    SoftVegetationMask,
+    WeightedVanishingPoint,
+    hough_voting,
+    soft_lab_box,
+    soft_vegetation_mask,
+    weighted_vanishing_point,
+)
 from torchrow.reference.vegetation import raw_mask as ref_raw_mask
 from torchrow.shared import hough_theta, rgb_to_lab
 

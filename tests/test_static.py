@@ -15,19 +15,18 @@ import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from test_tensor_lines import _adversarial_masks
 
 import torchrow
 from torchrow import Params
+from torchrow.export import step_differences
 from torchrow.functional import hough as fhough
 from torchrow.functional import ransac as fransac
-from torchrow.functional import vegetation as fveg
 from torchrow.functional import static
+from torchrow.functional import vegetation as fveg
 from torchrow.functional.tracker import TrackerState
-from torchrow.export import step_differences
 from torchrow.shared import lab_table_torch, pack_rgb
 from torchrow.synthetic import FieldSpec, sequence
-
-from test_tensor_lines import _adversarial_masks
 
 P = Params()
 

@@ -11,8 +11,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from torchrow.synthetic import (FieldSpec, SyntheticField, demo_field, render, render_batch,
-                                save, sequence, write_crp)
+from torchrow.synthetic import FieldSpec, SyntheticField, demo_field, render, render_batch, save, sequence, write_crp
 
 CLEAN = dict(weeds=0.0, shadows=0.0, plant_density=1.0)
 

@@ -346,18 +346,6 @@ def test_empty_batch() -> None:
     assert fc.VegetationColor(P)(empty).shape == (0, 3)
 
 
-def test_input_not_modified() -> None:
-    rng = np.random.default_rng(2)
-    batch = to_batch([rng.integers(0, 4, (6, 5, 3), dtype=np.uint8) * 70 for _ in range(3)])
-    before = batch.clone()
-    dc = fc.distinct_colors(batch)
-    codes, counts, valid = (t.clone() for t in dc)
-    fc.vegetation_clusters(batch, P)
-    fc.cluster_colors(*dc, P)
-    assert torch.equal(batch, before)
-    assert torch.equal(dc.codes, codes) and torch.equal(dc.counts, counts) and torch.equal(dc.valid, valid)
-
-
 def test_output_types() -> None:
     batch = torch.zeros((2, 3, 2, 2), dtype=torch.uint8)
     dc = fc.distinct_colors(batch)

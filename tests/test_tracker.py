@@ -14,17 +14,16 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from test_tensor_pipeline import assert_same
 
 import torchrow
 from torchrow import Params
 from torchrow.cli import main
 from torchrow.reference import Tracker as RefTracker
-from torchrow.steering import FrameResult, Steering, focal_from_fov, steering
 from torchrow.results import ImageResult, Row
+from torchrow.steering import FrameResult, Steering, focal_from_fov, steering
 from torchrow.synthetic import FieldSpec, sequence
 from torchrow.video import open_source
-
-from test_tensor_pipeline import assert_same
 
 TOL = 1e-6
 P320 = Params(video_width=320)
@@ -217,7 +216,7 @@ def test_cli_video_folder_and_file(tmp_path, moving) -> None:
     vw.release()
     out = tmp_path / "res.jsonl"
     ann = tmp_path / "ann"
-    rc = main(["video", str(folder), str(video), "--out", str(out), "--annotate", str(ann), "--every", "3",
+    rc = main(["video", str(folder), str(video), "--out", str(out), "--annotate", str(ann), "--hough-every", "3",
                "--fov", "70", "--param", "video_width=320", "-q"])
     assert rc == 0
     recs = [json.loads(line) for line in out.read_text().splitlines()]
@@ -236,7 +235,7 @@ def test_cli_video_folder_and_file(tmp_path, moving) -> None:
     assert len(list(ann.glob("*.png"))) == 10  # every frame; the unreadable one as an error picture
     # the reference implementation writes the same records
     out2 = tmp_path / "ref.jsonl"
-    assert main(["video", str(folder), "--out", str(out2), "--impl", "reference", "--every", "3",
+    assert main(["video", str(folder), "--out", str(out2), "--impl", "reference", "--hough-every", "3",
                  "--fov", "70", "--param", "video_width=320", "-q"]) == 0
     ref = [json.loads(line) for line in out2.read_text().splitlines()]
     assert [(r["status"], r["hough_ran"], r["k"]) for r in ref] == [(r["status"], r["hough_ran"], r["k"]) for r in a]
@@ -259,8 +258,8 @@ def test_cli_video_bad_inputs(tmp_path, capsys) -> None:
     bad.write_bytes(b"junk")
     assert main(["video", str(bad), "--out", str(tmp_path / "o.jsonl")]) == 2
     assert "cannot open video" in capsys.readouterr().err
-    assert main(["video", str(tmp_path), "--out", str(tmp_path / "o.jsonl"), "--every", "0"]) == 2
-    assert "--every must be >= 1" in capsys.readouterr().err
+    assert main(["video", str(tmp_path), "--out", str(tmp_path / "o.jsonl"), "--hough-every", "0"]) == 2
+    assert "--hough-every must be >= 1" in capsys.readouterr().err
     assert main(["video", str(tmp_path / "empty"), "--out", str(tmp_path / "o.jsonl"), "--fov", "200"]) == 2
 
 
@@ -294,7 +293,7 @@ def test_single_pass_adaptive_k_equals_a_box_test_per_k() -> None:
         k1, r1 = fveg.adapt_k(x, color, sky, info0, P320)
         k2 = torch.full_like(k1, P320.video_k_start)
         for i in range(x.shape[0]):
-            def frac(k: int) -> float:
+            def frac(k: int, i: int = i) -> float:
                 raw = fveg.raw_mask(x[i:i + 1], color[i:i + 1], torch.tensor([k]), sky[i:i + 1])
                 return float(fveg.raw_fraction(raw, sky[i:i + 1])[0])
             kk = P320.video_k_start

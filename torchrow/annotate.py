@@ -10,7 +10,7 @@ import numpy as np
 
 from .results import ImageResult
 
-__all__ = ["draw_result", "save_rgb", "GT_COLOR"]
+__all__ = ["draw_result", "save_rgb", "legend", "legend_entries", "row_top", "GT_COLOR"]
 
 VALID = (40, 230, 255)  # cyan-ish, readable on green and brown
 INVALID = (255, 60, 60)
@@ -27,8 +27,81 @@ def _segment(a: float, b: float, y0: float, y1: float, s: float) -> tuple[tuple[
             (int(round((a * y1 + b) * s)), int(round(y1 * s))))
 
 
+LABEL_BG = (0, 0, 0)
+FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+def _text_box(img: np.ndarray, text: str, org: tuple[int, int], color, scale: float = 0.5) -> tuple[int, int]:
+    """Text on a black box with its baseline-left corner at ``org`` (clipped into the picture);
+    returns the box's ``(width, height)``."""
+    (tw, th), base = cv2.getTextSize(text, FONT, scale, 1)
+    x = int(np.clip(org[0], 2, max(2, img.shape[1] - tw - 6)))
+    y = int(np.clip(org[1], th + 4, img.shape[0] - base - 2))
+    cv2.rectangle(img, (x - 3, y - th - 3), (x + tw + 3, y + base + 1), LABEL_BG, -1)
+    cv2.putText(img, text, (x, y), FONT, scale, color, 1, cv2.LINE_AA)
+    return tw + 6, th + base + 4
+
+
+def legend(width: int, entries: Sequence[tuple[str, tuple[int, int, int], str]]) -> np.ndarray:
+    """A black strip, ``width`` px wide, explaining the marks of a picture.
+
+    ``entries`` are ``(kind, rgb, text)`` with kind ``"line"``, ``"thin"`` (a 1-px line),
+    ``"cross"`` or ``"arrow"``. Entries flow left to right and wrap onto new lines.
+    Returns ``(h, width, 3)`` uint8 RGB.
+    """
+    pad, sw, gap, line_h = 8, 26, 18, 22
+    placed: list[tuple[int, int, tuple]] = []
+    x, y = pad, 0
+    for entry in entries:
+        (tw, _), _ = cv2.getTextSize(entry[2], FONT, 0.45, 1)
+        need = sw + 6 + tw
+        if x > pad and x + need > width - pad:
+            x, y = pad, y + 1
+        placed.append((x, y, entry))
+        x += need + gap
+    strip = np.zeros(((max(p[1] for p in placed) + 1 if placed else 0) * line_h + 6, width, 3), np.uint8)
+    for x, row, (kind, color, text) in placed:
+        yc = 3 + row * line_h + line_h // 2
+        if kind == "cross":
+            cv2.drawMarker(strip, (x + sw // 2, yc), color, cv2.MARKER_CROSS, 12, 2, cv2.LINE_AA)
+        elif kind == "arrow":
+            cv2.arrowedLine(strip, (x, yc), (x + sw, yc), color, 2, cv2.LINE_AA, tipLength=0.4)
+        else:
+            cv2.line(strip, (x, yc), (x + sw, yc), color, 1 if kind == "thin" else 2, cv2.LINE_AA)
+        cv2.putText(strip, text, (x + sw + 6, yc + 5), FONT, 0.45, (235, 235, 235), 1, cv2.LINE_AA)
+    return strip
+
+
+def legend_entries(result: ImageResult, ground_truth: bool = False) -> list[tuple[str, tuple[int, int, int], str]]:
+    """The legend of :func:`draw_result` for this result (only marks that the picture shows)."""
+    entries: list[tuple[str, tuple[int, int, int], str]] = []
+    if any(r.valid for r in result.rows):
+        entries.append(("line", VALID, "detected row"))
+    if any(not r.valid for r in result.rows):
+        entries.append(("line", INVALID, "invalid row (reason at its foot)"))
+    if ground_truth:
+        entries.append(("thin", GT_COLOR, "ground truth"))
+    if result.sky > 0:
+        entries.append(("line", HORIZON, "horizon (rows above ignored)"))
+    if result.vp is not None and all(math.isfinite(v) for v in result.vp):
+        inside = 0 <= result.vp[0] < result.width and 0 <= result.vp[1] < result.height
+        entries.append(("cross", VP_COLOR, "vanishing point") if inside else
+                       ("arrow", VP_COLOR, "towards the vanishing point (outside the picture)"))
+    return entries
+
+
+def row_top(result: ImageResult, height: int) -> float:
+    """First image row a picture draws the rows from: below the horizon, and below the
+    vanishing point when it lies inside the picture (rows cross there and mean nothing above)."""
+    top = float(max(result.sky, 0))
+    if result.vp is not None and all(math.isfinite(v) for v in result.vp) and result.vp[1] < height - 1:
+        top = max(top, float(result.vp[1]))
+    return top
+
+
 def draw_result(rgb: np.ndarray, result: ImageResult, scale: int = 2,
-                ground_truth: Sequence[tuple[np.ndarray, np.ndarray]] | None = None) -> np.ndarray:
+                ground_truth: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
+                with_legend: bool = True) -> np.ndarray:
     """Annotated copy of a working image, upscaled by ``scale`` for legibility.
 
     Parameters
@@ -37,12 +110,14 @@ def draw_result(rgb: np.ndarray, result: ImageResult, scale: int = 2,
     result : the detection on it.
     scale : integer upscaling of the picture (drawing stays sharp).
     ground_truth : optional list of ``(ys, xs)`` polylines drawn thin in white.
+    with_legend : append a strip below the picture that explains every mark on it.
 
     Returns
     -------
-    ``(scale*H, scale*W, 3)`` uint8 RGB. Valid rows solid cyan, invalid rows red with their
-    reason, the horizon yellow, the vanishing point a magenta cross (an arrow at the border
-    when it lies outside the picture), the status in the corner.
+    ``(scale*H + legend, scale*W, 3)`` uint8 RGB. Valid rows solid cyan, invalid rows red with
+    their reason written at their foot, the horizon yellow, the vanishing point a magenta
+    cross (an arrow at the border when it lies outside the picture), the status in the
+    top-left corner. Rows are drawn from :func:`row_top` down.
     """
     h, w = rgb.shape[:2]
     img = cv2.resize(rgb, (w * scale, h * scale), interpolation=cv2.INTER_NEAREST)
@@ -56,19 +131,21 @@ def draw_result(rgb: np.ndarray, result: ImageResult, scale: int = 2,
     if result.sky > 0:
         y = int(result.sky * s)
         cv2.line(img, (0, y), (w * scale - 1, y), HORIZON, th, cv2.LINE_AA)
-    y_top = max(result.sky, 0)
+    y_top = row_top(result, h)
+    labels: list[tuple[int, str]] = []
     for i, row in enumerate(result.rows):
         seg = _segment(row.a, row.b, y_top, h - 1, s)
         if seg is None:
+            if not row.valid:
+                labels.append((w * scale // 2, f"row {i}: {row.reason}"))
             continue
         (x0, y0), (x1, y1) = seg
         color = VALID if row.valid else INVALID
         cv2.line(img, (x0, y0), (x1, y1), color, th, cv2.LINE_AA)
         if not row.valid:
-            label = f"{i}:{row.reason}"
-            xl = int(np.clip(x1, 2, w * scale - 80))
-            cv2.putText(img, label, (xl, h * scale - 6 - 14 * (i % 3)), cv2.FONT_HERSHEY_SIMPLEX,
-                        0.4, INVALID, 1, cv2.LINE_AA)
+            labels.append((x1, f"row {i}: {row.reason}"))
+    for j, (x, text) in enumerate(sorted(labels)):
+        _text_box(img, text, (x - 30, h * scale - 8 - 22 * (j % 3)), INVALID)
     if result.vp is not None and all(math.isfinite(v) for v in result.vp):
         vx, vy = result.vp[0] * s, result.vp[1] * s
         inside = 0 <= vx < w * scale and 0 <= vy < h * scale
@@ -82,9 +159,9 @@ def draw_result(rgb: np.ndarray, result: ImageResult, scale: int = 2,
             sx, sy = cx + (vx - cx) * t * 0.85, cy + (vy - cy) * t * 0.85
             cv2.arrowedLine(img, (int(sx), int(sy)), (int(ex), int(ey)), VP_COLOR, 2, cv2.LINE_AA, tipLength=0.4)
     label = f"{result.status}  valid rows {sum(r.valid for r in result.rows)}/{len(result.rows)}"
-    (tw, th_), base = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)
-    cv2.rectangle(img, (2, 2), (10 + tw, 10 + th_ + base), (0, 0, 0), -1)
-    cv2.putText(img, label, (6, 6 + th_), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+    _text_box(img, label, (6, 20), (255, 255, 255))
+    if with_legend:
+        img = np.concatenate([img, legend(img.shape[1], legend_entries(result, bool(ground_truth)))], 0)
     return img
 
 

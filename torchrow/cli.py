@@ -32,7 +32,8 @@ def _parse_params(items: Sequence[str] | None) -> Params:
     for item in items or []:
         name, sep, raw = item.partition("=")
         if not sep or name not in fields:
-            raise CLIError(f"--param expects NAME=VALUE with NAME one of Params' fields; got {item!r}")
+            what = "expects NAME=VALUE" if not sep else f"has no field {name!r}"
+            raise CLIError(f"--param {what} (got {item!r}); valid names: {', '.join(sorted(fields))}")
         try:
             value = json.loads(raw)
         except json.JSONDecodeError:
@@ -364,7 +365,9 @@ def _open_crbd(data: str | None):
     try:
         return CRBD(data)
     except FileNotFoundError as exc:
-        raise CLIError(str(exc).splitlines()[0]) from None
+        if data is None:
+            raise CLIError("no CRBD data: pass --data CRBD_DIR or set TORCHROW_DATA") from None
+        raise CLIError(f"{str(exc).splitlines()[0]} (--data {data})") from None
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
@@ -376,30 +379,23 @@ def cmd_eval(args: argparse.Namespace) -> int:
         raise CLIError("eval supports --impl tensor|reference; for ONNX use: torchrow detect --impl onnx --model M")
     _check_engine(args)
     crbd = _open_crbd(args.data)
-    if args.out:
-        _check_targets([Path(crbd.root)], [("--out", Path(args.out))])
+    _check_targets([Path(crbd.root)], [("--out", Path(args.out))])
     indices = list(range(len(crbd)))[:: args.every]
     if args.limit:
         indices = indices[: args.limit]
-    sink = None
-    if args.out:
-        from .sink import image_key
+    from .sink import image_key
 
-        Path(args.out).mkdir(parents=True, exist_ok=True)
-        sink = _open_sink(Path(args.out) / "detections.jsonl", image_key, args.resume)
-    elif args.resume:
-        raise CLIError("--resume needs --out (the folder of an earlier eval run)")
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    sink = _open_sink(Path(args.out) / "detections.jsonl", image_key, args.resume)
     try:
         report = evaluate(crbd, indices, args.impl, params, args.batch_size, device, progress=not args.quiet,
                           sink=sink, engine=args.engine, address=args.address, workers=args.workers)
     finally:
-        if sink is not None:
-            sink.close(complete=False)
+        sink.close(complete=False)
     print(report.format_summary())
-    if args.out:
-        paths = report.write(Path(args.out), records=False)
-        for p in paths[:1] + [sink.path] + paths[1:]:  # type: ignore[union-attr]
-            print(f"wrote {p}", file=sys.stderr)
+    paths = report.write(Path(args.out), records=False)
+    for p in paths[:1] + [sink.path] + paths[1:]:
+        print(f"wrote {p}", file=sys.stderr)
     return 0
 
 
@@ -470,16 +466,19 @@ def _open_sources(raw: Sequence[str], topic: str | None = None):
 
 
 class _Annotator:
-    """Writes annotated frames: one video per source (``OUT.mp4``) or PNGs in a folder."""
+    """Writes annotated frames: one video per source (``OUT.mp4``: H.264; ``OUT.avi``: MJPG) or
+    PNGs in a folder. A video's frame rate is ``fps`` if given, else its source's (a video file's
+    own rate; ``DEFAULT_FPS`` for a folder of frames)."""
 
     VIDEO = (".mp4", ".avi", ".mov", ".mkv", ".m4v")
+    DEFAULT_FPS = 10.0
 
-    def __init__(self, target: str | None, sources: list, fps: float = 10.0) -> None:
+    def __init__(self, target: str | None, sources: list, fps: float | None = None) -> None:
         self.target = Path(target) if target else None
         self.is_video = self.target is not None and self.target.suffix.lower() in self.VIDEO
         self.writers: dict[int, object] = {}
         self.size: dict[int, tuple[int, int]] = {}
-        self.fps = fps
+        self.fps = [fps or getattr(s, "fps", None) or self.DEFAULT_FPS for s in sources]
         self.stems = self._stems(sources)
         self.n = len(sources)
         if self.target is not None:
@@ -515,35 +514,28 @@ class _Annotator:
         return stems
 
     def write(self, i: int, res, rgb) -> None:
-        import cv2
-
         from .annotate import save_rgb
-        from .video import draw_frame, error_frame
+        from .video import VideoWriter, draw_frame, error_frame
 
         if self.target is None:
             return
         if rgb is not None:
             img = draw_frame(rgb, res)
-            self.size.setdefault(i, (rgb.shape[1], rgb.shape[0]))
-        elif i in self.size:
-            img = error_frame(*self.size[i], f"frame {res.frame}: {res.error}")
+            self.size.setdefault(i, (img.shape[1], img.shape[0]))
+        elif i in self.size:  # same size as the drawn frames, so that a video keeps its timing
+            img = error_frame(*self.size[i], f"frame {res.frame}: {res.error}", scale=1)
         else:
             return
         if not self.is_video:
             save_rgb(self.target / f"{self.stems[i]}_{res.frame:05d}.png", img)
             return
         if i not in self.writers:
-            path = self._video_path(i)
-            fourcc = cv2.VideoWriter_fourcc(*("mp4v" if path.suffix.lower() in (".mp4", ".m4v", ".mov") else "MJPG"))
-            vw = cv2.VideoWriter(str(path), fourcc, self.fps, (img.shape[1], img.shape[0]))
-            if not vw.isOpened():
-                raise CLIError(f"cannot write video {path}")
-            self.writers[i] = vw
-        self.writers[i].write(cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+            self.writers[i] = VideoWriter(self._video_path(i), self.fps[i])
+        self.writers[i].write(img)  # type: ignore[attr-defined]
 
     def close(self) -> None:
         for vw in self.writers.values():
-            vw.release()
+            vw.close()  # type: ignore[attr-defined]
 
 
 def _check_plot(plot: Path) -> None:
@@ -560,14 +552,13 @@ def _check_plot(plot: Path) -> None:
 
 
 def cmd_video(args: argparse.Namespace) -> int:
-    from tqdm.auto import tqdm
-
+    from .progress import progress
     from .video import central_jumps, plot_tracks
 
     params = _parse_params(args.param)
     if args.hough_every is not None:
         if args.hough_every < 1:
-            raise CLIError(f"--every must be >= 1, got {args.hough_every}")
+            raise CLIError(f"--hough-every must be >= 1, got {args.hough_every}")
         params = params.replace(hough_every=args.hough_every)
     if args.fov is not None and not 0 < args.fov < 180:
         raise CLIError(f"--fov must lie in (0, 180) degrees, got {args.fov}")
@@ -580,12 +571,14 @@ def cmd_video(args: argparse.Namespace) -> int:
 
     if plot is not None:
         _check_plot(plot)
+    if args.fps is not None and not args.fps > 0:
+        raise CLIError(f"--fps must be > 0, got {args.fps}")
     targets = [("--out", out)] + ([("--plot", plot)] if plot is not None else [])
     if args.annotate:
         targets += [("--annotate", t) for t in _Annotator.targets(args.annotate, sources)]
     _check_targets([s.path for s in sources], targets)
     sink = _open_sink(out, frame_key, args.resume)
-    ann = _Annotator(args.annotate, sources)
+    ann = _Annotator(args.annotate, sources, args.fps)
     names = [s.name for s in sources]
     done: dict[str, set[int]] = {}
     for src, frame in sink.done:
@@ -615,7 +608,7 @@ def cmd_video(args: argparse.Namespace) -> int:
             args.fov))
     counts: dict[str, int] = {}
     total = sum(sources[i].length for i in todo)
-    bar = tqdm(total=total, desc="video", file=sys.stderr, disable=args.quiet, unit="frame")
+    bar = progress(total, "video", enabled=not args.quiet, unit="frame")
     try:
         with sink:
             for i, rec, res, rgb in stream:
@@ -650,7 +643,7 @@ def cmd_video(args: argparse.Namespace) -> int:
         jumps = central_jumps(recs)
         hough = sum(1 for r in recs if r.get("hough_ran"))
 
-        def worst(key: str) -> str:
+        def worst(key: str, jumps: dict = jumps) -> str:
             return f"{max(jumps[key]):.1f} px" if jumps[key] else "n/a"
 
         print(f"  {src}: Hough on {hough} of {len(recs)} frames; largest move of the central row at the "
@@ -679,8 +672,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="batched tensor path (default), the per-image reference, or an exported ONNX "
                             "model in onnxruntime (--model)")
         p.add_argument("--model", help="ONNX file for --impl onnx (torchrow export onnx)")
-        p.add_argument("--batch-size", type=int, default=64, help="images per batch for --impl tensor")
-        p.add_argument("--device", default=None, help="torch device for --impl tensor (cpu, cuda, cuda:1)")
+        p.add_argument("--batch-size", type=int, default=64, help="images per batch for --impl tensor (default 64)")
+        p.add_argument("--device", default=None,
+                       help="torch device for --impl tensor (cpu, cuda, cuda:1; default cpu)")
 
     def engine(p: argparse.ArgumentParser) -> None:
         p.add_argument("--engine", choices=("local", "ray"), default="local",
@@ -705,9 +699,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("eval", help="run on CRBD and report CRDA (official and thesis variant)")
     p.add_argument("--data", help="CRBD folder (or a folder holding crbd/); default $TORCHROW_DATA")
-    p.add_argument("--out", help="folder for scores.csv, detections.jsonl, summary.json, crda_histogram.png")
-    p.add_argument("--every", type=int, default=1, help="use every N-th image (default 1)")
-    p.add_argument("--limit", type=int, default=0, help="at most this many images")
+    p.add_argument("--out", default="torchrow-eval",
+                   help="folder for scores.csv, detections.jsonl, summary.json, crda_histogram.png "
+                        "(default torchrow-eval)")
+    p.add_argument("--every", type=int, default=1, help="use every N-th image (default 1: all)")
+    p.add_argument("--limit", type=int, default=0, help="at most this many images (default 0: no limit)")
     engine(p)
     impl(p)
     common(p)
@@ -730,15 +726,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--topic", default=None, help="image topic of the ROS bag sources (default: the only one)")
     engine(p)
     p.add_argument("--annotate", metavar="OUT.mp4|DIR", help="annotated video (per source) or folder of PNGs")
-    p.add_argument("--every", dest="hough_every", type=int, default=None, metavar="K",
-                   help="run the Hough stage every K frames (default: Params.hough_every = 5)")
+    p.add_argument("--hough-every", dest="hough_every", type=int, default=None, metavar="K",
+                   help="run the Hough stage every K frames (default: Params.hough_every, 5)")
+    p.add_argument("--fps", type=float, default=None,
+                   help="frame rate of an annotated video (default: the source's; 10 for a folder of frames)")
     p.add_argument("--fov", type=float, default=None, metavar="DEG",
                    help="horizontal field of view of the frames, for heading_rad (null without it)")
     p.add_argument("--plot", default=None, help="plot file (default: --out with suffix .png); 'none': no plot")
     p.add_argument("--impl", choices=("tensor", "reference"), default="tensor",
                    help="batched tensor tracker (default) or the per-sequence reference")
-    p.add_argument("--batch-size", type=int, default=8, help="sequences per batch for --impl tensor")
-    p.add_argument("--device", default=None, help="torch device for --impl tensor (cpu, cuda, cuda:1)")
+    p.add_argument("--batch-size", type=int, default=8, help="sequences per batch for --impl tensor (default 8)")
+    p.add_argument("--device", default=None,
+                   help="torch device for --impl tensor (cpu, cuda, cuda:1; default cpu)")
     common(p)
     p.set_defaults(func=cmd_video)
 

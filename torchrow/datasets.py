@@ -407,6 +407,7 @@ class CRBD:
         if subset == "all":
             return list(range(len(self)))
         if subset in ("straight", "curved"):
+            want: tuple[int, ...]
             table, want = self._sets(False), {"straight": (1,), "curved": (2,)}[subset]
         elif subset in ("train", "test"):
             table, want = self._sets(True), {"train": (0,), "test": (1, 2)}[subset]

@@ -87,7 +87,7 @@ class BatchResult:
         cpu = {k: (v.cpu() if isinstance(v, torch.Tensor) else v) for k, v in self.__dict__.items()}
         out = []
         for b in range(len(self)):
-            def lines(th, rh, wt, ok):
+            def lines(th, rh, wt, ok, b=b):
                 return [HoughLine(int(th[b, j]), int(rh[b, j]), int(wt[b, j]), self.theta_step)
                         for j in range(th.shape[1]) if bool(ok[b, j])]
 

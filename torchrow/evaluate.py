@@ -62,7 +62,7 @@ class EvalReport:
                  f"{'mean / median':>17}"]
         for sub in SUBSETS:
             m = s[sub]
-            cell = lambda k: f"{m[k]['mean']:.3f} / {m[k]['median']:.3f}" if m[k]["n"] else "-"  # noqa: E731
+            cell = lambda k, m=m: f"{m[k]['mean']:.3f} / {m[k]['median']:.3f}" if m[k]["n"] else "-"  # noqa: E731
             lines.append(f"{sub:<9} {m['crda_01']['n']:>4}  {cell('crda_01'):>17}  {cell('crda_03'):>17}  "
                          f"{cell('crda_thesis'):>17}  {cell('tmgem_01'):>17}")
         return "\n".join(lines)

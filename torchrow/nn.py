@@ -230,6 +230,10 @@ class SoftVegetationMask(nn.Module):
     >>> det(images, veg_color=m.color_uint8())  # detect with the (learned) colour
     """
 
+    color_logit: torch.Tensor
+    log_temperature: torch.Tensor
+    k: torch.Tensor
+
     def __init__(self, color_rgb: Sequence[float] | torch.Tensor = (0, 255, 0), k: float = 4.0,
                  temperature: float = 1.0, learn_color: bool = True, learn_temperature: bool = True,
                  dtype: torch.dtype = torch.float64) -> None:
@@ -413,6 +417,8 @@ class HoughVoting(nn.Module):
     - weights: float ``(B, H, W)``
     - output: ``(B, n_theta, 2D+1)``, the weights' dtype
     """
+
+    cells: torch.Tensor
 
     def __init__(self, height: int, width: int, params: Params | None = None) -> None:
         super().__init__()

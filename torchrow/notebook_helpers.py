@@ -77,7 +77,7 @@ def stage_pictures(rgb: np.ndarray, params: Params | None = None, gt: GroundTrut
         ``input`` (H, W, 3) with the horizon drawn, ``colour`` (H, W, 3) the vegetation colour
         as a flat swatch, ``raw mask`` / ``vegetation`` / ``hough input`` (H, W) bool,
         ``hough votes`` (n_theta, 2D+1) float (votes of the Hough input, angle down, rho
-        across), ``detection`` (2H, 2W, 3) uint8 (:func:`torchrow.annotate.draw_result`), and
+        across), ``detection`` (2H + legend, 2W, 3) uint8 (:func:`torchrow.annotate.draw_result`), and
         ``result`` the :class:`~torchrow.results.ImageResult`.
     """
     import torch

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["HoughLine", "Row", "ImageResult", "STATUSES", "REASONS"]
+__all__ = ["HoughLine", "Row", "ImageResult", "STATUSES", "REASONS", "record_differences"]
 
 #: ``ok``: every row valid. ``invalid``: at least one row invalid. ``no_vp``: fewer than two
 #: Hough lines or a singular vanishing-point system, so no rows. ``no_vegetation``: the
@@ -136,3 +136,26 @@ class ImageResult:
     def failed(cls, name: str | None, error: str, width: int = 0, height: int = 0) -> "ImageResult":
         """Record for an input that could not be processed (status ``error``)."""
         return cls(width=width, height=height, status="error", name=name, error=error)
+
+
+def record_differences(a: Any, b: Any, tol: float = 1e-6, path: str = "") -> list[str]:
+    """Where two JSON records (or any nested lists/dicts of them) differ by the rule of
+    ALGORITHM.md's "Identical results": every discrete value (str, bool, int, None, keys,
+    lengths) equal, every float within ``tol`` (absolute; px for rows and points).
+
+    Returns one ``"path: a != b"`` line per difference (empty when the records agree), so
+    ``not record_differences(r1, r2)`` is the check, and a failure says where.
+    """
+    if isinstance(a, dict) and isinstance(b, dict):
+        if a.keys() != b.keys():
+            return [f"{path or '.'}: keys {sorted(a)} != {sorted(b)}"]
+        return [d for k in a for d in record_differences(a[k], b[k], tol, f"{path}.{k}")]
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        if len(a) != len(b):
+            return [f"{path or '.'}: length {len(a)} != {len(b)}"]
+        return [d for i, (x, y) in enumerate(zip(a, b)) for d in record_differences(x, y, tol, f"{path}[{i}]")]
+    if isinstance(a, float) and isinstance(b, float) and not (isinstance(a, bool) or isinstance(b, bool)):
+        same = (math.isnan(a) and math.isnan(b)) or abs(a - b) <= tol
+    else:
+        same = type(a) is type(b) and a == b
+    return [] if same else [f"{path or '.'}: {a!r} != {b!r}"]

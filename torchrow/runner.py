@@ -19,7 +19,6 @@ images are independent of the batch they run in.
 
 from __future__ import annotations
 
-import sys
 import time
 from typing import Callable, Iterable, Iterator, Sequence
 
@@ -38,9 +37,9 @@ Loader = Callable[[], np.ndarray]
 
 
 def _progress(total: int, desc: str, enabled: bool):
-    from tqdm.auto import tqdm
+    from .progress import progress
 
-    return tqdm(total=total, desc=desc, file=sys.stderr, disable=not enabled, unit="img")
+    return progress(total, desc, enabled, unit="image")
 
 
 def _load(name: str, loader: Loader) -> tuple[np.ndarray | None, ImageResult | None]:

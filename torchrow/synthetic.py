@@ -371,24 +371,24 @@ class _Geometry:
         self.curv = float(spec.curvature)
         self.travel_u = float(spec.travel_px) / self.L
 
-    def s(self, v: np.ndarray | float) -> np.ndarray | float:
+    def s(self, v: np.ndarray | float) -> np.ndarray:  # 0-d for a scalar v
         return (np.asarray(v, dtype=np.float64) - self.vy) / self.L
 
-    def bend(self, v: np.ndarray | float) -> np.ndarray | float:
+    def bend(self, v: np.ndarray | float) -> np.ndarray:  # 0-d for a scalar v
         if self.curv == 0.0:
             return np.zeros_like(np.asarray(v, dtype=np.float64))
         t = ((self.H - 1) - np.asarray(v, dtype=np.float64)) / ((self.H - 1) - self.v0)
         return self.curv * t * t
 
-    def xc(self, v: np.ndarray | float) -> np.ndarray | float:
+    def xc(self, v: np.ndarray | float) -> np.ndarray:  # 0-d for a scalar v
         return self.vx + (self.xb - self.vx) * self.s(v) + self.bend(v)
 
-    def d(self, v: np.ndarray | float) -> np.ndarray | float:
+    def d(self, v: np.ndarray | float) -> np.ndarray:  # 0-d for a scalar v
         return self.spacing * self.s(v)
 
     def x(self, j: int, v: np.ndarray | float) -> np.ndarray | float:
         v = np.asarray(v, dtype=np.float64)
-        out = self.xc(v) + j * self.d(v)
+        out = np.asarray(self.xc(v) + j * self.d(v))
         return float(out) if out.ndim == 0 else out
 
     def line(self, j: int) -> tuple[float, float]:
@@ -471,7 +471,7 @@ def _ground_texture(seed: int, n_u: int, n_p: int, tpu: float, tpp: float, fu: f
             cv2.ellipse(shade, (int(cp * _ONE), int(cu * _ONE)),
                         (max(_ONE, int(ap * _ONE)), max(_ONE, int(au * _ONE))),
                         -20.0 + 40.0 * r[i, 4], 0, 360, 0.6 + 0.4 * r[i, 5], -1, cv2.LINE_8, _SHIFT)
-        shade = cv2.GaussianBlur(shade, (0, 0), max(1.5, 0.2 * min(tpp, tpu)))
+        shade = np.asarray(cv2.GaussianBlur(shade, (0, 0), max(1.5, 0.2 * min(tpp, tpu))), np.float32)
     for a in (tex, tex_soft, shade):
         if a is not None:
             a.setflags(write=False)
@@ -506,7 +506,7 @@ def _soil(spec: FieldSpec, geo: _Geometry, v: np.ndarray, x: np.ndarray) -> np.n
         sharp = cv2.remap(tex, tp, tu, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         soft = cv2.remap(tex_soft, tp, tu, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         t = sharp + (soft - sharp) * wgt
-    t *= np.float32(spec.soil_texture)
+    t = np.asarray(t, np.float32) * np.float32(spec.soil_texture)
     out = (np.asarray(spec.soil_color, np.float32)[None, None, :]
            + t[:, :, None] * np.array([1.0, 0.92, 0.8], np.float32))
     if shade is not None:
@@ -630,7 +630,13 @@ def _plants(spec: FieldSpec, geo: _Geometry, img: np.ndarray, drawn: range | Non
                 clumps.append((cj[keep], cu[keep], cn[keep]))
                 weeds.append((wj, wu, wn))
 
-    depth_l, x_l, y_l, ax_l, ay_l, ang_l, col_l = [], [], [], [], [], [], []
+    depth_l: list[np.ndarray] = []
+    x_l: list[np.ndarray] = []
+    y_l: list[np.ndarray] = []
+    ax_l: list[np.ndarray] = []
+    ay_l: list[np.ndarray] = []
+    ang_l: list[np.ndarray] = []
+    col_l: list[np.ndarray] = []
     if clumps:
         jj = np.concatenate([c[0] for c in clumps]).astype(np.float64)
         cu = np.concatenate([c[1] for c in clumps])
@@ -733,7 +739,7 @@ def render(spec: FieldSpec | None = None) -> SyntheticField:
     if v0 > 0:
         img[:v0] = _sky(spec, v0, W)
     if spec.blur > 0:
-        img = cv2.GaussianBlur(img, (0, 0), float(spec.blur))
+        img = np.asarray(cv2.GaussianBlur(img, (0, 0), float(spec.blur)), np.float32)
     if spec.noise > 0:
         rng = np.random.default_rng((spec.seed, _STREAM_NOISE, spec.frame))
         noise = rng.standard_normal(img.shape, dtype=np.float32)

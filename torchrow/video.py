@@ -10,13 +10,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
 from .io import IMAGE_EXTENSIONS, ImageError, header_size, load_image, resize_to_width, to_rgb8, working_size
 
-__all__ = ["LoadedFrame", "load_item", "VIDEO_EXTENSIONS", "FrameSource", "open_source"]
+__all__ = ["LoadedFrame", "load_item", "VIDEO_EXTENSIONS", "FrameSource", "open_source", "VideoWriter"]
 
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
 
@@ -61,6 +61,7 @@ class FrameSource:
     kind: str  # "folder" or "video"
     files: list[Path]
     length: int
+    fps: float | None = None  # frames per second as the container reports it (None: a folder)
 
     @property
     def name(self) -> str:
@@ -159,9 +160,88 @@ def open_source(path: str | Path, topic: str | None = None):
         if not cap.isOpened():
             raise ImageError(f"cannot open video: {p}")
         n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
     finally:
         cap.release()
-    return FrameSource(p, "video", [], max(n, 0))
+    return FrameSource(p, "video", [], max(n, 0), fps if 0 < fps < 1000 else None)
+
+
+class VideoWriter:
+    """Writes RGB frames to a video file a browser plays: H.264 (``yuv420p``) through PyAV,
+    whose wheels ship the encoder, for ``.mp4``/``.m4v``/``.mov``/``.mkv``; Motion-JPEG through
+    OpenCV for ``.avi``.
+
+    Frames are ``(H, W, 3)`` uint8 RGB, all of the size of the first; H.264 needs even sizes,
+    so an odd height or width is padded with one black row or column.
+    """
+
+    H264 = (".mp4", ".m4v", ".mov", ".mkv")
+
+    def __init__(self, path: str | Path, fps: float) -> None:
+        if not fps > 0:
+            raise ValueError(f"fps must be > 0, got {fps}")
+        self.path = Path(path)
+        self.fps = float(fps)
+        self._h264 = self.path.suffix.lower() in self.H264
+        self._out: Any = None  # av.OutputContainer or cv2.VideoWriter
+        self._stream: Any = None
+        self._size: tuple[int, int] | None = None
+
+    def _open(self, height: int, width: int) -> None:
+        from fractions import Fraction
+
+        if self._h264:
+            import av
+
+            self._out = av.open(str(self.path), "w")
+            rate = Fraction(self.fps).limit_denominator(1001)
+            stream = self._out.add_stream("libx264", rate=rate)
+            stream.width, stream.height = width + width % 2, height + height % 2
+            stream.pix_fmt = "yuv420p"
+            stream.options = {"crf": "20", "preset": "veryfast"}
+            self._stream = stream
+        else:
+            import cv2
+
+            vw = cv2.VideoWriter(str(self.path), cv2.VideoWriter.fourcc(*"MJPG"), self.fps, (width, height))
+            if not vw.isOpened():
+                raise OSError(f"cannot write video {self.path}")
+            self._out = vw
+        self._size = (height, width)
+
+    def write(self, rgb: np.ndarray) -> None:
+        """Append one frame (``(H, W, 3)`` uint8 RGB, the size of the first frame)."""
+        if self._size is None:
+            self._open(*rgb.shape[:2])
+        size = self._size
+        assert size is not None
+        if rgb.shape[:2] != size:
+            raise ValueError(f"frame of size {rgb.shape[1]}x{rgb.shape[0]} in a video of {size[1]}x{size[0]}")
+        if self._h264:
+            import av
+
+            h, w = rgb.shape[:2]
+            if h % 2 or w % 2:
+                rgb = np.pad(rgb, ((0, h % 2), (0, w % 2), (0, 0)))
+            frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")
+            for packet in self._stream.encode(frame):
+                self._out.mux(packet)
+        else:
+            import cv2
+
+            self._out.write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+
+    def close(self) -> None:
+        """Flush and close the file (a writer that got no frame writes nothing)."""
+        if self._out is None:
+            return
+        if self._h264:
+            for packet in self._stream.encode():
+                self._out.mux(packet)
+            self._out.close()
+        else:
+            self._out.release()
+        self._out = None
 
 
 # ----------------------------------------------------------------------------------------
@@ -201,36 +281,42 @@ def central_jumps(records: list[dict]) -> dict[str, list[float]]:
             continue
         _, c, x = min(valid_p)
         if not cur.get("hough_ran"):
-            if c < len(cb) and cb[c] is not None:
-                out["tracked"].append(abs(cb[c] - x))
+            xc = cb[c] if c < len(cb) else None
+            if xc is not None:
+                out["tracked"].append(abs(xc - x))
         else:
             out["hough"].append(min(abs(v - x) for v in valid_c))
     return out
 
 
 HOUGH_MARK = (255, 80, 0)
+LATERAL = (255, 255, 0)
 
 
 def draw_frame(rgb: np.ndarray, result, scale: int = 2) -> np.ndarray:
     """Annotated frame: :func:`torchrow.annotate.draw_result` plus a Hough-frame marker, the
-    steering signals as text, and the central row's bottom x with the lateral offset drawn
-    as an arrow from the image centre. ``(H, W, 3)`` uint8 -> ``(scale*H, scale*W, 3)``."""
+    steering signals as text (only those the frame has: ``heading_rad`` needs ``--fov``), the
+    central row's bottom x with the lateral offset drawn as an arrow from the image centre, and
+    a legend strip below. ``(H, W, 3)`` uint8 -> ``(scale*H + legend, scale*W, 3)``."""
     import cv2
 
-    from .annotate import draw_result
+    from .annotate import draw_result, legend, legend_entries
 
-    img = draw_result(rgb, result, scale)
+    img = draw_result(rgb, result, scale, with_legend=False)
     h, w = img.shape[:2]
     font = cv2.FONT_HERSHEY_SIMPLEX
 
-    def fmt(v, unit, prec=1):
-        return "-" if v is None else f"{v:+.{prec}f}{unit}"
+    def signal(label: str, parts: list[str]) -> str | None:
+        return f"{label} {' / '.join(parts)}" if parts else None
 
-    lines = [f"frame {result.frame}  k {result.k}  conf {result.confidence:.2f}",
-             f"heading {fmt(result.heading_px, ' px')} / {fmt(result.heading_rad, ' rad', 3)}",
-             f"lateral {fmt(result.lateral_px, ' px')} / {fmt(result.lateral_frac, '', 2)} rows"]
+    heading = [f"{v:+.{p}f}{u}" for v, u, p in ((result.heading_px, " px", 1), (result.heading_rad, " rad", 3))
+               if v is not None]
+    lateral = [f"{v:+.{p}f}{u}" for v, u, p in ((result.lateral_px, " px", 1), (result.lateral_frac, " rows", 2))
+               if v is not None]
+    lines = [f"frame {result.frame}  k {result.k}  confidence {result.confidence:.2f}",
+             signal("heading", heading), signal("lateral offset", lateral)]
     y = 50  # below draw_result's status label
-    for text in lines:
+    for text in (t for t in lines if t):
         (tw, th), base = cv2.getTextSize(text, font, 0.5, 1)
         cv2.rectangle(img, (2, y - th - 3), (8 + tw, y + base), (0, 0, 0), -1)
         cv2.putText(img, text, (5, y), font, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
@@ -242,10 +328,13 @@ def draw_frame(rgb: np.ndarray, result, scale: int = 2) -> np.ndarray:
         cv2.putText(img, label, (w - tw - 8, th + 6), font, 0.6, (255, 255, 255), 2, cv2.LINE_AA)
     cx = int(round(result.width / 2 * scale))
     cv2.line(img, (cx, h - 1), (cx, h - 25), (255, 255, 255), 1, cv2.LINE_AA)
+    entries = legend_entries(result)
     if result.lateral_px is not None:
         xr = int(round((result.width / 2 + result.lateral_px) * scale))
-        cv2.arrowedLine(img, (cx, h - 12), (xr, h - 12), (255, 255, 0), 2, cv2.LINE_AA, tipLength=0.2)
-    return img
+        cv2.arrowedLine(img, (cx, h - 12), (xr, h - 12), LATERAL, 2, cv2.LINE_AA, tipLength=0.2)
+        entries.append(("arrow", LATERAL, "lateral offset of the central row"))
+    entries.append(("line", HOUGH_MARK, "HOUGH: Hough stage ran on this frame"))
+    return np.concatenate([img, legend(w, entries)], 0)
 
 
 def error_frame(width: int, height: int, text: str, scale: int = 2) -> np.ndarray:

@@ -44,8 +44,8 @@ from ..shared import hough_trig, hypothesis_table, rho_index_table, rho_offset
 from . import _exact
 from . import ransac as fransac
 from . import sky as fsky
-from . import vegetation as fveg
 from . import tracker as ftrack
+from . import vegetation as fveg
 from .hough import excluded_angles
 from .vanishing import LineSearch, drop_outlier, max_steps, outlier_check
 

@@ -55,8 +55,8 @@ faults.
 from __future__ import annotations
 
 import torch
-from torch import nn
 import torch.nn.functional as F
+from torch import nn
 
 from ..params import Params
 from ..shared import lab_table_torch

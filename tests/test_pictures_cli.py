@@ -1,0 +1,124 @@
+"""Pictures a person reads without the code, and CLI wording (issue 14)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from torchrow.annotate import INVALID, VALID, draw_result, legend_entries, row_top
+from torchrow.cli import main
+from torchrow.results import ImageResult, Row
+from torchrow.video import VideoWriter, draw_frame
+
+
+def _result(**kw) -> ImageResult:
+    base = dict(width=80, height=60, status="invalid", sky=10, vp=(40.0, 20.0),
+                rows=[Row(a=0.5, b=20.0, valid=True, reason=""), Row(a=-0.5, b=60.0, valid=False, reason="horizon")])
+    base.update(kw)
+    return ImageResult(**base)
+
+
+def test_legend_names_every_mark_shown():
+    res = _result()
+    texts = [e[2] for e in legend_entries(res, ground_truth=True)]
+    assert any("detected row" in t for t in texts) and any("invalid" in t for t in texts)
+    assert any("horizon" in t for t in texts) and any("ground truth" in t for t in texts)
+    assert any(t == "vanishing point" for t in texts)
+    outside = legend_entries(_result(vp=(40.0, -300.0), sky=0, rows=[Row(a=0.1, b=5.0, valid=True, reason="")]))
+    texts = [e[2] for e in outside]
+    assert not any("horizon" in t or "invalid" in t for t in texts)
+    assert any("outside the picture" in t for t in texts)
+
+
+def test_picture_has_legend_strip_and_rows_start_below_vp():
+    rgb = np.full((60, 80, 3), 90, np.uint8)
+    res = _result()
+    img = draw_result(rgb, res, scale=2)
+    assert img.shape[1] == 160 and img.shape[0] > 120 and img.dtype == np.uint8
+    assert np.array_equal(draw_result(rgb, res, scale=2, with_legend=False).shape, (120, 160, 3))
+    assert row_top(res, 60) == 20.0  # vanishing point inside, below the horizon
+    assert row_top(_result(vp=(40.0, -50.0)), 60) == 10.0  # outside: the horizon
+    pic = draw_result(rgb, res, scale=2, with_legend=False)
+    above = pic[: 2 * 20 - 2]  # nothing of either row above the vanishing point
+    assert not np.any(np.all(above == VALID, axis=2)) and not np.any(np.all(above == INVALID, axis=2))
+    assert np.all(rgb == 90)  # input untouched
+
+
+def test_video_frame_without_fov_has_no_placeholder(monkeypatch):
+    import cv2
+
+    from torchrow.steering import FrameResult
+
+    seen: list[str] = []
+    real = cv2.putText
+    monkeypatch.setattr(cv2, "putText", lambda img, text, *a, **k: (seen.append(text), real(img, text, *a, **k))[1])
+    base = _result()
+    fields = {k: getattr(base, k) for k in ImageResult.__dataclass_fields__}
+    res = FrameResult(**fields, frame=3, confidence=0.5, heading_px=-4.0, heading_rad=None, lateral_px=2.0,
+                      lateral_frac=0.1)
+    img = draw_frame(np.full((60, 80, 3), 90, np.uint8), res)
+    assert img.shape[1] == 160 and img.shape[0] > 120
+    assert [t for t in seen if t.startswith("heading")] == ["heading -4.0 px"]
+    assert "lateral offset +2.0 px / +0.10 rows" in seen and not any(t.endswith("/ -") for t in seen)
+
+
+@pytest.mark.parametrize("suffix", [".mp4", ".avi"])
+def test_video_writer_codec_and_rate(tmp_path: Path, suffix: str):
+    av = pytest.importorskip("av")
+    path = tmp_path / f"v{suffix}"
+    vw = VideoWriter(path, fps=12.5)
+    for i in range(6):
+        vw.write(np.full((31, 45, 3), 20 * i, np.uint8))  # odd size: padded for H.264
+    vw.close()
+    with av.open(str(path)) as c:
+        s = c.streams.video[0]
+        assert s.codec_context.name == ("h264" if suffix == ".mp4" else "mjpeg")
+        assert abs(float(s.average_rate or s.guessed_rate) - 12.5) < 1e-6
+        assert sum(1 for _ in c.decode(video=0)) == 6
+    with pytest.raises(ValueError, match="fps"):
+        VideoWriter(path, fps=0)
+
+
+def test_bad_param_lists_valid_names(capsys):
+    assert main(["demo", "--param", "nrows=3"]) == 2
+    err = capsys.readouterr().err
+    assert "'nrows'" in err and "n_rows" in err and "valid names" in err and len(err.strip().splitlines()) == 1
+
+
+def test_data_errors_name_the_cli_words(monkeypatch, tmp_path: Path, capsys):
+    monkeypatch.delenv("TORCHROW_DATA", raising=False)
+    monkeypatch.chdir(tmp_path)
+    for argv in (["eval"], ["score", "--results", "."]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "--data" in err and "TORCHROW_DATA" in err and "root=" not in err
+
+
+@pytest.mark.data
+def test_eval_without_out_leaves_its_report(crbd_dir, monkeypatch, tmp_path: Path, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["eval", "--data", str(crbd_dir), "--every", "140", "-q", "--impl", "reference"]) == 0
+    assert (tmp_path / "torchrow-eval" / "summary.json").is_file()
+    assert "torchrow-eval" in capsys.readouterr().err
+
+
+def test_progress_plain_lines_when_not_a_terminal():
+    import io
+
+    from torchrow.progress import PlainProgress, progress
+
+    buf = io.StringIO()  # not a terminal
+    bar = progress(100, "detect", unit="image", file=buf)
+    assert isinstance(bar, PlainProgress)
+    with bar:
+        for _ in range(100):
+            bar.update(1)
+    text = buf.getvalue()
+    assert "\r" not in text and text.count("\n") <= 12
+    assert text.splitlines()[0] == "detect: started, 100 image(s)" and "100/100" in text.splitlines()[-1]
+    silent = io.StringIO()
+    with progress(10, "x", enabled=False, file=silent) as s:
+        s.update(10)
+    assert silent.getvalue() == ""
