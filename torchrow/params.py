@@ -82,6 +82,23 @@ class Params:
     # --- section 7, RANSAC subsampling key ----------------------------------------------
     subsample_hash: int = 2654435761
 
+    # --- section 11 (torchrow extension): improved mode, the row lattice ----------------
+    mode: str = "faithful"  # "faithful" (sections 0-7) or "improved" (section 11 replaces 7)
+    green_floor: int = 0  # excess-green threshold is max(Otsu, this)
+    lattice_vp_max_y: int = 0  # a section-6 VP below this image row is not trusted
+    lattice_vp_fallback_y: int = -60  # y of the VP used instead, at x = W // 2
+    lattice_vp_margin: int = 10  # px: only pixels this far below the VP are projected
+    lattice_min_spacing: int = 40  # px, smallest bottom-row spacing the comb tries
+    lattice_max_spacing: int = 180  # px, largest
+    lattice_window: float = 0.1  # comb tooth half-width, fraction of the spacing
+    lattice_iterations: int = 6  # least-squares refits
+    lattice_tolerance: float = 0.15  # inlier: |f - k| < this (fraction of the spacing)
+    lattice_half: int = 1  # rows k = -K..K around the central row are fitted and reported
+    lattice_min_points: int = 20  # fewer inliers: the refit stops
+    lattice_min_spacing_px: float = 2.0  # pixels where d(t) <= this are not assigned
+    lattice_pivot_tol: float = 1e-12  # pivot <= this * max(diag, 1): singular normal equations
+    lattice_min_confidence: float = 0.0  # rows below this confidence are invalid
+
     def __post_init__(self) -> None:
         def need(cond: bool, field: str, what: str) -> None:
             if not cond:
@@ -120,10 +137,35 @@ class Params:
         need(self.video_k_min <= self.video_k_start <= self.video_k_max, "video_k_start",
              "must lie in [video_k_min, video_k_max]")
         need(self.seed < 2**63, "seed", "must be < 2**63")
+        self._check_improved(need)
         for name in ("sky_blur", "sky_erode", "bushy_erode"):
             v = getattr(self, name)
             need(isinstance(v, tuple) and len(v) == 2 and all(isinstance(e, int) and e >= 1 for e in v),
                  name, "must be a (width, height) tuple of integers >= 1")
+
+    def _check_improved(self, need) -> None:
+        """Validation of the section-11 fields (improved mode)."""
+        if not isinstance(self.mode, str) or self.mode not in ("faithful", "improved"):
+            raise ValueError(f"Params.mode must be 'faithful' or 'improved'; got {self.mode!r}")
+        for name in ("green_floor", "lattice_vp_max_y", "lattice_vp_fallback_y"):
+            v = getattr(self, name)
+            need(isinstance(v, int) and abs(v) < 2**31, name, "must be an integer")
+        for name in ("lattice_vp_margin", "lattice_min_spacing", "lattice_max_spacing", "lattice_half",
+                     "lattice_min_points"):
+            v = getattr(self, name)
+            need(isinstance(v, int) and v >= 1, name, "must be an integer >= 1")
+        need(isinstance(self.lattice_iterations, int) and self.lattice_iterations >= 0, "lattice_iterations",
+             "must be an integer >= 0")
+        need(self.lattice_max_spacing >= self.lattice_min_spacing, "lattice_max_spacing",
+             "must be >= lattice_min_spacing")
+        need(self.lattice_vp_fallback_y < 0, "lattice_vp_fallback_y", "must be < 0 (above the image)")
+        for name in ("lattice_window", "lattice_tolerance"):
+            v = getattr(self, name)
+            need(isinstance(v, (int, float)) and 0 < v < 0.5, name, "must be a number in (0, 0.5)")
+        for name in ("lattice_min_spacing_px", "lattice_pivot_tol", "lattice_min_confidence"):
+            v = getattr(self, name)
+            need(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0, name, "must be a finite number >= 0")
+        need(self.lattice_min_confidence <= 1, "lattice_min_confidence", "must be <= 1")
 
     # --- derived quantities -------------------------------------------------------------
     @property
