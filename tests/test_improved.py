@@ -71,11 +71,13 @@ def test_params_validate_improved_fields(change, field) -> None:
 
 def test_solve_normal_matches_numpy_and_flags_singular() -> None:
     rng = np.random.default_rng(1)
-    a = rng.normal(size=(40, 5))
+    a = rng.normal(size=(40, 6))
     m, r = a.T @ a, a.T @ rng.normal(size=40)
     z = rlat.solve_normal(m, r, IMPROVED)
     np.testing.assert_allclose(z, np.linalg.solve(m, r), rtol=1e-9)
-    a[:, 4] = a[:, 3]  # two equal columns: singular
+    zt, singular = flat.solve_normal(torch.from_numpy(m)[None], torch.from_numpy(r)[None], IMPROVED)
+    assert not bool(singular[0]) and torch.equal(zt[0], torch.from_numpy(z))
+    a[:, 5] = a[:, 4]  # two equal columns: singular
     assert rlat.solve_normal(a.T @ a, a.T @ rng.normal(size=40), IMPROVED) is None
 
 
@@ -91,22 +93,24 @@ def test_otsu_separates_two_populations() -> None:
 def test_comb_and_fit_recover_a_synthetic_lattice(spacing: float, shift: float) -> None:
     img = _field(spacing=spacing, shift=shift)
     mask = rlat.green_mask(img, 0, IMPROVED)
-    d, phase, found = rlat.comb_search(mask, (160, -60), IMPROVED)
+    vp = (160 + shift, -60.0)  # the field's own vanishing point
+    d, phase, found = rlat.comb_search(mask, (int(vp[0]), -60), IMPROVED)
     assert found and abs(d - spacing) <= 2
     assert abs(phase - (160 + shift)) <= 0.1 * spacing  # the refit below makes it exact
-    rows, conf, fit = rlat.improved_rows(img, 0, (160.0, -60.0), IMPROVED)
-    assert [r.valid for r in rows] == [True] * 3 and conf > 0.9
+    rows, conf, fit = rlat.improved_rows(img, 0, vp, IMPROVED)
+    assert [r.valid for r in rows] == [True] * 3 and conf > 0.75  # the far rows are 14 px apart
     xb = sorted(r.x_at(239.0) for r in rows)
     np.testing.assert_allclose(xb, [160 + shift - spacing, 160 + shift, 160 + shift + spacing], atol=1.5)
 
 
 def test_curved_lattice_gets_its_curvature() -> None:
-    img = _field(curve=0.0005)  # the central row bends 29 px by the top row
+    # the rows bend 17 px by the top row, where they are 18 px apart (more would alias)
+    img = _field(curve=0.0003)
     rows, _, fit = rlat.improved_rows(img, 0, (160.0, -60.0), IMPROVED)
     assert all(r.valid for r in rows)
-    assert abs(rows[1].c - 0.0005) < 1e-4
+    assert all(abs(r.c - 0.0003) < 3e-5 for r in rows)
     y = np.arange(240.0)
-    truth = 160 + 0.0005 * (y - 239) ** 2
+    truth = 160 + 0.0003 * (y - 239) ** 2
     assert np.abs(rows[1].x_at(y) - truth).max() < 3
 
 

@@ -95,6 +95,7 @@ class Params:
     lattice_tolerance: float = 0.15  # inlier: |f - k| < this (fraction of the spacing)
     lattice_half: int = 1  # rows k = -K..K around the central row are fitted and reported
     lattice_min_points: int = 20  # fewer inliers: the refit stops
+    lattice_cell_grid: int = 64  # a cell's mean x is rounded to 1/this px (keeps the sums integer)
     lattice_min_spacing_px: float = 2.0  # pixels where d(t) <= this are not assigned
     lattice_pivot_tol: float = 1e-12  # pivot <= this * max(diag, 1): singular normal equations
     lattice_min_confidence: float = 0.0  # rows below this confidence are invalid
@@ -151,7 +152,7 @@ class Params:
             v = getattr(self, name)
             need(isinstance(v, int) and abs(v) < 2**31, name, "must be an integer")
         for name in ("lattice_vp_margin", "lattice_min_spacing", "lattice_max_spacing", "lattice_half",
-                     "lattice_min_points"):
+                     "lattice_min_points", "lattice_cell_grid"):
             v = getattr(self, name)
             need(isinstance(v, int) and v >= 1, name, "must be an integer >= 1")
         need(isinstance(self.lattice_iterations, int) and self.lattice_iterations >= 0, "lattice_iterations",
@@ -166,6 +167,7 @@ class Params:
             v = getattr(self, name)
             need(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0, name, "must be a finite number >= 0")
         need(self.lattice_min_confidence <= 1, "lattice_min_confidence", "must be <= 1")
+        need(self.lattice_cell_grid <= 2**16, "lattice_cell_grid", "must be <= 65536 (int64 sums stay exact)")
 
     # --- derived quantities -------------------------------------------------------------
     @property

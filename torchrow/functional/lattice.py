@@ -18,9 +18,9 @@ import torch
 from ..params import Params
 
 __all__ = ["LatticeRows", "excess_green", "otsu_threshold", "green_mask", "init_vp", "comb_search",
-           "solve_normal", "fit_lattice", "improved_rows"]
+           "solve_normal", "normal_equations", "fit_lattice", "improved_rows"]
 
-N_COEF = 5
+N_COEF = 6
 EXG_OFFSET = 510
 EXG_BINS = 2 * EXG_OFFSET + 1
 
@@ -29,7 +29,7 @@ EXG_BINS = 2 * EXG_OFFSET + 1
 class LatticeRows:
     """Rows of the improved mode, ``(B, R)`` with ``R = 2*lattice_half + 1``: ``x = c*y**2 +
     a*y + b`` (float64), ``valid`` bool, ``confidence`` float64; ``image_confidence`` ``(B,)``
-    float64; ``coef`` ``(B, 5)`` float64 (``c0, c1, c2, d0, d1``); ``spacing``/``phase``/
+    float64; ``coef`` ``(B, 6)`` float64 (``c0, c1, c2, d0, d1, d2``); ``spacing``/``phase``/
     ``found`` ``(B,)`` (the comb); ``vp`` ``(B, 2)`` int64 (the rounded VP it used)."""
 
     a: torch.Tensor
@@ -145,9 +145,9 @@ def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params):
 
 
 def solve_normal(m: torch.Tensor, r: torch.Tensor, params: Params) -> tuple[torch.Tensor, torch.Tensor]:
-    """Batched :func:`torchrow.reference.lattice.solve_normal`: ``m (B, 5, 5)``, ``r (B, 5)``.
+    """Batched :func:`torchrow.reference.lattice.solve_normal`: ``m (B, 6, 6)``, ``r (B, 6)``.
 
-    Returns ``(z (B, 5), singular (B,) bool)``; ``z`` is meaningless where singular.
+    Returns ``(z (B, 6), singular (B,) bool)``; ``z`` is meaningless where singular.
     """
     a = [[m[:, i, j] for j in range(N_COEF)] for i in range(N_COEF)]
     z = [r[:, i] for i in range(N_COEF)]
@@ -177,9 +177,10 @@ def solve_normal(m: torch.Tensor, r: torch.Tensor, params: Params) -> tuple[torc
 
 def _assign(t: torch.Tensor, xs: torch.Tensor, coef: torch.Tensor, mask: torch.Tensor, params: Params):
     """Nearest row of each pixel: ``k (B, H, W)`` float64 (0 where not inlier), inlier bool."""
-    c0, c1, c2, d0, d1 = (coef[:, i].view(-1, 1, 1) for i in range(N_COEF))
-    cc = (c0 + c1 * t) + c2 * (t * t)  # (B, H, 1)
-    dd = d0 + d1 * t
+    c0, c1, c2, d0, d1, d2 = (coef[:, i].view(-1, 1, 1) for i in range(N_COEF))
+    tt = t * t
+    cc = (c0 + c1 * t) + c2 * tt  # (B, H, 1)
+    dd = (d0 + d1 * t) + d2 * tt
     ok = dd > params.lattice_min_spacing_px
     f = (xs - cc) / torch.where(ok, dd, torch.ones_like(dd))
     k = torch.round(f)
@@ -199,12 +200,34 @@ def _row_counts(k: torch.Tensor, inl: torch.Tensor, xs: torch.Tensor, params: Pa
     return torch.stack(cnt, dim=2), torch.stack(sx, dim=2)
 
 
+def normal_equations(cnt: torch.Tensor, sx: torch.Tensor, params: Params) -> tuple[torch.Tensor, torch.Tensor]:
+    """Batched :func:`torchrow.reference.lattice.normal_equations` from ``(B, H, R)`` int64 cells.
+
+    Returns ``m (B, 6, 6)`` and ``r (B, 6)`` float64 (int64 sums, then converted).
+    """
+    _, h, r = cnt.shape
+    dev = cnt.device
+    occ = cnt > 0
+    grid = params.lattice_cell_grid
+    q = torch.round((float(grid) * sx.to(torch.float64)) / torch.where(occ, cnt, torch.ones_like(cnt)).to(torch.float64))
+    q = torch.where(occ, q.to(torch.int64), torch.zeros_like(cnt))
+    t = (torch.arange(h, device=dev, dtype=torch.int64) - (h - 1)).view(1, h, 1)
+    k = (torch.arange(r, device=dev, dtype=torch.int64) - params.lattice_half).view(1, 1, r)
+    one = torch.ones((1, h, r), dtype=torch.int64, device=dev)
+    phi = [one, t * one, (t * t) * one, k * one, (k * t) * one, (k * t * t) * one]
+    o = occ.to(torch.int64)
+    m = torch.stack([torch.stack([(o * (phi[i] * phi[j])).sum(dim=(1, 2)) for j in range(N_COEF)], dim=1)
+                     for i in range(N_COEF)], dim=1)
+    rr = torch.stack([(q * phi[i]).sum(dim=(1, 2)) for i in range(N_COEF)], dim=1)
+    return m.to(torch.float64), rr.to(torch.float64) / float(grid)
+
+
 def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor, has_vp: torch.Tensor,
                 params: Params):
-    """Sections 11.2-11.3 per image; returns ``(coef (B,5), spacing, phase, found, vp_used, counts)``.
+    """Sections 11.2-11.3 per image; returns ``(coef (B,6), spacing, phase, found, vp_used, counts)``.
 
-    The normal equations are assembled from per-(image row, lattice row) integer counts and
-    x sums, which equal the reference's per-pixel sums exactly.
+    The cells (count and x sum of the inliers per image row and lattice row) are integer sums,
+    so the normal equations equal the reference's bit for bit.
     """
     bsz, h, w = mask.shape
     dev = mask.device
@@ -213,23 +236,16 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor, has_vp:
     den = ((h - 1) - v[:, 1]).to(torch.float64)
     ph = phase.to(torch.float64)
     sp = spacing.to(torch.float64)
-    coef = torch.stack([ph, (ph - v[:, 0].to(torch.float64)) / den, torch.zeros_like(ph), sp, sp / den], dim=1)
+    zero = torch.zeros_like(ph)
+    coef = torch.stack([ph, (ph - v[:, 0].to(torch.float64)) / den, zero, sp, sp / den, zero], dim=1)
     t = (torch.arange(h, device=dev, dtype=torch.float64) - (h - 1)).view(1, h, 1)
     xs = torch.arange(w, device=dev, dtype=torch.float64).view(1, 1, w)
-    kv = torch.arange(-params.lattice_half, params.lattice_half + 1, device=dev, dtype=torch.float64)
-    tt = t.view(1, h, 1)
-    phi = [torch.ones_like(tt * kv), tt.expand(1, h, kv.numel()), (tt * tt).expand(1, h, kv.numel()),
-           kv.view(1, 1, -1).expand(1, h, kv.numel()), kv.view(1, 1, -1) * tt]  # (1, H, R) each
     active = torch.ones(bsz, dtype=torch.bool, device=dev)
     for _ in range(params.lattice_iterations):
         k, inl = _assign(t, xs, coef, mask, params)
         cnt, sx = _row_counts(k, inl, xs, params)
         total = cnt.sum(dim=(1, 2))
-        cntf, sxf = cnt.to(torch.float64), sx.to(torch.float64)
-        mm = torch.stack([torch.stack([(cntf * phi[i] * phi[j]).sum(dim=(1, 2)) for j in range(N_COEF)], dim=1)
-                          for i in range(N_COEF)], dim=1)
-        rr = torch.stack([(sxf * phi[i]).sum(dim=(1, 2)) for i in range(N_COEF)], dim=1)
-        sol, singular = solve_normal(mm, rr, params)
+        sol, singular = solve_normal(*normal_equations(cnt, sx, params), params)
         active = active & (total >= params.lattice_min_points) & ~singular
         coef = torch.where(active.unsqueeze(1), sol, coef)
         if not bool(active.any()):  # early exit once every image has stopped
@@ -248,14 +264,14 @@ def improved_rows(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor, has
     support = (cnt > 0).sum(dim=1).to(torch.float64)  # (B, R)
     span = torch.clamp(h - torch.clamp(sky.to(torch.int64), min=0), min=1).to(torch.float64)
     conf = support / span.unsqueeze(1)
-    c0, c1, c2, d0, d1 = (coef[:, i].unsqueeze(1) for i in range(N_COEF))
+    c0, c1, c2, d0, d1, d2 = (coef[:, i].unsqueeze(1) for i in range(N_COEF))
     kv = torch.arange(-params.lattice_half, params.lattice_half + 1, device=images.device,
                       dtype=torch.float64).unsqueeze(0)
     yb = float(h - 1)
     slope = c1 + kv * d1
-    a = slope - (2.0 * c2) * yb
-    b = ((c0 + kv * d0) - slope * yb) + c2 * (yb * yb)
-    c = c2.expand_as(a)
+    c = c2 + kv * d2
+    a = slope - (2.0 * c) * yb
+    b = ((c0 + kv * d0) - slope * yb) + c * (yb * yb)
     valid = found.unsqueeze(1) & (conf >= params.lattice_min_confidence)
     img_conf = conf[:, 0]
     for i in range(1, conf.shape[1]):

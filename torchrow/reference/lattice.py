@@ -6,9 +6,9 @@ Replaces section 7 when ``Params.mode == "improved"``. Three stages, named as in
 * :func:`green_mask`: excess green ``2G - R - B`` above its Otsu threshold (11.1);
 * :func:`comb_search`: equally spaced straight rows through the (rounded) vanishing point,
   found by a comb on the pixels projected onto the bottom image row (11.2);
-* :func:`fit_lattice`: rows ``x = c(t) + k*d(t)``, ``c`` quadratic and ``d`` linear in
-  ``t = y - (H-1)``, refit by least squares on the pixels nearest each row (11.3), with a
-  confidence per row (11.4).
+* :func:`fit_lattice`: rows ``x = c(t) + k*d(t)``, ``c`` and ``d`` quadratic in
+  ``t = y - (H-1)``, refit by least squares on the mean x of each row's pixels on each
+  image row (11.3), with a confidence per row (11.4).
 
 Every sum that decides a discrete output adds integers (exact in float64), so the order of
 summation does not matter and the tensor path gets the same bits.
@@ -25,10 +25,11 @@ from ..params import Params
 from ..results import Row
 
 __all__ = ["LatticeFit", "excess_green", "otsu_threshold", "green_mask", "init_vp", "comb_search",
-           "solve_normal", "fit_lattice", "lattice_rows", "N_COEF"]
+           "solve_normal", "row_cells", "normal_equations", "fit_lattice", "lattice_rows", "N_COEF"]
 
-#: Coefficients ``(c0, c1, c2, d0, d1)`` of ``x = c0 + c1 t + c2 t^2 + k (d0 + d1 t)``.
-N_COEF = 5
+#: Coefficients ``(c0, c1, c2, d0, d1, d2)`` of ``x = c(t) + k d(t)``, ``c(t) = c0 + c1 t + c2 t^2``,
+#: ``d(t) = d0 + d1 t + d2 t^2``.
+N_COEF = 6
 #: Excess green ``2G - R - B`` of uint8 RGB lies in ``[-510, 510]``.
 EXG_OFFSET = 510
 EXG_BINS = 2 * EXG_OFFSET + 1
@@ -38,15 +39,15 @@ EXG_BINS = 2 * EXG_OFFSET + 1
 class LatticeFit:
     """The fitted lattice of one image.
 
-    ``coef`` = ``(c0, c1, c2, d0, d1)`` (px, px/px, px/px^2, px, px/px) of
-    ``x = c0 + c1 t + c2 t^2 + k (d0 + d1 t)``, ``t = y - (H-1)``; ``k`` = row index relative
+    ``coef`` = ``(c0, c1, c2, d0, d1, d2)`` (px, px/px, px/px^2, ...) of
+    ``x = (c0 + c1 t + c2 t^2) + k (d0 + d1 t + d2 t^2)``, ``t = y - (H-1)``; ``k`` = row index relative
     to the central row. ``spacing``/``phase``: the comb's bottom-row spacing and the central
     row's bottom-row x (px, integers). ``vp``: the rounded vanishing point the comb used.
     ``support``: image rows holding an inlier of each row, ``(2K+1,)``; ``span``: image rows
     where a row can have support; ``found``: the comb saw at least one pixel.
     """
 
-    coef: tuple[float, float, float, float, float]
+    coef: tuple[float, ...]
     spacing: int
     phase: int
     vp: tuple[int, int]
@@ -171,7 +172,7 @@ def comb_search(mask: np.ndarray, vp: tuple[int, int], params: Params) -> tuple[
 
 
 def solve_normal(m: np.ndarray, r: np.ndarray, params: Params) -> np.ndarray | None:
-    """Gaussian elimination without pivoting of the SPD system ``m z = r`` (5x5, float64).
+    """Gaussian elimination without pivoting of the SPD system ``m z = r`` (6x6, float64).
 
     Row ``i`` is eliminated with pivot ``m[i, i]`` in index order; the system is singular
     (``None``) when a pivot is ``<= lattice_pivot_tol * max(diag(m), 1)``. Written scalar by
@@ -200,9 +201,10 @@ def solve_normal(m: np.ndarray, r: np.ndarray, params: Params) -> np.ndarray | N
 
 def _assign(xs: np.ndarray, t: np.ndarray, coef: np.ndarray, params: Params) -> tuple[np.ndarray, np.ndarray]:
     """Nearest row ``k`` of each pixel and whether it is an inlier (section 11.3)."""
-    c0, c1, c2, d0, d1 = (np.float64(v) for v in coef)
-    cc = (c0 + c1 * t) + c2 * (t * t)
-    dd = d0 + d1 * t
+    c0, c1, c2, d0, d1, d2 = (np.float64(v) for v in coef)
+    tt = t * t
+    cc = (c0 + c1 * t) + c2 * tt
+    dd = (d0 + d1 * t) + d2 * tt
     ok = dd > params.lattice_min_spacing_px
     f = (xs - cc) / np.where(ok, dd, np.float64(1.0))
     k = np.rint(f)
@@ -210,16 +212,47 @@ def _assign(xs: np.ndarray, t: np.ndarray, coef: np.ndarray, params: Params) -> 
     return np.where(inl, k, 0.0), inl
 
 
+def row_cells(xs: np.ndarray, ys: np.ndarray, k: np.ndarray, inl: np.ndarray, height: int,
+              params: Params) -> tuple[np.ndarray, np.ndarray]:
+    """Inlier count and sum of x per lattice row and image row: two ``(2K+1, H)`` int64 arrays."""
+    n_k = 2 * params.lattice_half + 1
+    cell = (k[inl].astype(np.int64) + params.lattice_half) * height + ys[inl]
+    cnt = np.bincount(cell, minlength=n_k * height).reshape(n_k, height)
+    sx = np.bincount(cell, weights=xs[inl], minlength=n_k * height)  # integer-valued, exact
+    return cnt.astype(np.int64), sx.astype(np.int64).reshape(n_k, height)
+
+
+def normal_equations(cnt: np.ndarray, sx: np.ndarray, height: int,
+                     params: Params) -> tuple[np.ndarray, np.ndarray]:
+    """Section 11.3: the least-squares system of one observation per occupied cell.
+
+    Cell ``(k, y)`` with ``n > 0`` inliers observes ``x = q / G`` with ``q = round_half_even((G *
+    sum x) / n)`` (float64 division; ``G = lattice_cell_grid``), basis ``phi = (1, t, t^2, k, k t,
+    k t^2)``. ``M = sum phi phi^T`` and ``r = sum q phi`` are summed in int64 (exact), then
+    ``M`` is converted to float64 and ``r`` to float64 divided by ``G``.
+    """
+    half = params.lattice_half
+    kk, yy = np.nonzero(cnt > 0)
+    n = cnt[kk, yy].astype(np.float64)
+    q = np.rint((np.float64(params.lattice_cell_grid) * sx[kk, yy].astype(np.float64)) / n).astype(np.int64)
+    t = yy.astype(np.int64) - (height - 1)
+    k = kk.astype(np.int64) - half
+    phi = np.stack([np.ones_like(t), t, t * t, k, k * t, k * t * t], axis=1)  # (cells, 6) int64
+    m = (phi[:, :, None] * phi[:, None, :]).sum(axis=0)
+    r = (phi * q[:, None]).sum(axis=0)
+    return m.astype(np.float64), r.astype(np.float64) / np.float64(params.lattice_cell_grid)
+
+
 def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, params: Params) -> LatticeFit:
     """Sections 11.2-11.4 on a green mask: comb start, then ``lattice_iterations`` refits.
 
-    Start: ``c(t) = phase + ((phase - xv) / (H-1 - yv)) t``, ``c2 = 0``, ``d(t) = d +
-    (d / (H-1 - yv)) t`` (straight rows through the VP). Each iteration assigns every mask
-    pixel below ``sky`` to ``k = round_half_even((x - c(t)) / d(t))`` (where ``d(t) >
+    Start: ``c(t) = phase + ((phase - xv) / (H-1 - yv)) t``, ``d(t) = d + (d / (H-1 - yv)) t``,
+    no ``t^2`` terms (straight rows through the VP). Each iteration assigns every mask pixel
+    below ``sky`` to ``k = round_half_even((x - c(t)) / d(t))`` (where ``d(t) >
     lattice_min_spacing_px``), keeps it when ``|f - k| < lattice_tolerance`` and ``|k| <=
-    lattice_half``, and solves the least-squares normal equations of
-    ``x = c0 + c1 t + c2 t^2 + k d0 + k d1 t`` over the inliers (integer sums). With fewer
-    than ``lattice_min_points`` inliers or a singular system the coefficients stay.
+    lattice_half``, and solves :func:`normal_equations`. With fewer than
+    ``lattice_min_points`` inlier pixels or a singular system the coefficients stay (and the
+    iterations stop).
     """
     h, w = mask.shape
     v = init_vp(vp, w, params)
@@ -227,48 +260,47 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
     xv, yv = v
     den = np.float64(h - 1 - yv)
     coef = np.array([np.float64(phase), (np.float64(phase) - np.float64(xv)) / den, 0.0,
-                     np.float64(d), np.float64(d) / den], np.float64)
+                     np.float64(d), np.float64(d) / den, 0.0], np.float64)
     ys, xs = np.nonzero(mask)
     keep = ys >= sky
-    xs, t = xs[keep].astype(np.float64), (ys[keep] - (h - 1)).astype(np.float64)
+    ys = ys[keep].astype(np.int64)
+    xs, t = xs[keep].astype(np.float64), (ys - (h - 1)).astype(np.float64)
     for _ in range(params.lattice_iterations):
         k, inl = _assign(xs, t, coef, params)
         if int(inl.sum()) < params.lattice_min_points:
             break
-        basis = np.stack([np.ones_like(t), t, t * t, k, k * t], axis=1)[inl]
-        sol = solve_normal(basis.T @ basis, basis.T @ xs[inl], params)
+        cnt, sx = row_cells(xs, ys, k, inl, h, params)
+        sol = solve_normal(*normal_equations(cnt, sx, h, params), params)
         if sol is None:
             break
         coef = sol
     k, inl = _assign(xs, t, coef, params)
-    n_k = 2 * params.lattice_half + 1
-    occupied = np.zeros((n_k, h), bool)
-    rows_y = (t[inl] + (h - 1)).astype(np.int64)
-    occupied[(k[inl] + params.lattice_half).astype(np.int64), rows_y] = True
-    support = tuple(int(s) for s in occupied.sum(axis=1))
+    cnt, _ = row_cells(xs, ys, k, inl, h, params)
+    support = tuple(int(s) for s in (cnt > 0).sum(axis=1))
     span = h - max(sky, 0)
-    return LatticeFit(tuple(float(c) for c in coef), d, phase, v, support, span, found)  # type: ignore[arg-type]
+    return LatticeFit(tuple(float(c) for c in coef), d, phase, v, support, span, found)
 
 
 def lattice_rows(fit: LatticeFit, height: int, params: Params) -> list[Row]:
     """Section 11.4: rows ``k = -K .. K`` as ``x = c*y^2 + a*y + b`` with a confidence.
 
-    With ``Y = H-1``: ``c = c2``, ``a = (c1 + k d1) - 2 c2 Y``, ``b = ((c0 + k d0) -
-    (c1 + k d1) Y) + c2 Y^2``. Confidence = image rows holding an inlier of the row /
+    With ``Y = H-1``: ``c = c2 + k d2``, ``a = (c1 + k d1) - (2 c) Y``, ``b = ((c0 + k d0) -
+    (c1 + k d1) Y) + c (Y Y)``. Confidence = image rows holding an inlier of the row /
     image rows below the horizon. A row is valid iff the comb found pixels and its
     confidence is ``>= lattice_min_confidence`` (reason ``no_support`` otherwise).
     """
-    c0, c1, c2, d0, d1 = (np.float64(v) for v in fit.coef)
+    c0, c1, c2, d0, d1, d2 = (np.float64(v) for v in fit.coef)
     yb = np.float64(height - 1)
     rows = []
     for i in range(2 * params.lattice_half + 1):
         k = np.float64(i - params.lattice_half)
         slope = c1 + k * d1
-        a = slope - np.float64(2.0) * c2 * yb
-        b = ((c0 + k * d0) - slope * yb) + c2 * (yb * yb)
+        curv = c2 + k * d2
+        a = slope - (np.float64(2.0) * curv) * yb
+        b = ((c0 + k * d0) - slope * yb) + curv * (yb * yb)
         conf = float(np.float64(fit.support[i]) / np.float64(max(fit.span, 1)))
         ok = fit.found and conf >= params.lattice_min_confidence
-        rows.append(Row(float(a), float(b), ok, "" if ok else "no_support", -1, float(c2), conf))
+        rows.append(Row(float(a), float(b), ok, "" if ok else "no_support", -1, float(curv), conf))
     return rows
 
 
