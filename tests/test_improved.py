@@ -229,3 +229,12 @@ def test_cli_mode_improved_detect_and_video_error(tmp_path, capsys) -> None:
     assert main(["video", str(tmp_path), "--out", str(tmp_path / "v.jsonl"), "--mode", "improved"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("torchrow: error:") and "improved" in err[0]
+
+
+def test_improved_record_round_trip() -> None:
+    res = detect(_field(curve=0.0002), IMPROVED)
+    rec = res.to_record()
+    assert ImageResult.from_record(rec).to_record() == rec
+    back = ImageResult.from_record(rec)
+    assert [r.c for r in back.rows] == [r.c for r in res.rows]
+    assert back.confidence == res.confidence
