@@ -42,7 +42,7 @@ def _field(h: int = 240, w: int = 320, spacing: float = 90.0, shift: float = 0.0
 
 def _records_equal(a: ImageResult, b: ImageResult) -> None:
     ra, rb = a.to_record(), b.to_record()
-    assert ra["status"] == rb["status"]
+    assert (ra["status"], ra["n_rows"]) == (rb["status"], rb["n_rows"])
     assert ra["confidence"] == rb["confidence"]
     assert len(ra["rows"]) == len(rb["rows"])
     for x, y in zip(ra["rows"], rb["rows"]):

@@ -280,7 +280,8 @@ class CropRowDetector(nn.Module):
             status = torch.where(has_veg, status, torch.full_like(status, STATUS_CODES["no_vegetation"]))
         return BatchResult(
             width=w, height=h, status=status, sky=sky.to(torch.int64), veg_color=color, k=k, bushy=bushy,
-            n_rows=ls.n_rows, hough_theta=ls.theta, hough_rho=ls.rho, hough_weight=ls.weight,
+            n_rows=ls.n_rows if p.mode == "faithful" else torch.full_like(ls.n_rows, rows.a.shape[1]),
+            hough_theta=ls.theta, hough_rho=ls.rho, hough_weight=ls.weight,
             hough_valid=ls.valid, out_theta=ls.out_theta, out_rho=ls.out_rho, out_weight=ls.out_weight,
             out_valid=ls.out_valid, vp=ls.vp, has_vp=ls.has_vp, row_a=rows.a, row_b=rows.b,
             row_valid=rows.valid, row_reason=rows.reason, row_hypothesis=rows.hypothesis,
