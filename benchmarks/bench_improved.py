@@ -133,7 +133,8 @@ def main() -> None:
         worst = 0.0
         for i in range(n):
             a, b = detect(images[i], imp).to_record(), res_imp[i].to_record()
-            same = (a["status"], a["confidence"]) == (b["status"], b["confidence"]) and len(a["rows"]) == len(b["rows"])
+            keys = ("status", "n_rows", "image_confidence")
+            same = [a[k] for k in keys] == [b[k] for k in keys] and len(a["rows"]) == len(b["rows"])
             for x, y in zip(a["rows"], b["rows"]):
                 same &= (x["valid"], x["confidence"]) == (y["valid"], y["confidence"])
                 for k in ("a", "b", "c"):

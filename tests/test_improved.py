@@ -43,7 +43,7 @@ def _field(h: int = 240, w: int = 320, spacing: float = 90.0, shift: float = 0.0
 def _records_equal(a: ImageResult, b: ImageResult) -> None:
     ra, rb = a.to_record(), b.to_record()
     assert (ra["status"], ra["n_rows"]) == (rb["status"], rb["n_rows"])
-    assert ra["confidence"] == rb["confidence"]
+    assert ra["image_confidence"] == rb["image_confidence"]
     assert len(ra["rows"]) == len(rb["rows"])
     for x, y in zip(ra["rows"], rb["rows"]):
         assert (x["valid"], x["reason"], x["confidence"]) == (y["valid"], y["reason"], y["confidence"])
@@ -118,7 +118,7 @@ def test_faithful_rows_carry_zero_curvature() -> None:
     res = detect(_field(), Params())
     rec = res.to_record()
     assert all(r["c"] == 0.0 and r["confidence"] is None for r in rec["rows"])
-    assert rec["confidence"] is None
+    assert rec["image_confidence"] is None
 
 
 # --- metrics -------------------------------------------------------------------------------
@@ -223,7 +223,7 @@ def test_cli_mode_improved_detect_and_video_error(tmp_path, capsys) -> None:
     import json
 
     rec = json.loads(out.read_text().splitlines()[0])
-    assert len(rec["rows"]) == 3 and rec["rows"][1]["c"] > 0 and 0 <= rec["confidence"] <= 1
+    assert len(rec["rows"]) == 3 and rec["rows"][1]["c"] > 0 and 0 <= rec["image_confidence"] <= 1
     assert (tmp_path / "ann" / "f.png").is_file()
     capsys.readouterr()
     assert main(["video", str(tmp_path), "--out", str(tmp_path / "v.jsonl"), "--mode", "improved"]) == 2
@@ -237,4 +237,4 @@ def test_improved_record_round_trip() -> None:
     assert ImageResult.from_record(rec).to_record() == rec
     back = ImageResult.from_record(rec)
     assert [r.c for r in back.rows] == [r.c for r in res.rows]
-    assert back.confidence == res.confidence
+    assert back.image_confidence == res.image_confidence

@@ -75,10 +75,10 @@ class BatchResult:
     theta_step: int = 1
     timings: dict[str, float] = field(default_factory=dict)
     #: Improved mode only (None in faithful mode): ``row_c``/``row_confidence`` ``(B, R)``
-    #: float64 (``x = c*y**2 + a*y + b``) and the image ``confidence`` ``(B,)`` float64.
+    #: float64 (``x = c*y**2 + a*y + b``) and ``image_confidence`` ``(B,)`` float64.
     row_c: torch.Tensor | None = None
     row_confidence: torch.Tensor | None = None
-    confidence: torch.Tensor | None = None
+    image_confidence: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.status.shape[0])
@@ -105,7 +105,7 @@ class BatchResult:
                 hough=lines(cpu["hough_theta"], cpu["hough_rho"], cpu["hough_weight"], cpu["hough_valid"]),
                 outliers=lines(cpu["out_theta"], cpu["out_rho"], cpu["out_weight"], cpu["out_valid"]),
                 vp=vp, rows=rows, name=None if names is None else names[b],
-                confidence=float(cpu["confidence"][b]) if curved else float("nan")))
+                image_confidence=float(cpu["image_confidence"][b]) if curved else float("nan")))
         return out
 
 

@@ -79,7 +79,8 @@ class ImageResult:
     name: str | None = None
     error: str | None = None
     #: Image confidence (improved mode, ALGORITHM.md 11.4): mean of the rows'; NaN in faithful mode.
-    confidence: float = float("nan")
+    #: (Not ``confidence``: a video frame's ``confidence`` is the tracker's, see torchrow.steering.)
+    image_confidence: float = float("nan")
 
     @property
     def valid(self) -> bool:
@@ -109,7 +110,7 @@ class ImageResult:
             "vp": None if self.vp is None else [num(self.vp[0]), num(self.vp[1])],
             "rows": [{"a": num(r.a), "b": num(r.b), "c": num(r.c), "valid": bool(r.valid), "reason": r.reason,
                       "confidence": num(r.confidence)} for r in self.rows],
-            "confidence": num(self.confidence),
+            "image_confidence": num(self.image_confidence),
         }
         if self.error is not None:
             rec["error"] = self.error
@@ -137,7 +138,7 @@ class ImageResult:
             vp=None if rec.get("vp") is None else (f(rec["vp"][0]), f(rec["vp"][1])),
             rows=[Row(f(r["a"]), f(r["b"]), bool(r["valid"]), r.get("reason", ""), -1, f(r.get("c", 0.0)),
                       f(r.get("confidence"))) for r in rec.get("rows", [])],
-            name=rec.get("name"), error=rec.get("error"), confidence=f(rec.get("confidence")),
+            name=rec.get("name"), error=rec.get("error"), image_confidence=f(rec.get("image_confidence")),
         )
 
     @classmethod

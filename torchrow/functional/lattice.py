@@ -293,4 +293,4 @@ def as_row_fits(rows: LatticeRows):
 
 def curve_fields(rows: LatticeRows) -> dict[str, torch.Tensor]:
     """The :class:`~torchrow.detector.BatchResult` fields only the improved mode has."""
-    return {"row_c": rows.c, "row_confidence": rows.confidence, "confidence": rows.image_confidence}
+    return {"row_c": rows.c, "row_confidence": rows.confidence, "image_confidence": rows.image_confidence}

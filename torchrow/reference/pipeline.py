@@ -77,7 +77,7 @@ def detect(image: np.ndarray, params: Params | None = None, name: str | None = N
         res.status = "no_vegetation"
         res.n_rows = 0
     if params.mode == "improved":  # section 11 replaces section 7 (and runs without a VP too)
-        res.rows, res.confidence, _ = improved_rows(rgb, sky, vp, params)
+        res.rows, res.image_confidence, _ = improved_rows(rgb, sky, vp, params)
         res.n_rows = len(res.rows)  # the rows asked: 2K + 1
         res.status = "ok" if all(r.valid for r in res.rows) else "invalid"
         return res
