@@ -141,7 +141,13 @@ def draw_result(rgb: np.ndarray, result: ImageResult, scale: int = 2,
             continue
         (x0, y0), (x1, y1) = seg
         color = VALID if row.valid else INVALID
-        cv2.line(img, (x0, y0), (x1, y1), color, th, cv2.LINE_AA)
+        if row.c != 0.0 and math.isfinite(row.c):  # a curve (improved mode): a polyline
+            ys = np.linspace(y_top, h - 1, 48)
+            pts = np.stack([np.asarray(row.x_at(ys)) * s, ys * s], 1).round().astype(np.int32)
+            cv2.polylines(img, [pts], False, color, th, cv2.LINE_AA)
+            x1 = int(pts[-1, 0])
+        else:
+            cv2.line(img, (x0, y0), (x1, y1), color, th, cv2.LINE_AA)
         if not row.valid:
             labels.append((x1, f"row {i}: {row.reason}"))
     for j, (x, text) in enumerate(sorted(labels)):

@@ -201,7 +201,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     from .io import load_image
     from .sink import image_key
 
-    params = _parse_params(args.param)
+    params = _with_mode(_parse_params(args.param), args)
     device = _check_device(args.device)
     model = _check_model(args)
     _check_engine(args)
@@ -373,7 +373,7 @@ def _open_crbd(data: str | None):
 def cmd_eval(args: argparse.Namespace) -> int:
     from .evaluate import evaluate
 
-    params = _parse_params(args.param)
+    params = _with_mode(_parse_params(args.param), args)
     device = _check_device(args.device)
     if args.impl == "onnx":
         raise CLIError("eval supports --impl tensor|reference; for ONNX use: torchrow detect --impl onnx --model M")
@@ -555,7 +555,7 @@ def cmd_video(args: argparse.Namespace) -> int:
     from .progress import progress
     from .video import central_jumps, plot_tracks
 
-    params = _parse_params(args.param)
+    params = _with_mode(_parse_params(args.param), args)
     if args.hough_every is not None:
         if args.hough_every < 1:
             raise CLIError(f"--hough-every must be >= 1, got {args.hough_every}")
@@ -656,6 +656,18 @@ def _fmt_vp(vp) -> str:
     return "none" if vp is None else f"({vp[0]:.1f}, {vp[1]:.1f})"
 
 
+def _with_mode(params: Params, args: argparse.Namespace) -> Params:
+    """Apply ``--mode`` (faithful | improved, ALGORITHM.md section 11) to the parameters."""
+    mode = getattr(args, "mode", None)
+    if mode is None:
+        return params
+    if mode == "improved" and getattr(args, "impl", None) == "onnx":
+        raise CLIError("--mode improved has no ONNX export yet; use --impl tensor or reference")
+    if mode == "improved" and args.command == "video":
+        raise CLIError("--mode improved is not available for video yet (the tracker is faithful only)")
+    return params.replace(mode=mode)
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="torchrow", description="Crop-row detection (ALGORITHM.md), "
                                  "reference and batched tensor implementations.")
@@ -675,6 +687,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--batch-size", type=int, default=64, help="images per batch for --impl tensor (default 64)")
         p.add_argument("--device", default=None,
                        help="torch device for --impl tensor (cpu, cuda, cuda:1; default cpu)")
+        mode(p)
 
     def engine(p: argparse.ArgumentParser) -> None:
         p.add_argument("--engine", choices=("local", "ray"), default="local",
@@ -686,6 +699,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="--engine ray: detector actors (default: the cluster's CPUs)")
         p.add_argument("--resume", action="store_true",
                        help="keep the records already in --out, skip their inputs, append the rest")
+
+    def mode(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--mode", choices=("faithful", "improved"), default=None,
+                       help="faithful: the thesis' algorithm (default); improved: curved rows on a spacing "
+                            "lattice (ALGORITHM.md section 11, a torchrow extension)")
 
     p = sub.add_parser("detect", help="detect rows in images, write one JSON record per file")
     p.add_argument("inputs", nargs="+", metavar="IMAGE_OR_DIR_OR_BAG")
@@ -738,6 +756,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch-size", type=int, default=8, help="sequences per batch for --impl tensor (default 8)")
     p.add_argument("--device", default=None,
                    help="torch device for --impl tensor (cpu, cuda, cuda:1; default cpu)")
+    mode(p)
     common(p)
     p.set_defaults(func=cmd_video)
 

@@ -20,6 +20,7 @@ import torch
 from torch import nn
 
 from .functional import color as fcolor
+from .functional import lattice as flattice
 from .functional import ransac as fransac
 from .functional import sky as fsky
 from .functional import vanishing as fvan
@@ -73,6 +74,11 @@ class BatchResult:
     row_present: torch.Tensor
     theta_step: int = 1
     timings: dict[str, float] = field(default_factory=dict)
+    #: Improved mode only (None in faithful mode): ``row_c``/``row_confidence`` ``(B, R)``
+    #: float64 (``x = c*y**2 + a*y + b``) and ``image_confidence`` ``(B,)`` float64.
+    row_c: torch.Tensor | None = None
+    row_confidence: torch.Tensor | None = None
+    image_confidence: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.status.shape[0])
@@ -91,8 +97,10 @@ class BatchResult:
                 return [HoughLine(int(th[b, j]), int(rh[b, j]), int(wt[b, j]), self.theta_step)
                         for j in range(th.shape[1]) if bool(ok[b, j])]
 
+            curved = cpu["row_c"] is not None
             rows = [Row(float(cpu["row_a"][b, j]), float(cpu["row_b"][b, j]), bool(cpu["row_valid"][b, j]),
-                        REASONS[int(cpu["row_reason"][b, j])], int(cpu["row_hypothesis"][b, j]))
+                        REASONS[int(cpu["row_reason"][b, j])], int(cpu["row_hypothesis"][b, j]),
+                        *((float(cpu["row_c"][b, j]), float(cpu["row_confidence"][b, j])) if curved else ()))
                     for j in range(cpu["row_a"].shape[1]) if bool(cpu["row_present"][b, j])]
             vp = (float(cpu["vp"][b, 0]), float(cpu["vp"][b, 1])) if bool(cpu["has_vp"][b]) else None
             out.append(ImageResult(
@@ -101,7 +109,8 @@ class BatchResult:
                 k=int(cpu["k"][b]), bushy=bool(cpu["bushy"][b]), n_rows=int(cpu["n_rows"][b]),
                 hough=lines(cpu["hough_theta"], cpu["hough_rho"], cpu["hough_weight"], cpu["hough_valid"]),
                 outliers=lines(cpu["out_theta"], cpu["out_rho"], cpu["out_weight"], cpu["out_valid"]),
-                vp=vp, rows=rows, name=None if names is None else names[b]))
+                vp=vp, rows=rows, name=None if names is None else names[b],
+                image_confidence=float(cpu["image_confidence"][b]) if curved else float("nan")))
         return out
 
 
@@ -257,24 +266,32 @@ class CropRowDetector(nn.Module):
             sl = slice(s0, s0 + step)
             ls = fvan.find_lines(hin[sl], p)
             present = ls.valid & ls.has_vp.unsqueeze(1)
+            if p.mode == "improved":  # section 11 replaces section 7
+                parts.append((ls, flattice.improved_rows(x[sl], sky[sl], ls.vp, ls.has_vp & has_veg[sl], p)))
+                continue
             fit = fransac.fit_rows(veg[sl], ls.theta, ls.rho, present, ls.vp, band[sl], p)
             rows = fransac.validate_rows(*fit, present, h, torch.full_like(band[sl], p.hough_band_px(w)), p)
             parts.append((ls, rows))
         ls = _cat([q[0] for q in parts])
         rows = _cat([q[1] for q in parts])
+        if p.mode == "improved":
+            rows, curved = flattice.as_row_fits(rows), rows
         lap("hough+vp+ransac")
         all_valid = (rows.valid | ~rows.present).all(dim=1)
         status = torch.where(all_valid, torch.full((bsz,), STATUS_CODES["ok"], **i64),
                              torch.full((bsz,), STATUS_CODES["invalid"], **i64))
-        status = torch.where(ls.has_vp, status, torch.full_like(status, STATUS_CODES["no_vp"]))
-        status = torch.where(has_veg, status, torch.full_like(status, STATUS_CODES["no_vegetation"]))
+        if p.mode == "faithful":
+            status = torch.where(ls.has_vp, status, torch.full_like(status, STATUS_CODES["no_vp"]))
+            status = torch.where(has_veg, status, torch.full_like(status, STATUS_CODES["no_vegetation"]))
         return BatchResult(
             width=w, height=h, status=status, sky=sky.to(torch.int64), veg_color=color, k=k, bushy=bushy,
-            n_rows=ls.n_rows, hough_theta=ls.theta, hough_rho=ls.rho, hough_weight=ls.weight,
+            n_rows=ls.n_rows if p.mode == "faithful" else torch.full_like(ls.n_rows, rows.a.shape[1]),
+            hough_theta=ls.theta, hough_rho=ls.rho, hough_weight=ls.weight,
             hough_valid=ls.valid, out_theta=ls.out_theta, out_rho=ls.out_rho, out_weight=ls.out_weight,
             out_valid=ls.out_valid, vp=ls.vp, has_vp=ls.has_vp, row_a=rows.a, row_b=rows.b,
             row_valid=rows.valid, row_reason=rows.reason, row_hypothesis=rows.hypothesis,
-            row_present=rows.present, theta_step=p.theta_step, timings=timings)
+            row_present=rows.present, theta_step=p.theta_step, timings=timings,
+            **(flattice.curve_fields(curved) if p.mode == "improved" else {}))
 
     def prepare(self, image: np.ndarray | str | Path) -> np.ndarray:
         """Section 0 for one input: load a path or convert an array, resize to the working width."""

@@ -93,6 +93,24 @@ class Params:
     # --- section 0, working-size bound (torchrow extension, ALGORITHM.md section 0) ----------
     max_pixels: int = 1 << 19  # working W*H above this: status "error" (memory bound)
 
+    # --- section 11 (torchrow extension): improved mode, the row lattice ----------------
+    mode: str = "faithful"  # "faithful" (sections 0-7) or "improved" (section 11 replaces 7)
+    green_floor: int = 0  # excess-green threshold is max(Otsu, this)
+    lattice_vp_max_y: int = 0  # a section-6 VP below this image row is not trusted
+    lattice_vp_fallback_y: int = -60  # y of the VP used instead, at x = W // 2
+    lattice_vp_margin: int = 10  # px: only pixels this far below the VP are projected
+    lattice_min_spacing: int = 40  # px, smallest bottom-row spacing the comb tries
+    lattice_max_spacing: int = 180  # px, largest
+    lattice_window: float = 0.1  # comb tooth half-width, fraction of the spacing
+    lattice_iterations: int = 6  # least-squares refits
+    lattice_tolerance: float = 0.15  # inlier: |f - k| < this (fraction of the spacing)
+    lattice_half: int = 1  # rows k = -K..K around the central row are fitted and reported
+    lattice_min_points: int = 20  # fewer inliers: the refit stops
+    lattice_cell_grid: int = 64  # a cell's mean x is rounded to 1/this px (keeps the sums integer)
+    lattice_min_spacing_px: float = 2.0  # pixels where d(t) <= this are not assigned
+    lattice_pivot_tol: float = 1e-12  # pivot <= this * max(diag, 1): singular normal equations
+    lattice_min_confidence: float = 0.0  # rows below this confidence are invalid
+
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
             rule = _RULES[f.name]
@@ -134,11 +152,12 @@ class _Rule:
     ``int``, a list for a pair becomes a tuple, so equal parameters compare and hash equal.
     """
 
-    kind: str
+    kind: str  # also "choice": a str out of ``choices``
     lo: float | None = None
     hi: float | None = None
     extra: "tuple[Callable[[object], bool], str] | None" = None
     why: str = ""  # reason for an upper bound, quoted in the error
+    choices: tuple[str, ...] = ()
 
     def _bounds(self) -> str:
         def f(b: float) -> str:
@@ -162,6 +181,12 @@ class _Rule:
 
     def check(self, field: str, v: object) -> object:
         if self.kind == "int?" and v is None:
+            return v
+        if self.kind == "choice":
+            if not isinstance(v, str):
+                raise TypeError(f"Params.{field} must be a str, not {type(v).__name__}; got {v!r}")
+            if v not in self.choices:
+                raise ValueError(f"Params.{field} must be one of {', '.join(map(repr, self.choices))}; got {v!r}")
             return v
         if self.kind == "pair":
             if not isinstance(v, (tuple, list)):
@@ -217,6 +242,19 @@ _RULES: dict[str, _Rule] = {
     # odd: x -> x*mult mod 2**32 is then a bijection, so subsampling keys never tie (section 7.2)
     "subsample_hash": _Rule("int", 1, 2**32 - 1, (_odd, "must be odd (distinct subsampling keys)")),
     "max_pixels": _Rule("int", 1, 1 << 22, why="peak memory is about 2.5 KB per working pixel"),
+    # section 11 (torchrow extension): the improved mode's row lattice
+    "mode": _Rule("choice", choices=("faithful", "improved")),
+    "green_floor": _Rule("int", -(2**31) + 1, 2**31 - 1),
+    "lattice_vp_max_y": _Rule("int", -(2**31) + 1, 2**31 - 1),
+    "lattice_vp_fallback_y": _Rule("int", -(2**31) + 1, -1, why="the fallback VP lies above the image"),
+    "lattice_vp_margin": _INT1,
+    "lattice_min_spacing": _Rule("int", 1, 4096, why=_COST), "lattice_max_spacing": _Rule("int", 1, 4096, why=_COST),
+    "lattice_half": _Rule("int", 1, 64, why=_COST), "lattice_min_points": _INT1,
+    "lattice_iterations": _Rule("int", 0, 1000, why=_COST),
+    "lattice_cell_grid": _Rule("int", 1, 2**16, why="the int64 sums stay exact"),
+    "lattice_window": _Rule("float", 0, 0.5, (lambda v: 0 < v < 0.5, "must lie in (0, 0.5)")),  # type: ignore[operator]
+    "lattice_tolerance": _Rule("float", 0, 0.5, (lambda v: 0 < v < 0.5, "must lie in (0, 0.5)")),  # type: ignore[operator]
+    "lattice_min_spacing_px": _F0, "lattice_pivot_tol": _F0, "lattice_min_confidence": _Rule("float", 0, 1),
 }
 
 #: Rules that tie fields together: (field named in the error, condition, wording).
@@ -224,4 +262,5 @@ _CROSS_RULES: tuple[tuple[str, Callable[[Params], bool], str], ...] = (
     ("ransac_subsample", lambda p: p.ransac_subsample <= p.ransac_max_points, "must be <= ransac_max_points"),
     ("video_k_start", lambda p: p.video_k_min <= p.video_k_start <= p.video_k_max,
      "must lie in [video_k_min, video_k_max]"),
+    ("lattice_max_spacing", lambda p: p.lattice_max_spacing >= p.lattice_min_spacing, "must be >= lattice_min_spacing"),
 )

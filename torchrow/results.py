@@ -40,10 +40,12 @@ class HoughLine:
 
 @dataclass(frozen=True)
 class Row:
-    """A fitted crop row ``x = a*y + b`` in working-image pixels.
+    """A fitted crop row ``x = c*y**2 + a*y + b`` in working-image pixels.
 
     ``a``/``b`` are NaN when the row had no support. ``hypothesis`` is the index of the
-    winning RANSAC hypothesis (-1 when none was scored).
+    winning RANSAC hypothesis (-1 when none was scored). ``c`` is 0 in faithful mode (straight
+    rows); ``confidence`` in ``[0, 1]`` is set by the improved mode (ALGORITHM.md 11.4) and NaN
+    in faithful mode.
     """
 
     a: float
@@ -51,9 +53,11 @@ class Row:
     valid: bool
     reason: str = ""
     hypothesis: int = -1
+    c: float = 0.0
+    confidence: float = float("nan")
 
     def x_at(self, y: np.ndarray | float) -> np.ndarray | float:
-        return self.a * y + self.b
+        return (self.c * y) * y + self.a * y + self.b
 
 
 @dataclass
@@ -74,6 +78,9 @@ class ImageResult:
     rows: list[Row] = field(default_factory=list)
     name: str | None = None
     error: str | None = None
+    #: Image confidence (improved mode, ALGORITHM.md 11.4): mean of the rows'; NaN in faithful mode.
+    #: (Not ``confidence``: a video frame's ``confidence`` is the tracker's, see torchrow.steering.)
+    image_confidence: float = float("nan")
 
     @property
     def valid(self) -> bool:
@@ -101,8 +108,9 @@ class ImageResult:
             "hough": [h.to_list() for h in self.hough],
             "outliers": [h.to_list() for h in self.outliers],
             "vp": None if self.vp is None else [num(self.vp[0]), num(self.vp[1])],
-            "rows": [{"a": num(r.a), "b": num(r.b), "valid": bool(r.valid), "reason": r.reason}
-                     for r in self.rows],
+            "rows": [{"a": num(r.a), "b": num(r.b), "c": num(r.c), "valid": bool(r.valid), "reason": r.reason,
+                      "confidence": num(r.confidence)} for r in self.rows],
+            "image_confidence": num(self.image_confidence),
         }
         if self.error is not None:
             rec["error"] = self.error
@@ -128,8 +136,9 @@ class ImageResult:
             hough=[line(v) for v in rec.get("hough", [])],
             outliers=[line(v) for v in rec.get("outliers", [])],
             vp=None if rec.get("vp") is None else (f(rec["vp"][0]), f(rec["vp"][1])),
-            rows=[Row(f(r["a"]), f(r["b"]), bool(r["valid"]), r.get("reason", "")) for r in rec.get("rows", [])],
-            name=rec.get("name"), error=rec.get("error"),
+            rows=[Row(f(r["a"]), f(r["b"]), bool(r["valid"]), r.get("reason", ""), -1, f(r.get("c", 0.0)),
+                      f(r.get("confidence"))) for r in rec.get("rows", [])],
+            name=rec.get("name"), error=rec.get("error"), image_confidence=f(rec.get("image_confidence")),
         )
 
     @classmethod

@@ -8,6 +8,7 @@ from ..io import check_color, resize_to_width, to_rgb8
 from ..params import Params
 from ..results import ImageResult
 from .color import vegetation_color
+from .lattice import improved_rows
 from .ransac import fit_row, validate_rows
 from .sky import sky_row
 from .vanishing import find_lines
@@ -66,17 +67,24 @@ def detect(image: np.ndarray, params: Params | None = None, name: str | None = N
     k = params.veg_tol
     veg = remove_bushy(raw_mask(rgb, color, k, sky), sky, params)
     res = ImageResult(width=w, height=h, status="no_vp", sky=sky, veg_color=color, k=k, name=name)
-    if not veg.any():
+    vp = None
+    if veg.any():
+        hin, res.bushy = hough_input(veg, sky, params)
+        search = find_lines(hin, params)
+        res.hough, res.outliers, res.n_rows, res.vp = search.lines, search.outliers, search.n_rows, search.vp
+        vp = search.vp
+    else:
         res.status = "no_vegetation"
         res.n_rows = 0
+    if params.mode == "improved":  # section 11 replaces section 7 (and runs without a VP too)
+        res.rows, res.image_confidence, _ = improved_rows(rgb, sky, vp, params)
+        res.n_rows = len(res.rows)  # the rows asked: 2K + 1
+        res.status = "ok" if all(r.valid for r in res.rows) else "invalid"
         return res
-    hin, res.bushy = hough_input(veg, sky, params)
-    search = find_lines(hin, params)
-    res.hough, res.outliers, res.n_rows, res.vp = search.lines, search.outliers, search.n_rows, search.vp
-    if search.vp is None:
+    if vp is None:
         return res
     band = params.ransac_band_px(w, res.bushy)
-    fits = [fit_row(veg, line, search.vp, band, params) for line in search.lines]
+    fits = [fit_row(veg, line, vp, band, params) for line in search.lines]
     res.rows = validate_rows(fits, h, w, params)
     res.status = "ok" if all(r.valid for r in res.rows) else "invalid"
     return res

@@ -1,0 +1,240 @@
+"""Improved mode (ALGORITHM.md section 11, torchrow extension): stages, parity, records, CLI."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from torchrow.cli import main
+from torchrow.detector import CropRowDetector
+from torchrow.functional import lattice as flat
+from torchrow.metrics import crda_official, rows_to_U
+from torchrow.params import Params
+from torchrow.reference import detect
+from torchrow.reference import lattice as rlat
+from torchrow.results import ImageResult, Row
+
+IMPROVED = Params(mode="improved")
+
+
+def _t(images: list[np.ndarray]) -> torch.Tensor:
+    return torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2).contiguous()
+
+
+def _field(h: int = 240, w: int = 320, spacing: float = 90.0, shift: float = 0.0, curve: float = 0.0,
+           seed: int = 0) -> np.ndarray:
+    """Green rows through a VP above the image on brown soil, optionally bent (x += curve * t^2)."""
+    rng = np.random.default_rng(seed)
+    img = np.empty((h, w, 3), np.uint8)
+    img[...] = (120, 90, 60)
+    img = np.clip(img.astype(np.int64) + rng.integers(-10, 11, img.shape), 0, 255).astype(np.uint8)
+    yv = -60.0
+    ys, xs = np.mgrid[0:h, 0:w]
+    t = ys - (h - 1.0)
+    scale = (ys - yv) / (h - 1 - yv)
+    for k in range(-3, 4):
+        xc = w / 2 + shift + (k * spacing) * scale + curve * t * t
+        on = np.abs(xs - xc) < 4 * scale + 1
+        img[on] = (40, 170, 40)
+    return img
+
+
+def _records_equal(a: ImageResult, b: ImageResult) -> None:
+    ra, rb = a.to_record(), b.to_record()
+    assert (ra["status"], ra["n_rows"]) == (rb["status"], rb["n_rows"])
+    assert ra["image_confidence"] == rb["image_confidence"]
+    assert len(ra["rows"]) == len(rb["rows"])
+    for x, y in zip(ra["rows"], rb["rows"]):
+        assert (x["valid"], x["reason"], x["confidence"]) == (y["valid"], y["reason"], y["confidence"])
+        for key in ("a", "b", "c"):
+            assert (x[key] is None) == (y[key] is None)
+            if x[key] is not None:
+                assert abs(x[key] - y[key]) <= 1e-6, key
+
+
+# --- Params -----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("change, field", [
+    ({"mode": "fast"}, "mode"), ({"mode": 1}, "mode"),
+    ({"lattice_min_spacing": 100, "lattice_max_spacing": 50}, "lattice_max_spacing"),
+    ({"lattice_tolerance": 0.5}, "lattice_tolerance"), ({"lattice_window": 0.0}, "lattice_window"),
+    ({"lattice_vp_fallback_y": 10}, "lattice_vp_fallback_y"), ({"lattice_iterations": -1}, "lattice_iterations"),
+    ({"lattice_min_confidence": 1.5}, "lattice_min_confidence"),
+])
+def test_params_validate_improved_fields(change, field) -> None:
+    with pytest.raises(ValueError, match=f"Params.{field}"):
+        Params(**change)
+
+
+# --- reference stages ---------------------------------------------------------------------
+
+def test_solve_normal_matches_numpy_and_flags_singular() -> None:
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(40, 6))
+    m, r = a.T @ a, a.T @ rng.normal(size=40)
+    z = rlat.solve_normal(m, r, IMPROVED)
+    np.testing.assert_allclose(z, np.linalg.solve(m, r), rtol=1e-9)
+    zt, singular = flat.solve_normal(torch.from_numpy(m)[None], torch.from_numpy(r)[None], IMPROVED)
+    assert not bool(singular[0]) and torch.equal(zt[0], torch.from_numpy(z))
+    a[:, 5] = a[:, 4]  # two equal columns: singular
+    assert rlat.solve_normal(a.T @ a, a.T @ rng.normal(size=40), IMPROVED) is None
+
+
+def test_otsu_separates_two_populations() -> None:
+    exg = np.full((20, 20), -30, np.int64)
+    exg[:, :5] = 90
+    thr = rlat.otsu_threshold(exg, 0, IMPROVED)
+    assert -30 <= thr < 90
+    assert rlat.otsu_threshold(exg, 0, IMPROVED.replace(green_floor=95)) == 95
+
+
+@pytest.mark.parametrize("spacing, shift", [(90.0, 0.0), (70.0, 25.0), (120.0, -40.0)])
+def test_comb_and_fit_recover_a_synthetic_lattice(spacing: float, shift: float) -> None:
+    img = _field(spacing=spacing, shift=shift)
+    mask = rlat.green_mask(img, 0, IMPROVED)
+    vp = (160 + shift, -60.0)  # the field's own vanishing point
+    d, phase, found = rlat.comb_search(mask, (int(vp[0]), -60), IMPROVED)
+    assert found and abs(d - spacing) <= 2
+    assert abs(phase - (160 + shift)) <= 0.1 * spacing  # the refit below makes it exact
+    rows, conf, fit = rlat.improved_rows(img, 0, vp, IMPROVED)
+    assert [r.valid for r in rows] == [True] * 3 and conf > 0.75  # the far rows are 14 px apart
+    xb = sorted(r.x_at(239.0) for r in rows)
+    np.testing.assert_allclose(xb, [160 + shift - spacing, 160 + shift, 160 + shift + spacing], atol=1.5)
+
+
+def test_curved_lattice_gets_its_curvature() -> None:
+    # the rows bend 17 px by the top row, where they are 18 px apart (more would alias)
+    img = _field(curve=0.0003)
+    rows, _, fit = rlat.improved_rows(img, 0, (160.0, -60.0), IMPROVED)
+    assert all(r.valid for r in rows)
+    assert all(abs(r.c - 0.0003) < 3e-5 for r in rows)
+    y = np.arange(240.0)
+    truth = 160 + 0.0003 * (y - 239) ** 2
+    assert np.abs(rows[1].x_at(y) - truth).max() < 3
+
+
+def test_faithful_rows_carry_zero_curvature() -> None:
+    res = detect(_field(), Params())
+    rec = res.to_record()
+    assert all(r["c"] == 0.0 and r["confidence"] is None for r in rec["rows"])
+    assert rec["image_confidence"] is None
+
+
+# --- metrics -------------------------------------------------------------------------------
+
+def test_metrics_score_curves() -> None:
+    class GT:
+        height = 240
+        c = 0.001 * (np.arange(240.0) - 239) ** 2
+        d = np.full(240, 80.0)
+
+    rows = []
+    for k in (-1, 0, 1):
+        c2, yb = 0.001, 239.0
+        rows.append(Row(-2 * c2 * yb, 160 + 80 * k + c2 * yb * yb, True, c=c2))
+    res = ImageResult(width=320, height=240, status="ok", rows=rows)
+    assert crda_official(res, GT) == pytest.approx(1.0)
+    straight = ImageResult(width=320, height=240, status="ok", rows=[Row(r.a, r.b, True) for r in rows])
+    assert crda_official(straight, GT) < 0.5
+    u = rows_to_U(rows, 240)
+    np.testing.assert_allclose(u[:, 1], 160 + GT.c, atol=1e-9)
+
+
+# --- tensor path = reference ---------------------------------------------------------------
+
+def _adversarial() -> list[np.ndarray]:
+    rng = np.random.default_rng(5)
+    blank = np.full((240, 320, 3), 128, np.uint8)
+    green = np.zeros((240, 320, 3), np.uint8)
+    green[..., 1] = 255
+    # salt-and-pepper of 64 colours (full 24-bit noise makes section 2's clustering slow)
+    noise = (rng.integers(0, 4, (240, 320, 3)) * 85).astype(np.uint8)
+    half = _field(curve=-0.003, spacing=60.0)
+    half[:120] = (200, 220, 255)  # sky-like top half
+    return [blank, green, noise, half, _field(spacing=45.0, shift=100.0, seed=3)]
+
+
+def test_tensor_equals_reference_on_adversarial_and_shuffled_batches() -> None:
+    images = _adversarial() + [_field(curve=0.001, seed=7)]
+    det = CropRowDetector(IMPROVED)
+    out = det(_t(images)).results()
+    for img, got in zip(images, out):
+        _records_equal(detect(img, IMPROVED), got)
+    perm = [3, 0, 5, 1, 4, 2]
+    shuffled = det(_t([images[i] for i in perm])).results()
+    for j, i in enumerate(perm):
+        assert shuffled[j].to_record() == out[i].to_record()
+
+
+def test_tensor_stages_equal_reference_stages() -> None:
+    images = _adversarial()
+    x = _t(images)
+    sky = torch.tensor([0, 0, 0, 120, 30])
+    got = flat.green_mask(x, sky, IMPROVED)
+    for i, img in enumerate(images):
+        want = rlat.green_mask(img, int(sky[i]), IMPROVED)
+        assert torch.equal(got[i], torch.from_numpy(want))
+    vp = torch.tensor([[160.0, -60.0], [150.4, -20.5], [0.0, 0.0], [170.0, 5.0], [float("nan"), -50.0]],
+                      dtype=torch.float64)
+    has = torch.tensor([True, True, False, True, True])
+    v = flat.init_vp(vp, has, 320, IMPROVED)
+    sp, ph, found = flat.comb_search(got, v, IMPROVED)
+    for i in range(len(images)):
+        ref_vp = rlat.init_vp(tuple(vp[i].tolist()) if bool(has[i]) else None, 320, IMPROVED)
+        assert tuple(v[i].tolist()) == ref_vp
+        assert (int(sp[i]), int(ph[i]), bool(found[i])) == rlat.comb_search(got[i].numpy(), ref_vp, IMPROVED)
+
+
+@pytest.fixture(scope="module")
+def crbd_subset(crbd_dir):
+    from torchrow.datasets import CRBD
+
+    crbd = CRBD(crbd_dir)
+    idx = [4, 133, 213, 274]  # no vegetation colour match, wrong VPs, a sparse field
+    return crbd, idx, [crbd.image(i) for i in idx]
+
+
+def test_tensor_equals_reference_on_crbd_subset_mixed_batch(crbd_subset) -> None:
+    _, _, images = crbd_subset
+    mixed = images + _adversarial()[:2]
+    out = CropRowDetector(IMPROVED, chunk=3)(_t(mixed)).results()
+    for img, got in zip(mixed, out):
+        _records_equal(detect(img, IMPROVED), got)
+
+
+def test_improved_beats_faithful_on_crbd_subset(crbd_subset) -> None:
+    crbd, idx, images = crbd_subset
+    imp = [crda_official(detect(im, IMPROVED), crbd.ground_truth(i)) for i, im in zip(idx, images)]
+    fai = [crda_official(detect(im, Params()), crbd.ground_truth(i)) for i, im in zip(idx, images)]
+    assert np.mean(imp) > np.mean(fai) + 0.1
+
+
+# --- CLI ------------------------------------------------------------------------------------
+
+def test_cli_mode_improved_detect_and_video_error(tmp_path, capsys) -> None:
+    import cv2
+
+    p = tmp_path / "f.png"
+    cv2.imwrite(str(p), cv2.cvtColor(_field(curve=0.001), cv2.COLOR_RGB2BGR))
+    out = tmp_path / "o.jsonl"
+    assert main(["detect", str(p), "--out", str(out), "-q", "--mode", "improved",
+                 "--annotate", str(tmp_path / "ann")]) == 0
+    import json
+
+    rec = json.loads(out.read_text().splitlines()[0])
+    assert len(rec["rows"]) == 3 and rec["rows"][1]["c"] > 0 and 0 <= rec["image_confidence"] <= 1
+    assert (tmp_path / "ann" / "f.png").is_file()
+    capsys.readouterr()
+    assert main(["video", str(tmp_path), "--out", str(tmp_path / "v.jsonl"), "--mode", "improved"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("torchrow: error:") and "improved" in err[0]
+
+
+def test_improved_record_round_trip() -> None:
+    res = detect(_field(curve=0.0002), IMPROVED)
+    rec = res.to_record()
+    assert ImageResult.from_record(rec).to_record() == rec
+    back = ImageResult.from_record(rec)
+    assert [r.c for r in back.rows] == [r.c for r in res.rows]
+    assert back.image_confidence == res.image_confidence

@@ -1,0 +1,313 @@
+"""Reference improved mode (ALGORITHM.md section 11, torchrow extension): the row lattice.
+
+Replaces section 7 when ``Params.mode == "improved"``. Three stages, named as in
+:mod:`torchrow.functional.lattice`:
+
+* :func:`green_mask`: excess green ``2G - R - B`` above its Otsu threshold (11.1);
+* :func:`comb_search`: equally spaced straight rows through the (rounded) vanishing point,
+  found by a comb on the pixels projected onto the bottom image row (11.2);
+* :func:`fit_lattice`: rows ``x = c(t) + k*d(t)``, ``c`` and ``d`` quadratic in
+  ``t = y - (H-1)``, refit by least squares on the mean x of each row's pixels on each
+  image row (11.3), with a confidence per row (11.4).
+
+Every sum that decides a discrete output adds integers (exact in float64), so the order of
+summation does not matter and the tensor path gets the same bits.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..params import Params
+from ..results import Row
+
+__all__ = ["LatticeFit", "excess_green", "otsu_threshold", "green_mask", "init_vp", "comb_search",
+           "solve_normal", "row_cells", "normal_equations", "fit_lattice", "lattice_rows", "N_COEF"]
+
+#: Coefficients ``(c0, c1, c2, d0, d1, d2)`` of ``x = c(t) + k d(t)``, ``c(t) = c0 + c1 t + c2 t^2``,
+#: ``d(t) = d0 + d1 t + d2 t^2``.
+N_COEF = 6
+#: Excess green ``2G - R - B`` of uint8 RGB lies in ``[-510, 510]``.
+EXG_OFFSET = 510
+EXG_BINS = 2 * EXG_OFFSET + 1
+
+
+@dataclass(frozen=True)
+class LatticeFit:
+    """The fitted lattice of one image.
+
+    ``coef`` = ``(c0, c1, c2, d0, d1, d2)`` (px, px/px, px/px^2, ...) of
+    ``x = (c0 + c1 t + c2 t^2) + k (d0 + d1 t + d2 t^2)``, ``t = y - (H-1)``; ``k`` = row index relative
+    to the central row. ``spacing``/``phase``: the comb's bottom-row spacing and the central
+    row's bottom-row x (px, integers). ``vp``: the rounded vanishing point the comb used.
+    ``support``: image rows holding an inlier of each row, ``(2K+1,)``; ``span``: image rows
+    where a row can have support; ``found``: the comb saw at least one pixel.
+    """
+
+    coef: tuple[float, ...]
+    spacing: int
+    phase: int
+    vp: tuple[int, int]
+    support: tuple[int, ...]
+    span: int
+    found: bool
+
+
+def excess_green(rgb: np.ndarray) -> np.ndarray:
+    """``2G - R - B`` of ``(H, W, 3)`` uint8 RGB, ``(H, W)`` int64 in ``[-510, 510]``."""
+    x = rgb.astype(np.int64)
+    return 2 * x[..., 1] - x[..., 0] - x[..., 2]
+
+
+def otsu_threshold(exg: np.ndarray, sky: int, params: Params) -> int:
+    """Section 11.1: Otsu's threshold of the excess green below the horizon.
+
+    Over the histogram of ``e = exg + 510`` (1021 integer bins) with counts ``n_i``:
+    ``N_j = sum_{i<=j} n_i``, ``M_j = sum_{i<=j} i n_i``, totals ``N``, ``M``; the
+    between-class criterion ``(M N_j - N M_j)^2 / (N_j (N - N_j))`` (float64, this order;
+    ``-1`` where a class is empty) is largest at ``j*`` (first on ties). Pixels with
+    ``e > j*`` are green, so the threshold is ``max(j* - 510, green_floor)``.
+    """
+    below = exg[sky:].ravel() + EXG_OFFSET
+    hist = np.bincount(below, minlength=EXG_BINS).astype(np.int64)
+    cnt = np.cumsum(hist)
+    mom = np.cumsum(hist * np.arange(EXG_BINS, dtype=np.int64))
+    n, m = cnt[-1], mom[-1]
+    other = n - cnt
+    num = (m * cnt - n * mom).astype(np.float64)
+    den = (cnt * other).astype(np.float64)
+    ok = (cnt > 0) & (other > 0)
+    crit = np.where(ok, (num * num) / np.where(ok, den, 1.0), -1.0)
+    return max(int(np.argmax(crit)) - EXG_OFFSET, params.green_floor)
+
+
+def green_mask(rgb: np.ndarray, sky: int, params: Params) -> np.ndarray:
+    """Section 11.1: ``exg > otsu_threshold`` below the horizon, ``(H, W)`` bool."""
+    exg = excess_green(rgb)
+    mask = exg > otsu_threshold(exg, sky, params)
+    mask[:sky] = False
+    return mask
+
+
+def init_vp(vp: tuple[float, float] | None, width: int, params: Params) -> tuple[int, int]:
+    """Section 11.2: the vanishing point the comb uses, rounded to whole pixels.
+
+    Section 6's VP rounded half to even, unless there is none or it lies below image row
+    ``lattice_vp_max_y`` (a VP inside the field is a wrong one): then ``(W // 2,
+    lattice_vp_fallback_y)``.
+    """
+    if vp is None or not (vp[1] <= params.lattice_vp_max_y) or not math.isfinite(vp[0]):
+        return width // 2, params.lattice_vp_fallback_y
+    return int(np.rint(np.float64(vp[0]))), int(np.rint(np.float64(vp[1])))
+
+
+def _comb_tables(width: int, params: Params) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """All ``(spacing, phase)`` candidates in search order and their tooth windows.
+
+    Bottom-row x is binned on ``[-W, 2W)`` (bin ``floor(X) + W``, ``3W`` bins). Candidate
+    spacing ``d`` (``lattice_min_spacing .. lattice_max_spacing``), phase ``p = 0 .. d-1``:
+    teeth at bins ``p + j d < 3W``, each covering bins ``[p + j d - h, p + j d + h]`` with
+    ``h = floor(d * lattice_window)``, clipped to the bins. Returns ``d, p, h`` ``(Q,)`` and
+    ``lo, hi`` ``(Q, J)`` cumulative-sum indices (``lo == hi`` for absent teeth), int64.
+    """
+    nb = 3 * width
+    ds, ps, hs, los, his = [], [], [], [], []
+    jmax = nb // params.lattice_min_spacing + 1
+    for d in range(params.lattice_min_spacing, params.lattice_max_spacing + 1):
+        h = int(math.floor(d * params.lattice_window))
+        for p in range(d):
+            centres = np.arange(p, nb, d)
+            lo = np.clip(centres - h, 0, nb)
+            hi = np.clip(centres + h + 1, 0, nb)
+            row_lo = np.zeros(jmax, np.int64)
+            row_hi = np.zeros(jmax, np.int64)
+            row_lo[:lo.size], row_hi[:hi.size] = lo, hi
+            ds.append(d), ps.append(p), hs.append(h), los.append(row_lo), his.append(row_hi)
+    return np.array(ds), np.array(ps), np.array(hs), np.stack(los), np.stack(his)
+
+
+def bottom_bins(xs: np.ndarray, ys: np.ndarray, vp: tuple[int, int], height: int,
+                width: int, params: Params) -> np.ndarray:
+    """Bin of each pixel's projection through the VP onto the bottom row (section 11.2).
+
+    Pixels with ``y - yv > lattice_vp_margin`` project to
+    ``X = xv + ((x - xv) * (H-1 - yv)) / (y - yv)`` (float64, this order); bin
+    ``floor(X) + W``, kept when in ``[0, 3W)``. Returns the kept bins, int64.
+    """
+    xv, yv = vp
+    sel = (ys - yv) > params.lattice_vp_margin
+    xs, ys = xs[sel].astype(np.float64), ys[sel].astype(np.float64)
+    proj = np.float64(xv) + ((xs - np.float64(xv)) * np.float64(height - 1 - yv)) / (ys - np.float64(yv))
+    b = np.floor(proj)
+    keep = (b >= -width) & (b < 2 * width)
+    return b[keep].astype(np.int64) + width
+
+
+def comb_search(mask: np.ndarray, vp: tuple[int, int], params: Params) -> tuple[int, int, bool]:
+    """Section 11.2: bottom-row spacing and central phase of the rows through ``vp``.
+
+    Histogram the bins of :func:`bottom_bins`; candidate ``q`` captures ``cap_q`` pixels in
+    its teeth and scores ``cap_q - (n (2h+1)) / d`` (float64; ``n`` = binned pixels): the
+    excess over a uniform spread. The best (first on ties) gives ``d`` and ``p``; the central
+    row is the tooth nearest ``W/2``: ``phase = p - W + d * round_half_even((W/2 - (p - W)) / d)``.
+    Returns ``(d, phase, found)``; without pixels ``(lattice_min_spacing, W // 2, False)``.
+    """
+    h, w = mask.shape
+    ys, xs = np.nonzero(mask)
+    bins = bottom_bins(xs, ys, vp, h, w, params)
+    if bins.size == 0:
+        return params.lattice_min_spacing, w // 2, False
+    hist = np.bincount(bins, minlength=3 * w).astype(np.int64)
+    cs = np.concatenate([[0], np.cumsum(hist)])
+    d, p, hw, lo, hi = _comb_tables(w, params)
+    cap = (cs[hi] - cs[lo]).sum(axis=1)
+    score = cap.astype(np.float64) - (bins.size * (2 * hw + 1)).astype(np.float64) / d.astype(np.float64)
+    q = int(np.argmax(score))
+    d_q, p_q = int(d[q]), int(p[q]) - w
+    k0 = int(np.rint((np.float64(w) / 2 - np.float64(p_q)) / np.float64(d_q)))
+    return d_q, p_q + k0 * d_q, True
+
+
+def solve_normal(m: np.ndarray, r: np.ndarray, params: Params) -> np.ndarray | None:
+    """Gaussian elimination without pivoting of the SPD system ``m z = r`` (6x6, float64).
+
+    Row ``i`` is eliminated with pivot ``m[i, i]`` in index order; the system is singular
+    (``None``) when a pivot is ``<= lattice_pivot_tol * max(diag(m), 1)``. Written scalar by
+    scalar so that the tensor path evaluates the same operations.
+    """
+    a = [[float(m[i, j]) for j in range(N_COEF)] for i in range(N_COEF)]
+    z = [float(v) for v in r]
+    scale = max(max(a[i][i] for i in range(N_COEF)), 1.0)
+    for i in range(N_COEF):
+        piv = a[i][i]
+        if not piv > params.lattice_pivot_tol * scale:
+            return None
+        for j in range(i + 1, N_COEF):
+            f = a[j][i] / piv
+            for k in range(i, N_COEF):
+                a[j][k] = a[j][k] - f * a[i][k]
+            z[j] = z[j] - f * z[i]
+    out = [0.0] * N_COEF
+    for i in range(N_COEF - 1, -1, -1):
+        s = z[i]
+        for k in range(i + 1, N_COEF):
+            s = s - a[i][k] * out[k]
+        out[i] = s / a[i][i]
+    return np.array(out, np.float64)
+
+
+def _assign(xs: np.ndarray, t: np.ndarray, coef: np.ndarray, params: Params) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest row ``k`` of each pixel and whether it is an inlier (section 11.3)."""
+    c0, c1, c2, d0, d1, d2 = (np.float64(v) for v in coef)
+    tt = t * t
+    cc = (c0 + c1 * t) + c2 * tt
+    dd = (d0 + d1 * t) + d2 * tt
+    ok = dd > params.lattice_min_spacing_px
+    f = (xs - cc) / np.where(ok, dd, np.float64(1.0))
+    k = np.rint(f)
+    inl = ok & (np.abs(f - k) < params.lattice_tolerance) & (np.abs(k) <= params.lattice_half)
+    return np.where(inl, k, 0.0), inl
+
+
+def row_cells(xs: np.ndarray, ys: np.ndarray, k: np.ndarray, inl: np.ndarray, height: int,
+              params: Params) -> tuple[np.ndarray, np.ndarray]:
+    """Inlier count and sum of x per lattice row and image row: two ``(2K+1, H)`` int64 arrays."""
+    n_k = 2 * params.lattice_half + 1
+    cell = (k[inl].astype(np.int64) + params.lattice_half) * height + ys[inl]
+    cnt = np.bincount(cell, minlength=n_k * height).reshape(n_k, height)
+    sx = np.bincount(cell, weights=xs[inl], minlength=n_k * height)  # integer-valued, exact
+    return cnt.astype(np.int64), sx.astype(np.int64).reshape(n_k, height)
+
+
+def normal_equations(cnt: np.ndarray, sx: np.ndarray, height: int,
+                     params: Params) -> tuple[np.ndarray, np.ndarray]:
+    """Section 11.3: the least-squares system of one observation per occupied cell.
+
+    Cell ``(k, y)`` with ``n > 0`` inliers observes ``x = q / G`` with ``q = round_half_even((G *
+    sum x) / n)`` (float64 division; ``G = lattice_cell_grid``), basis ``phi = (1, t, t^2, k, k t,
+    k t^2)``. ``M = sum phi phi^T`` and ``r = sum q phi`` are summed in int64 (exact), then
+    ``M`` is converted to float64 and ``r`` to float64 divided by ``G``.
+    """
+    half = params.lattice_half
+    kk, yy = np.nonzero(cnt > 0)
+    n = cnt[kk, yy].astype(np.float64)
+    q = np.rint((np.float64(params.lattice_cell_grid) * sx[kk, yy].astype(np.float64)) / n).astype(np.int64)
+    t = yy.astype(np.int64) - (height - 1)
+    k = kk.astype(np.int64) - half
+    phi = np.stack([np.ones_like(t), t, t * t, k, k * t, k * t * t], axis=1)  # (cells, 6) int64
+    m = (phi[:, :, None] * phi[:, None, :]).sum(axis=0)
+    r = (phi * q[:, None]).sum(axis=0)
+    return m.astype(np.float64), r.astype(np.float64) / np.float64(params.lattice_cell_grid)
+
+
+def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, params: Params) -> LatticeFit:
+    """Sections 11.2-11.4 on a green mask: comb start, then ``lattice_iterations`` refits.
+
+    Start: ``c(t) = phase + ((phase - xv) / (H-1 - yv)) t``, ``d(t) = d + (d / (H-1 - yv)) t``,
+    no ``t^2`` terms (straight rows through the VP). Each iteration assigns every mask pixel
+    below ``sky`` to ``k = round_half_even((x - c(t)) / d(t))`` (where ``d(t) >
+    lattice_min_spacing_px``), keeps it when ``|f - k| < lattice_tolerance`` and ``|k| <=
+    lattice_half``, and solves :func:`normal_equations`. With fewer than
+    ``lattice_min_points`` inlier pixels or a singular system the coefficients stay (and the
+    iterations stop).
+    """
+    h, w = mask.shape
+    v = init_vp(vp, w, params)
+    d, phase, found = comb_search(mask, v, params)
+    xv, yv = v
+    den = np.float64(h - 1 - yv)
+    coef = np.array([np.float64(phase), (np.float64(phase) - np.float64(xv)) / den, 0.0,
+                     np.float64(d), np.float64(d) / den, 0.0], np.float64)
+    ys, xs = np.nonzero(mask)
+    keep = ys >= sky
+    ys = ys[keep].astype(np.int64)
+    xs, t = xs[keep].astype(np.float64), (ys - (h - 1)).astype(np.float64)
+    for _ in range(params.lattice_iterations):
+        k, inl = _assign(xs, t, coef, params)
+        if int(inl.sum()) < params.lattice_min_points:
+            break
+        cnt, sx = row_cells(xs, ys, k, inl, h, params)
+        sol = solve_normal(*normal_equations(cnt, sx, h, params), params)
+        if sol is None:
+            break
+        coef = sol
+    k, inl = _assign(xs, t, coef, params)
+    cnt, _ = row_cells(xs, ys, k, inl, h, params)
+    support = tuple(int(s) for s in (cnt > 0).sum(axis=1))
+    span = h - max(sky, 0)
+    return LatticeFit(tuple(float(c) for c in coef), d, phase, v, support, span, found)
+
+
+def lattice_rows(fit: LatticeFit, height: int, params: Params) -> list[Row]:
+    """Section 11.4: rows ``k = -K .. K`` as ``x = c*y^2 + a*y + b`` with a confidence.
+
+    With ``Y = H-1``: ``c = c2 + k d2``, ``a = (c1 + k d1) - (2 c) Y``, ``b = ((c0 + k d0) -
+    (c1 + k d1) Y) + c (Y Y)``. Confidence = image rows holding an inlier of the row /
+    image rows below the horizon. A row is valid iff the comb found pixels and its
+    confidence is ``>= lattice_min_confidence`` (reason ``no_support`` otherwise).
+    """
+    c0, c1, c2, d0, d1, d2 = (np.float64(v) for v in fit.coef)
+    yb = np.float64(height - 1)
+    rows = []
+    for i in range(2 * params.lattice_half + 1):
+        k = np.float64(i - params.lattice_half)
+        slope = c1 + k * d1
+        curv = c2 + k * d2
+        a = slope - (np.float64(2.0) * curv) * yb
+        b = ((c0 + k * d0) - slope * yb) + curv * (yb * yb)
+        conf = float(np.float64(fit.support[i]) / np.float64(max(fit.span, 1)))
+        ok = fit.found and conf >= params.lattice_min_confidence
+        rows.append(Row(float(a), float(b), ok, "" if ok else "no_support", -1, float(curv), conf))
+    return rows
+
+
+def improved_rows(rgb: np.ndarray, sky: int, vp: tuple[float, float] | None,
+                  params: Params) -> tuple[list[Row], float, LatticeFit]:
+    """Section 11 on one working image: rows, image confidence (mean of the rows') and the fit."""
+    fit = fit_lattice(green_mask(rgb, sky, params), sky, vp, params)
+    rows = lattice_rows(fit, rgb.shape[0], params)
+    conf = sum(r.confidence for r in rows) / len(rows)  # in row order, as the tensor path
+    return rows, conf, fit
