@@ -56,7 +56,7 @@ def _records_equal(a: ImageResult, b: ImageResult) -> None:
 # --- Params -----------------------------------------------------------------------------
 
 @pytest.mark.parametrize("change, field", [
-    ({"mode": "fast"}, "mode"), ({"mode": 1}, "mode"),
+    ({"mode": "fast"}, "mode"),
     ({"lattice_min_spacing": 100, "lattice_max_spacing": 50}, "lattice_max_spacing"),
     ({"lattice_tolerance": 0.5}, "lattice_tolerance"), ({"lattice_window": 0.0}, "lattice_window"),
     ({"lattice_vp_fallback_y": 10}, "lattice_vp_fallback_y"), ({"lattice_iterations": -1}, "lattice_iterations"),
@@ -65,6 +65,11 @@ def _records_equal(a: ImageResult, b: ImageResult) -> None:
 def test_params_validate_improved_fields(change, field) -> None:
     with pytest.raises(ValueError, match=f"Params.{field}"):
         Params(**change)
+
+
+def test_params_mode_of_the_wrong_kind_is_a_type_error() -> None:
+    with pytest.raises(TypeError, match="Params.mode must be a str"):
+        Params(mode=1)  # type: ignore[arg-type]
 
 
 # --- reference stages ---------------------------------------------------------------------
