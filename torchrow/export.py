@@ -175,7 +175,7 @@ def _check_shape(height: int, width: int, batch: int, opset: int) -> None:
 
 def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 1, params: Params | None = None,
             opset: int = DEFAULT_OPSET, optimize: bool = True, tracker: bool = False,
-            control_flow: bool = True) -> Path:
+            control_flow: bool = True, scatter_free: bool = False, progress=None) -> Path:
     """Export the image-mode detector (or, with ``tracker=True``, the tracker step) as a
     static-shape ONNX graph.
 
@@ -197,9 +197,17 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         sequences + their state -> rows + new state; run it with :class:`OnnxTracker`).
         ``width`` must then equal ``params.video_width`` (set it with ``params``).
     control_flow : bool
-        Tracker only: skip the Hough stage (and the tracked fit) with an ONNX ``If`` when no
-        sequence of the batch needs it (default); ``False`` gives a graph without ``If``
-        that always runs both and masks the results (slower; same results).
+        Skip work no image needs with ONNX ``If`` nodes (default): the line search's steps
+        once every image is finished, vote chunks past every image's pixel count, and for the
+        tracker the Hough stage and the tracked fit. ``False`` gives a graph without ``If``
+        that always runs everything and masks the results (slower; same results).
+    scatter_free : bool
+        Vote without ``ScatterElements(reduction="add")`` (prefix sums of constant
+        permutations, re-voted at every line-search step) for runtimes without a scatter
+        reduction (TensorRT). Slower on a CPU; same results.
+    progress : callable, optional
+        Called with a short phase name (``"trace"``, ``"onnx"``, ``"optimize"``, ``"save"``)
+        as each phase of the export starts.
 
     Returns
     -------
@@ -229,25 +237,30 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
                              f"got width {width}")
         from .functional.tracker import TrackerState
 
-        module = static.StaticTrackerStep(height, width, params, control_flow=control_flow).eval()
+        module = static.StaticTrackerStep(height, width, params, control_flow=control_flow,
+                                          scatter_free=scatter_free).eval()
         empty = TrackerState.empty(batch, params)
         args = (images, veg_lab, torch.ones(batch, dtype=torch.bool)) + tuple(
             getattr(empty, f) for f in static.TRACKER_STATE)
         names, outputs = list(static.TRACKER_INPUTS), list(static.TRACKER_OUTPUTS)
     else:
-        module = static.StaticDetector(height, width, params).eval()
+        module = static.StaticDetector(height, width, params, flow="cond" if control_flow else "always",
+                                       scatter_free=scatter_free).eval()
         args = (images, veg_lab)
         names, outputs = ["images", "veg_lab"], list(static.GRAPH_OUTPUTS)
-    with warnings.catch_warnings(), torch.no_grad():
+    note = progress or (lambda phase: None)
+    with warnings.catch_warnings(), torch.no_grad(), _quiet_exporter():
         warnings.simplefilter("ignore")
+        note("trace")
         ep = torch.export.export(module, args, strict=False)
         # bool <-> uint8/int8 reinterpretations in the vegetation stage only ever hold 0/1,
         # whose bit patterns equal their cast values: export them as Cast.
-        if not (tracker and control_flow):
+        if not control_flow:
             ep = ep.run_decompositions({torch.ops.aten.view.dtype: _view_as_cast})
             table = None
         else:  # re-decomposing a program with torch.cond subgraphs fails validation: translate instead
             table = {torch.ops.aten.view.dtype: _view_dtype_onnx}
+        note("onnx")
         with float64_python_constants():
             prog = torch.onnx.export(ep, dynamo=True, opset_version=opset, input_names=names,
                                      output_names=outputs, verbose=False, optimize=False,
@@ -258,11 +271,14 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
             # of this unrolled graph (hundreds of thousands of match attempts) for no gain.
             from onnxscript import optimizer
 
+            note("optimize")
             optimizer.fold_constants_ir(prog.model)
             optimizer.remove_unused_nodes(prog.model)
+    note("save")
     model = _compact(_drop_unused_initializers(legalize(prog.model_proto)))
     meta = {"torchrow_format": "1", "kind": "tracker" if tracker else "detector", "height": str(height),
-            "width": str(width), "batch": str(batch), "control_flow": str(bool(tracker and control_flow)),
+            "width": str(width), "batch": str(batch), "control_flow": str(bool(control_flow)),
+            "scatter_free": str(bool(scatter_free)),
             "params": json.dumps(_params_dict(params)), "exporter": f"torch.onnx dynamo, torch {torch.__version__}",
             "opset": str(opset)}
     for k, v in meta.items():
@@ -270,6 +286,27 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         entry.key, entry.value = k, v
     onnx.save(model, str(path))
     return path
+
+
+@contextlib.contextmanager
+def _quiet_exporter():
+    """Silence the exporter's logged notices (``torchvision is not installed. Skipping ...``,
+    one line per torchvision op) and its progress prints, which are not warnings."""
+    import io
+    import logging
+
+    names = ("torch.onnx", "torch.onnx._internal.exporter._registration", "torch.export", "torch._export",
+             "onnxscript")
+    loggers = [logging.getLogger(n) for n in names]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.ERROR)
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):
+            yield
+    finally:
+        for lg, lv in zip(loggers, levels):
+            lg.setLevel(lv)
 
 
 @contextlib.contextmanager

@@ -34,6 +34,7 @@ from . import sky as fsky
 from . import vanishing as fvan
 from . import vegetation as fveg
 from ._checks import check_images
+from ._flow import branch
 
 __all__ = ["TrackerState", "TrackStep", "init_state", "merge_state", "segment", "finish_segment", "advance",
            "coverage", "Stages", "eager_stages",
@@ -267,17 +268,7 @@ class Stages:
     def run(self, pred: torch.Tensor, fn: Callable, skip: Callable, operands: tuple) -> tuple:
         """``fn(*operands)`` if ``pred`` (bool scalar tensor) else ``skip(*operands)``, per
         :attr:`branches`; both return tuples of tensors of the same shapes and dtypes."""
-        if self.branches not in ("sync", "cond", "always"):
-            raise ValueError(f"branches must be 'sync', 'cond' or 'always', got {self.branches!r}")
-        if self.branches == "always":
-            return fn(*operands)
-        if self.branches == "cond" and torch.compiler.is_exporting():
-            def dense(f):  # torch.cond wants dense outputs of matching strides
-                return lambda *a: tuple(t.contiguous() for t in f(*a))
-
-            return tuple(torch.cond(pred, dense(fn), dense(skip), operands))
-        # "sync", or "cond" run eagerly: the same choice, without compiling the branches
-        return fn(*operands) if bool(pred) else skip(*operands)
+        return branch(self.branches, pred, fn, skip, operands)
 
 
 def eager_stages(params: Params) -> Stages:
