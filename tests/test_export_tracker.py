@@ -187,8 +187,6 @@ def test_cli_export_and_detect_refuse_mismatches(model_path: Path, tmp_path: Pat
     out = str(tmp_path / "t.onnx")
     assert main(["export", "onnx", "--tracker", "--out", out]) == 2
     assert "--tracker needs --height" in capsys.readouterr().err
-    assert main(["export", "onnx", "--no-control-flow", "--out", out]) == 2
-    assert "--no-control-flow applies to --tracker only" in capsys.readouterr().err
     import cv2
 
     (tmp_path / "imgs").mkdir()
@@ -196,3 +194,48 @@ def test_cli_export_and_detect_refuse_mismatches(model_path: Path, tmp_path: Pat
     assert main(["detect", str(tmp_path / "imgs"), "--out", str(tmp_path / "o.jsonl"), "--impl", "onnx",
                  "--model", str(model_path)]) == 2
     assert "is a torchrow tracker model" in capsys.readouterr().err
+
+
+def test_cli_video_onnx_equals_tensor(model_path: Path, tmp_path: Path, capsys):
+    """``torchrow video --impl onnx`` writes the records of ``--impl tensor``; a detector
+    model and frames of another working size are refused in one line."""
+    import cv2
+    import json
+
+    seqs = [sequence(FieldSpec.at_size(320, 180, n_rows=5, seed=s), 4, drift_px_per_frame=1.5) for s in (5, 8)]
+    dirs = []
+    for j, seq in enumerate(seqs):
+        d = tmp_path / f"seq{j}"
+        d.mkdir()
+        for t, f in enumerate(seq):
+            cv2.imwrite(str(d / f"{t:03d}.png"), cv2.cvtColor(f.image, cv2.COLOR_RGB2BGR))
+        dirs.append(str(d))
+    params = [f"{k}={v}" for k, v in (("n_rows", 3), ("max_outliers", 2), ("video_width", 160))]
+    ref, got = tmp_path / "t.jsonl", tmp_path / "o.jsonl"
+    args = ["video", *dirs, "--quiet"]
+    assert main([*args, "--out", str(ref), *sum((["--param", p] for p in params), []), "--batch-size", "2"]) == 0
+    assert main([*args, "--out", str(got), "--impl", "onnx", "--model", str(model_path)]) == 0
+    capsys.readouterr()
+
+    def records(path):
+        return sorted((json.loads(line) for line in path.read_text().splitlines()),
+                      key=lambda r: (r["source"], r["frame"]))
+
+    a, b = records(ref), records(got)
+    assert len(a) == len(b) == 8
+    for ra, rb in zip(a, b):
+        rows_a, rows_b = ra.pop("rows"), rb.pop("rows")
+        for key in ("heading_rad", "heading_px", "lateral_px", "lateral_frac", "confidence"):
+            u, v = ra.pop(key, None), rb.pop(key, None)
+            assert (u is None and v is None) or abs(u - v) <= 1e-6, (key, u, v)
+        assert ra == rb
+        assert len(rows_a) == len(rows_b)
+    det = tmp_path / "det.onnx"
+    det.write_bytes(b"")  # not a model: one line
+    assert main([*args, "--out", str(got), "--impl", "onnx", "--model", str(det)]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+    big = tmp_path / "big"
+    big.mkdir()
+    cv2.imwrite(str(big / "a.png"), np.zeros((200, 160, 3), np.uint8))
+    assert main(["video", str(big), "--quiet", "--out", str(got), "--impl", "onnx", "--model", str(model_path)]) == 2
+    assert "the model" in capsys.readouterr().err

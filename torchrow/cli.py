@@ -140,14 +140,17 @@ def _check_model(args: argparse.Namespace) -> str | None:
         raise CLIError("--impl onnx needs onnxruntime: pip install 'torchrow[onnx]'") from None
     except Exception as exc:  # a corrupt or foreign file: one line, not a traceback
         raise CLIError(f"cannot read ONNX model {model}: {exc}") from None
-    if info["kind"] != "detector":
-        raise CLIError(f"{model} is a torchrow {info['kind']} model; detect needs a detector model "
-                       "(torchrow export onnx without --tracker)")
+    kind = getattr(args, "model_kind", "detector")
+    if info["kind"] != kind:
+        cmd = "detect" if kind == "detector" else "video"
+        how = "without --tracker" if kind == "detector" else "--tracker"
+        raise CLIError(f"{model} is a torchrow {info['kind']} model; {cmd} needs a {kind} model "
+                       f"(torchrow export onnx {how})")
     if args.param:
         raise CLIError("--param cannot change an exported model; export one with those --param values")
-    want = info["params"].image_width
+    want = info["params"].image_width if kind == "detector" else info["params"].video_width
     if want != info["width"]:
-        raise CLIError(f"model {model} takes {info['width']}x{info['height']} images but its image_width is {want}")
+        raise CLIError(f"model {model} takes {info['width']}x{info['height']} images but its working width is {want}")
     return model
 
 
@@ -160,8 +163,6 @@ def cmd_export(args: argparse.Namespace) -> int:
     from .export import model_info, to_onnx
 
     params = _parse_params(args.param)
-    if args.no_control_flow and not args.tracker:
-        raise CLIError("--no-control-flow applies to --tracker only (the detector graph has no control flow)")
     if args.tracker:
         width = args.width if args.width is not None else params.video_width
         if args.height is None:
@@ -182,8 +183,13 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     try:
+        def phase(name: str) -> None:  # an export takes minutes: say which phase runs
+            if not args.quiet:
+                print(f"torchrow: export: {name} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+
         to_onnx(out, height=height, width=width, batch=args.batch, params=params, opset=args.opset,
-                tracker=args.tracker, control_flow=not args.no_control_flow)
+                tracker=args.tracker, control_flow=not args.no_control_flow, scatter_free=args.scatter_free,
+                progress=phase)
     except ValueError as exc:
         raise CLIError(str(exc)) from None
     info = model_info(out)
@@ -359,8 +365,12 @@ def cmd_video(args: argparse.Namespace) -> int:
 
     from .video import central_jumps, plot_tracks
 
+    args.model_kind = "tracker"
+    model = _check_model(args)
     params = _parse_params(args.param)
     if args.hough_every is not None:
+        if model is not None:
+            raise CLIError("--every cannot change an exported model; export one with --param hough_every=N")
         if args.hough_every < 1:
             raise CLIError(f"--every must be >= 1, got {args.hough_every}")
         params = params.replace(hough_every=args.hough_every)
@@ -374,7 +384,19 @@ def cmd_video(args: argparse.Namespace) -> int:
     plot = Path(args.plot) if args.plot else out.with_suffix(".png")
     ann = _Annotator(args.annotate, sources)
     names = [s.name for s in sources]
-    if args.impl == "reference":
+    if args.impl == "onnx":
+        from .export import OnnxTracker
+
+        tracker = OnnxTracker(model, hfov_deg=args.fov)
+        for s in sources:  # the model's working size, checked before any frame is tracked
+            size = _first_size(s, tracker.params.video_width)
+            if size is not None and size != (tracker.height, tracker.width):
+                raise CLIError(f"{s.name}: frames of working size {size[1]}x{size[0]}; the model {model} takes "
+                               f"{tracker.width}x{tracker.height} (export one with --tracker --height {size[0]})")
+        step = tracker.batch
+        runs = [(lambda lo=lo: ((lo + b, r, rgb) for b, r, rgb in tracker.track_iter(
+            sources[lo:lo + step], names[lo:lo + step]))) for lo in range(0, len(sources), step)]
+    elif args.impl == "reference":
         from .reference import Tracker as RefTracker
 
         ref = RefTracker(params, hfov_deg=args.fov)
@@ -489,8 +511,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fov", type=float, default=None, metavar="DEG",
                    help="horizontal field of view of the frames, for heading_rad (null without it)")
     p.add_argument("--plot", default=None, help="plot file (default: --out with suffix .png)")
-    p.add_argument("--impl", choices=("tensor", "reference"), default="tensor",
-                   help="batched tensor tracker (default) or the per-sequence reference")
+    p.add_argument("--impl", choices=("tensor", "reference", "onnx"), default="tensor",
+                   help="batched tensor tracker (default), the per-sequence reference, or an exported tracker "
+                        "step in onnxruntime (--model)")
+    p.add_argument("--model", help="tracker-step ONNX file for --impl onnx (torchrow export onnx --tracker)")
     p.add_argument("--batch-size", type=int, default=8, help="sequences per batch for --impl tensor")
     p.add_argument("--device", default=None, help="torch device for --impl tensor (cpu, cuda, cuda:1)")
     common(p)
@@ -503,7 +527,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tracker", action="store_true",
                    help="export the video tracker step (frame + state -> rows + new state) instead of the detector")
     p.add_argument("--no-control-flow", action="store_true",
-                   help="tracker: no ONNX If; both branches run on every frame, masks choose (slower, same results)")
+                   help="no ONNX If: every line-search step (and, tracker, both branches) runs, masks choose "
+                        "(slower, same results)")
+    p.add_argument("--scatter-free", action="store_true",
+                   help="vote without ScatterElements(reduction=add), for runtimes that lack it (TensorRT); "
+                        "slower on a CPU, same results")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--height", type=int, default=None,
                    help="working height (detector default 240; required with --tracker)")
     p.add_argument("--width", type=int, default=None,

@@ -248,7 +248,15 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
                                        scatter_free=scatter_free).eval()
         args = (images, veg_lab)
         names, outputs = ["images", "veg_lab"], list(static.GRAPH_OUTPUTS)
-    note = progress or (lambda phase: None)
+    import sys
+
+    shown = sys.stdout  # the exporter's own prints are silenced below; the caller's progress is not
+
+    def note(phase: str) -> None:
+        if progress is not None:
+            with contextlib.redirect_stdout(shown):
+                progress(phase)
+
     with warnings.catch_warnings(), torch.no_grad(), _quiet_exporter():
         warnings.simplefilter("ignore")
         note("trace")
@@ -603,6 +611,62 @@ class OnnxTracker:
             x = torch.from_numpy(np.stack([self._records.prepare(f) for f in frames])).permute(0, 3, 1, 2)
         stepped, new = self.forward(x.contiguous(), state)
         return self._records.results(stepped, new, x.shape[3], x.shape[2], names), new
+
+
+    def track_iter(self, sequences, sources=None):
+        """Track up to ``B`` (the model's batch) sequences in lock-step, lazily, as
+        :meth:`torchrow.Tracker.track_iter`: yields ``(sequence index, FrameResult, working
+        RGB or None)``; unreadable frames and frames of another working size than the
+        model's get ``error`` records. Slots without a sequence, or whose sequence has ended
+        or has no readable frame now, are fed as inactive (they keep their state)."""
+        from .steering import FrameResult
+        from .video import load_item
+
+        n = len(sequences)
+        if n > self.batch:
+            raise ValueError(f"the model {self.path.name} tracks {self.batch} sequence(s) at once, got {n}")
+        srcs = list(sources) if sources is not None else [None] * n
+        iters = [iter(s) for s in sequences]
+        alive = [True] * n
+        index = [0] * n
+        state = None
+        h, w = self.height, self.width
+        while any(alive):
+            got: list = [None] * n
+            frames = np.zeros((self.batch, h, w, 3), dtype=np.uint8)
+            act = np.zeros(self.batch, dtype=bool)
+            for b in range(n):
+                if not alive[b]:
+                    continue
+                try:
+                    item = next(iters[b])
+                except StopIteration:
+                    alive[b] = False
+                    continue
+                fr = load_item(item, self.params.video_width)
+                if fr.rgb is not None and fr.rgb.shape[:2] != (h, w):
+                    fr.error = (f"frame of working size {fr.rgb.shape[1]}x{fr.rgb.shape[0]}; the model "
+                                f"{self.path.name} takes {w}x{h}")
+                    fr.rgb = None
+                if fr.rgb is not None:
+                    frames[b], act[b] = fr.rgb, True
+                got[b] = (index[b], fr)
+                index[b] += 1
+            recs: list = [None] * self.batch
+            if act.any():
+                x = torch.from_numpy(frames).permute(0, 3, 1, 2).contiguous()
+                stepped, state = self.forward(x, state, torch.from_numpy(act))
+                names = [g[1].name if g is not None else None for g in got] + [None] * (self.batch - n)
+                idxs = [g[0] if g is not None else 0 for g in got] + [0] * (self.batch - n)
+                recs = self._records.results(stepped, state, w, h, names, srcs + [None] * (self.batch - n), idxs)
+            for b in range(n):
+                if got[b] is None:
+                    continue
+                i, fr = got[b]
+                if recs[b] is not None:
+                    yield b, recs[b], fr.rgb
+                else:
+                    yield b, FrameResult.failed_frame(srcs[b], i, fr.name, fr.error or "unreadable frame"), None
 
 
 def step_differences(ref, got, tol: float = 1e-9) -> list[str]:

@@ -390,17 +390,25 @@ class StaticVoter(nn.Module):
 
     def _accumulate(self, acc: torch.Tensor, pix: torch.Tensor, count: torch.Tensor, sign: int) -> torch.Tensor:
         """Add ``sign`` votes of the first ``count`` (B,) entries of the list ``pix`` (B, K),
-        chunk by chunk; a chunk past every image's count is skipped (per :attr:`flow`)."""
+        chunk by chunk; chunks past every image's count are skipped (per :attr:`flow`), in
+        blocks of 8 chunks first so that a skip copies the accumulator once, not per chunk."""
         k = pix.shape[1]
         top = count.max()
-        for c0 in range(0, k, self.chunk):
-            c1 = min(c0 + self.chunk, k)
 
-            def add(acc, c0=c0, c1=c1):
-                wgt = (torch.arange(c0, c1, device=acc.device) < count.unsqueeze(1)).to(torch.int32) * sign
-                return (self._add(acc, pix[:, c0:c1], wgt),)
+        def chunks(acc, b0: int, b1: int):
+            for c0 in range(b0, b1, self.chunk):
+                c1 = min(c0 + self.chunk, k)
 
-            acc, = branch(self.flow, top > c0, add, keep, (acc,))
+                def add(acc, c0=c0, c1=c1):
+                    wgt = (torch.arange(c0, c1, device=acc.device) < count.unsqueeze(1)).to(torch.int32) * sign
+                    return (self._add(acc, pix[:, c0:c1], wgt),)
+
+                acc, = branch(self.flow, top > c0, add, keep, (acc,)) if c0 > b0 else add(acc)
+            return (acc,)
+
+        block = 8 * self.chunk
+        for b0 in range(0, k, block):
+            acc, = branch(self.flow, top > b0, lambda acc, b0=b0: chunks(acc, b0, min(b0 + block, k)), keep, (acc,))
         return acc
 
     def start(self, hin: torch.Tensor) -> tuple[tuple, tuple]:
@@ -433,8 +441,11 @@ class StaticVoter(nn.Module):
         alive = alive & ~hit
         if self.scatter_free:
             return (alive,)
-        pix, count = pixel_list(hit.view(hit.shape[0], self.height, self.width))
-        return (alive, self._accumulate(state[1], pix[:, :self.bound], count, -1))
+        # the erased pixels, compacted into erase_bound slots by a TopK of the 0/1 mask (the
+        # order among them does not change a sum; a permutation scatter would fold an
+        # H*W-sized constant into every step's graph)
+        pix = torch.topk(hit.to(torch.int32), self.bound, dim=1).indices
+        return (alive, self._accumulate(state[1], pix, hit.sum(1), -1))
 
     def reset(self, state: tuple, init: tuple, which: torch.Tensor) -> tuple:
         """Restore the untouched input (and its votes) where ``which`` bool ``(B,)``."""

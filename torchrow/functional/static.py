@@ -40,7 +40,7 @@ import torch
 from torch import nn
 
 from ..params import Params
-from ..shared import hough_trig, hypothesis_table, rho_index_table, rho_offset
+from ..shared import hypothesis_table, rho_index_table, rho_offset
 from . import _exact
 from . import ransac as fransac
 from . import sky as fsky
