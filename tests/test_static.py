@@ -180,3 +180,14 @@ def test_erase_bound_holds() -> None:
         for r in range(-fhough.rho_offset(h, w), fhough.rho_offset(h, w) + 1):
             most = max(most, int((np.abs(p - r) <= half).sum()))
     assert most <= bound <= most + 2
+
+
+@settings(deadline=None, max_examples=30)
+@given(max_points=st.integers(1, 900), frac=st.floats(0.0, 1.0))
+def test_max_kept_bounds_every_band(max_points: int, frac: float) -> None:
+    """The static number of RANSAC points equals the most any band size keeps (step 7.2)."""
+    p = Params(ransac_max_points=max_points, ransac_subsample=max(1, int(frac * max_points)))
+    n = np.arange(0, 4 * max_points + 10)
+    v = n // 2
+    kept = np.where(n + v > p.ransac_max_points, (p.ransac_subsample * n) // np.maximum(n + v, 1), n)
+    assert fransac.max_kept(p) == int(kept.max())

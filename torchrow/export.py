@@ -538,6 +538,7 @@ def _open(runner, model_path: str | Path, kind: str, threads: int | None) -> Non
         raise ValueError(f"{path.name} is a torchrow {info['kind']} model; run it with {other}")
     so = ort.SessionOptions()
     so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_BASIC
+    so.log_severity_level = 3  # errors only: normal use prints nothing
     if threads:
         so.intra_op_num_threads = int(threads)
     runner.session = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])

@@ -388,16 +388,18 @@ class StaticVoter(nn.Module):
         upd = wgt.unsqueeze(2).expand(bsz, c, self.cos_a.shape[0])
         return acc.reshape(bsz, -1).scatter_add(1, cell.reshape(bsz, -1), upd.reshape(bsz, -1)).view(acc.shape)
 
-    def _accumulate(self, acc: torch.Tensor, pix: torch.Tensor, count: torch.Tensor, sign: int) -> torch.Tensor:
+    def _accumulate(self, acc: torch.Tensor, pix: torch.Tensor, count: torch.Tensor, sign: int,
+                    chunk: int | None = None) -> torch.Tensor:
         """Add ``sign`` votes of the first ``count`` (B,) entries of the list ``pix`` (B, K),
         chunk by chunk; chunks past every image's count are skipped (per :attr:`flow`), in
         blocks of 8 chunks first so that a skip copies the accumulator once, not per chunk."""
         k = pix.shape[1]
         top = count.max()
+        chunk = chunk or self.chunk
 
         def chunks(acc, b0: int, b1: int):
-            for c0 in range(b0, b1, self.chunk):
-                c1 = min(c0 + self.chunk, k)
+            for c0 in range(b0, b1, chunk):
+                c1 = min(c0 + chunk, k)
 
                 def add(acc, c0=c0, c1=c1):
                     wgt = (torch.arange(c0, c1, device=acc.device) < count.unsqueeze(1)).to(torch.int32) * sign
@@ -406,7 +408,7 @@ class StaticVoter(nn.Module):
                 acc, = branch(self.flow, top > c0, add, keep, (acc,)) if c0 > b0 else add(acc)
             return (acc,)
 
-        block = 8 * self.chunk
+        block = 8 * chunk
         for b0 in range(0, k, block):
             acc, = branch(self.flow, top > b0, lambda acc, b0=b0: chunks(acc, b0, min(b0 + block, k)), keep, (acc,))
         return acc
@@ -445,7 +447,8 @@ class StaticVoter(nn.Module):
         # order among them does not change a sum; a permutation scatter would fold an
         # H*W-sized constant into every step's graph)
         pix = torch.topk(hit.to(torch.int32), self.bound, dim=1).indices
-        return (alive, self._accumulate(state[1], pix, hit.sum(1), -1))
+        # smaller chunks than the first vote: a line's band holds far fewer pixels than its bound
+        return (alive, self._accumulate(state[1], pix, hit.sum(1), -1, max(1, self.chunk // 4)))
 
     def reset(self, state: tuple, init: tuple, which: torch.Tensor) -> tuple:
         """Restore the untouched input (and its votes) where ``which`` bool ``(B,)``."""

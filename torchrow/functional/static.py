@@ -243,7 +243,7 @@ class StaticDetector(nn.Module):
         lin = torch.arange(hw, device=veg.device, dtype=torch.int64).view(1, 1, hw)
         n, n_keep, v_keep, key = fransac.subsample_plan(member, lin, p)
         big = torch.iinfo(torch.int64).max
-        pp = min(hw, max(p.ransac_max_points, p.ransac_subsample))
+        pp = min(hw, fransac.max_kept(p))  # 467 with the defaults: no row keeps more
         sel = torch.topk(key, pp, dim=2, largest=False, sorted=True).indices
         rank_ok = torch.arange(pp, device=veg.device) < n_keep.unsqueeze(2)
         chosen = sel.masked_fill(~rank_ok, big)  # sel is the raster index itself
