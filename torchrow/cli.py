@@ -532,7 +532,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scatter-free", action="store_true",
                    help="vote without ScatterElements(reduction=add), for runtimes that lack it (TensorRT); "
                         "slower on a CPU, same results")
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--height", type=int, default=None,
                    help="working height (detector default 240; required with --tracker)")
     p.add_argument("--width", type=int, default=None,
