@@ -8,6 +8,7 @@ shared table are scored against them in chunks of hypotheses so memory stays bou
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 
@@ -347,7 +348,9 @@ def validate_rows(cx, cy, dx, dy, hyp, support, present, height: int, hough_band
     directions, i.e. ``dot > cos(min_angle_diff)``; ``atan2(|dy|, |dx|) < horizon_angle`` is
     ``|dy| < sin(horizon_angle)``. Equal except within rounding of a threshold.
     """
-    with torch.no_grad():
+    # (an exported graph has no gradients; a grad-mode region there breaks torch.export's
+    # handling of the torch.cond subgraphs around it)
+    with contextlib.nullcontext() if torch.compiler.is_exporting() else torch.no_grad():
         a = dx / dy
         b = cx - a * cy
     nan = torch.full_like(a, float("nan"))
