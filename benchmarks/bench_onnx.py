@@ -51,6 +51,7 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=1)
     ap.add_argument("--limit", type=int, default=0, help="at most this many CRBD images (default all)")
     ap.add_argument("--model", default=None, help="an exported model (default: export one now)")
+    ap.add_argument("--scatter-free", action="store_true", help="export the scatter-free form")
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args()
     ds = CRBD(data_root(args.data))
@@ -61,11 +62,14 @@ def main() -> None:
         path, t_export = Path(args.model), float("nan")
     else:
         t0 = time.perf_counter()
-        path = to_onnx(Path(tmp.name) / "detector.onnx", batch=args.batch, params=Params())
+        path = to_onnx(Path(tmp.name) / "detector.onnx", batch=args.batch, params=Params(),
+                       scatter_free=args.scatter_free, progress=lambda ph: print(f"export: {ph}", flush=True))
         t_export = time.perf_counter() - t0
     info = model_info(path)
     bs = info["batch"]
+    t0 = time.perf_counter()
     det_onnx = OnnxDetector(path)
+    t_open = time.perf_counter() - t0
     det_torch = CropRowDetector(info["params"])
     det_onnx(to_batch(imgs[:1]))  # warm-up
     det_torch(to_batch(imgs[:1]))
@@ -90,12 +94,15 @@ def main() -> None:
              f"Model: {info['size'] / 2**20:.1f} MiB, opset {info['opset']}, {info['exporter']}, "
              f"{sum(info['ops'].values())} nodes; export time "
              + (f"{t_export:.0f} s" if t_export == t_export else "not measured (--model given)") + ".",
+             f"Session open: {t_open:.1f} s; peak RSS of this process (export, torch and onnxruntime): "
+             f"{__import__('resource').getrusage(__import__('resource').RUSAGE_SELF).ru_maxrss / 2**10:.0f} MiB.",
              "", f"Parity: {n - bad} of {n} images identical (discrete outputs equal, rows within 1e-4 px).",
              "", f"Ops: {ops}."]
     print("\n".join(lines))
     if not args.no_write:
         cmd = "python benchmarks/bench_onnx.py" + (f" --batch {args.batch}" if args.batch != 1 else "") + (
-            f" --limit {args.limit}" if args.limit else "") + (" --model MODEL" if args.model else "")
+            f" --limit {args.limit}" if args.limit else "") + (" --model MODEL" if args.model else "") + (
+            " --scatter-free" if args.scatter_free else "")
         append_results("ONNX export: onnxruntime vs torch", cmd, "\n".join(lines))
 
 

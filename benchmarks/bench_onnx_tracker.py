@@ -17,6 +17,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 from _common import append_results, data_root  # type: ignore[import-not-found]
 
@@ -52,7 +53,10 @@ def main() -> None:
     info = model_info(path)
     frames = [torch.from_numpy(load_image(f, params.video_width)).permute(2, 0, 1).unsqueeze(0).contiguous()
               for f in files]
+    t0 = time.perf_counter()
     onnx_tracker = OnnxTracker(path)
+    t_open = time.perf_counter() - t0
+    lat = {True: [], False: []}  # onnxruntime seconds per frame: Hough frames, tracked frames
     torch_tracker = torchrow.Tracker(info["params"])
     t_onnx = t_torch = 0.0
     bad, hough = 0, 0
@@ -68,11 +72,20 @@ def main() -> None:
         diff = step_differences(step_t, step_o) + step_differences(st_t, st_o)
         bad += bool(diff)
         hough += int(step_t.hough_ran[0])
+        lat[bool(step_t.hough_ran[0])].append(t1 - t0)
         if diff:
             print(f"frame {t}: " + "; ".join(diff)[:300])
     n = len(frames)
     hgt, wid = info["height"], info["width"]
     ops = ", ".join(f"{k} {v}" for k, v in sorted(info["ops"].items()))
+    import resource
+
+    def ms(v: list) -> str:
+        return f"mean {np.mean(v) * 1e3:.0f} ms, worst {np.max(v) * 1e3:.0f} ms" if v else "none"
+
+    print(f"onnxruntime: Hough frames ({len(lat[True])}) {ms(lat[True])}; tracked frames ({len(lat[False])}) "
+          f"{ms(lat[False])}; session open {t_open:.1f} s; peak RSS "
+          f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**10:.0f} MiB (this process: torch too)")
     lines = [f"### {n} Caterra frames ({wid}x{hgt}), one sequence (B = 1), default parameters", "",
              "| | ms / frame | frames / s |", "|---|---|---|",
              f"| torch tracker (`torchrow.Tracker.forward`) | {t_torch / n * 1e3:.0f} | {n / t_torch:.2f} |",

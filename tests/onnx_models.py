@@ -44,16 +44,17 @@ def _source_key(*key) -> str:
 
 
 def exported(params: Params, batch: int, tmp: Path, height: int = 240, width: int = 320,
-             tracker: bool = False, control_flow: bool = True) -> Path:
+             tracker: bool = False, control_flow: bool = True, scatter_free: bool = False) -> Path:
     """The model exported with these arguments, from the cache when it is there."""
     cache = _cache_dir()
-    kind = ("tracker" if control_flow else "tracker-masked") if tracker else "detector"
-    key = (params, batch) if not tracker else (params, batch, height, width, kind)
+    kind = ("tracker" if tracker else "detector") + ("" if control_flow else "-masked") + (
+        "-scatter-free" if scatter_free else "")
+    key = (params, batch, height, width, kind)
     path = cache / f"{kind}-{_source_key(*key)}.onnx"
     if path.is_file():
         return path
     out = to_onnx(tmp / f"{kind}.onnx", height=height, width=width, batch=batch, params=params, tracker=tracker,
-                  control_flow=control_flow)
+                  control_flow=control_flow, scatter_free=scatter_free)
     try:
         cache.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(out, path)

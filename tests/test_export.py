@@ -28,6 +28,7 @@ from torchrow import Params  # noqa: E402
 from torchrow.cli import main  # noqa: E402
 from torchrow.detector import CropRowDetector  # noqa: E402
 from torchrow.export import FORBIDDEN_OPS, OnnxDetector, model_info, op_counts, to_onnx  # noqa: E402
+from torchrow.synthetic import FieldSpec, sequence  # noqa: E402
 
 SMALL = Params(n_rows=3, max_outliers=2)
 BATCH = 2
@@ -67,14 +68,37 @@ def _same(ref, got, tol: float = 1e-4) -> list[str]:
     return problems
 
 
+@pytest.fixture(scope="module")
+def scatter_free_path(tmp_path_factory) -> Path:
+    """The scatter-free detector without control flow (the TensorRT-parsable form), at a
+    small working size (the op list does not depend on it)."""
+    return _exported(SMALL, 1, tmp_path_factory.mktemp("onnx-sf"), 90, 160, control_flow=False, scatter_free=True)
+
+
 # ------------------------------------------------------------------------------------------
-def test_op_list_has_no_scatter_reduction(model_path: Path):
+def test_op_list_of_the_scatter_free_form(scatter_free_path: Path):
     import onnx
 
-    ops = op_counts(onnx.load(str(model_path)))
+    ops = op_counts(onnx.load(str(scatter_free_path)))
     assert not [op for op in ops if op in FORBIDDEN_OPS], ops
     assert set(ops) <= ALLOWED_OPS, f"ops outside the TensorRT whitelist: {set(ops) - ALLOWED_OPS}"
     assert ops["CumSum"] > 0 and ops["TopK"] > 0  # the vote and the band points
+
+
+def test_scatter_free_form_equals_torch(scatter_free_path: Path):
+    x = torch.from_numpy(np.stack([sequence(FieldSpec.at_size(160, 90, n_rows=5, seed=3), 1)[0].image]))
+    x = x.permute(0, 3, 1, 2).contiguous()
+    ref = CropRowDetector(SMALL.replace(image_width=160))(x).results()
+    assert not _same(ref, OnnxDetector(scatter_free_path)(x).results())
+
+
+def test_default_form_votes_by_scatter_add_and_exits_early(model_path: Path):
+    """The onnxruntime form: one scatter-add vote updated by bands, steps in If nodes."""
+    import onnx
+
+    ops = op_counts(onnx.load(str(model_path)))
+    assert ops["ScatterElements_reduction"] > 0 and ops["If"] > 0
+    assert not {"NonZero", "Unique", "Loop", "Scan"} & set(ops), ops
 
 
 def test_model_metadata(model_path: Path):

@@ -23,6 +23,7 @@ from torchrow.export import step_differences
 from torchrow.functional import hough as fhough
 from torchrow.functional import ransac as fransac
 from torchrow.functional import static
+from torchrow.functional import vanishing as fvan
 from torchrow.functional import vegetation as fveg
 from torchrow.functional.tracker import TrackerState
 from torchrow.shared import lab_table_torch, pack_rgb
@@ -144,3 +145,48 @@ def ftrack_step(o: dict, active: torch.Tensor):
     from torchrow.functional.tracker import TrackStep
 
     return TrackStep(**{f: o[f] for f in static.TRACKER_STEP}, active=active)
+
+
+@pytest.mark.parametrize("scatter_free, flow", [(False, "always"), (True, "sync")])
+def test_static_voter_line_search_equals_eager(scatter_free: bool, flow: str) -> None:
+    """find_lines with the static voter (one vote, band-only updates in chunks, or the
+    scatter-free re-vote) == the eager voter, on adversarial masks that exhaust lines, drop
+    outliers and restart; the static voter's chunks are small so several are skipped or run."""
+    h, w = 240, 320
+    masks = torch.from_numpy(np.stack([m[:h, :w] for m in _adversarial_masks()]))
+    ref = fvan.find_lines(masks, P)
+    voter = fhough.StaticVoter(h, w, P, flow=flow, scatter_free=scatter_free, chunk=1000)
+    got = fvan.find_lines(masks, P, voter, flow)
+    for f in ("theta", "rho", "weight", "out_theta", "out_rho", "out_weight"):
+        valid = ref.valid if not f.startswith("out") else ref.out_valid
+        assert torch.equal(torch.where(valid, getattr(got, f), 0), torch.where(valid, getattr(ref, f), 0)), f
+    for f in ("valid", "out_valid", "n_rows", "has_vp"):
+        assert torch.equal(getattr(got, f), getattr(ref, f)), f
+    assert torch.equal(got.vp, ref.vp)
+    assert bool(ref.out_valid.any()) and bool((ref.n_rows < P.n_rows).any())
+
+
+def test_erase_bound_holds() -> None:
+    """No line of a pickable angle has more pixels within hough_band/2 than erase_bound."""
+    h, w = 90, 160
+    bound = fhough.erase_bound(h, w, P)
+    ys, xs = np.divmod(np.arange(h * w), w)
+    c, s = fhough.trig(P, torch.device("cpu"))
+    half = P.hough_band_px(w) / 2
+    most = 0
+    for j in fhough.pickable_angles(P):
+        p = xs * float(c[j]) + ys * float(s[j])
+        for r in range(-fhough.rho_offset(h, w), fhough.rho_offset(h, w) + 1):
+            most = max(most, int((np.abs(p - r) <= half).sum()))
+    assert most <= bound <= most + 2
+
+
+@settings(deadline=None, max_examples=30)
+@given(max_points=st.integers(1, 900), frac=st.floats(0.0, 1.0))
+def test_max_kept_bounds_every_band(max_points: int, frac: float) -> None:
+    """The static number of RANSAC points equals the most any band size keeps (step 7.2)."""
+    p = Params(ransac_max_points=max_points, ransac_subsample=max(1, int(frac * max_points)))
+    n = np.arange(0, 4 * max_points + 10)
+    v = n // 2
+    kept = np.where(n + v > p.ransac_max_points, (p.ransac_subsample * n) // np.maximum(n + v, 1), n)
+    assert fransac.max_kept(p) == int(kept.max())

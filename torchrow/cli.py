@@ -303,14 +303,17 @@ def _check_model(args: argparse.Namespace) -> str | None:
         raise CLIError("--impl onnx needs onnxruntime: pip install 'torchrow[onnx]'") from None
     except Exception as exc:  # a corrupt or foreign file: one line, not a traceback
         raise CLIError(f"cannot read ONNX model {model}: {exc}") from None
-    if info["kind"] != "detector":
-        raise CLIError(f"{model} is a torchrow {info['kind']} model; detect needs a detector model "
-                       "(torchrow export onnx without --tracker)")
+    kind = getattr(args, "model_kind", "detector")
+    if info["kind"] != kind:
+        cmd = "detect" if kind == "detector" else "video"
+        how = "without --tracker" if kind == "detector" else "--tracker"
+        raise CLIError(f"{model} is a torchrow {info['kind']} model; {cmd} needs a {kind} model "
+                       f"(torchrow export onnx {how})")
     if args.param:
         raise CLIError("--param cannot change an exported model; export one with those --param values")
-    want = info["params"].image_width
+    want = info["params"].image_width if kind == "detector" else info["params"].video_width
     if want != info["width"]:
-        raise CLIError(f"model {model} takes {info['width']}x{info['height']} images but its image_width is {want}")
+        raise CLIError(f"model {model} takes {info['width']}x{info['height']} images but its working width is {want}")
     return model
 
 
@@ -323,8 +326,6 @@ def cmd_export(args: argparse.Namespace) -> int:
     from .export import model_info, to_onnx
 
     params = _parse_params(args.param)
-    if args.no_control_flow and not args.tracker:
-        raise CLIError("--no-control-flow applies to --tracker only (the detector graph has no control flow)")
     if args.tracker:
         width = args.width if args.width is not None else params.video_width
         if args.height is None:
@@ -345,8 +346,13 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     try:
+        def phase(name: str) -> None:  # an export takes minutes: say which phase runs
+            if not args.quiet:
+                print(f"torchrow: export: {name} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+
         to_onnx(out, height=height, width=width, batch=args.batch, params=params, opset=args.opset,
-                tracker=args.tracker, control_flow=not args.no_control_flow)
+                tracker=args.tracker, control_flow=not args.no_control_flow, scatter_free=args.scatter_free,
+                progress=phase)
     except ValueError as exc:
         raise CLIError(str(exc)) from None
     info = model_info(out)
@@ -555,8 +561,12 @@ def cmd_video(args: argparse.Namespace) -> int:
     from .progress import progress
     from .video import central_jumps, plot_tracks
 
+    args.model_kind = "tracker"
+    model = _check_model(args)
     params = _with_mode(_parse_params(args.param), args)
     if args.hough_every is not None:
+        if model is not None:
+            raise CLIError("--hough-every cannot change an exported model; export one with --param hough_every=N")
         if args.hough_every < 1:
             raise CLIError(f"--hough-every must be >= 1, got {args.hough_every}")
         params = params.replace(hough_every=args.hough_every)
@@ -565,6 +575,20 @@ def cmd_video(args: argparse.Namespace) -> int:
     device = _check_device(args.device)
     _check_engine(args)
     sources = _open_sources(args.sources, args.topic)
+    onnx = None
+    if model is not None:
+        if args.engine == "ray":
+            raise CLIError("--impl onnx runs with --engine local")
+        from .export import OnnxTracker
+        from .runner import source_size
+
+        onnx = OnnxTracker(model, hfov_deg=args.fov)
+        params = onnx.params
+        for s in sources:  # the model's working size, checked before anything is written
+            size = source_size(s, params)
+            if size is not None and size != (onnx.height, onnx.width):
+                raise CLIError(f"{s.name}: frames of working size {size[1]}x{size[0]}; the model {model} takes "
+                               f"{onnx.width}x{onnx.height} (export one with --tracker --height {size[0]})")
     out = Path(args.out)
     plot = None if args.plot == "none" else Path(args.plot) if args.plot else out.with_suffix(".png")
     from .sink import frame_key, read_records
@@ -591,7 +615,7 @@ def cmd_video(args: argparse.Namespace) -> int:
         from .runner import track_batches
 
         complete = [set(range(s.length)) <= done.get(names[i], set()) for i, s in enumerate(sources)]
-        todo = [i for batch in track_batches(sources, args.impl, params, args.batch_size)
+        todo = [i for batch in track_batches(sources, args.impl, params, args.batch_size, onnx=onnx)
                 if not all(complete[j] for j in batch) for i in batch]
     if args.engine == "ray":
         from .distributed import track as ray_track
@@ -605,7 +629,7 @@ def cmd_video(args: argparse.Namespace) -> int:
 
         stream = ((todo[b], None, res, rgb) for b, res, rgb in track(
             [sources[i] for i in todo], [names[i] for i in todo], args.impl, params, args.batch_size, device,
-            args.fov))
+            args.fov, onnx=onnx))
     counts: dict[str, int] = {}
     total = sum(sources[i].length for i in todo)
     bar = progress(total, "video", enabled=not args.quiet, unit="frame")
@@ -751,8 +775,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fov", type=float, default=None, metavar="DEG",
                    help="horizontal field of view of the frames, for heading_rad (null without it)")
     p.add_argument("--plot", default=None, help="plot file (default: --out with suffix .png); 'none': no plot")
-    p.add_argument("--impl", choices=("tensor", "reference"), default="tensor",
-                   help="batched tensor tracker (default) or the per-sequence reference")
+    p.add_argument("--impl", choices=("tensor", "reference", "onnx"), default="tensor",
+                   help="batched tensor tracker (default), the per-sequence reference, or an exported tracker "
+                        "step in onnxruntime (--model)")
+    p.add_argument("--model", help="tracker-step ONNX file for --impl onnx (torchrow export onnx --tracker)")
     p.add_argument("--batch-size", type=int, default=8, help="sequences per batch for --impl tensor (default 8)")
     p.add_argument("--device", default=None,
                    help="torch device for --impl tensor (cpu, cuda, cuda:1; default cpu)")
@@ -767,7 +793,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tracker", action="store_true",
                    help="export the video tracker step (frame + state -> rows + new state) instead of the detector")
     p.add_argument("--no-control-flow", action="store_true",
-                   help="tracker: no ONNX If; both branches run on every frame, masks choose (slower, same results)")
+                   help="no ONNX If: every line-search step (and, tracker, both branches) runs, masks choose "
+                        "(slower, same results)")
+    p.add_argument("--scatter-free", action="store_true",
+                   help="vote without ScatterElements(reduction=add), for runtimes that lack it (TensorRT); "
+                        "slower on a CPU, same results")
     p.add_argument("--height", type=int, default=None,
                    help="working height (detector default 240; required with --tracker)")
     p.add_argument("--width", type=int, default=None,

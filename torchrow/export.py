@@ -175,7 +175,7 @@ def _check_shape(height: int, width: int, batch: int, opset: int) -> None:
 
 def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 1, params: Params | None = None,
             opset: int = DEFAULT_OPSET, optimize: bool = True, tracker: bool = False,
-            control_flow: bool = True) -> Path:
+            control_flow: bool = True, scatter_free: bool = False, progress=None) -> Path:
     """Export the image-mode detector (or, with ``tracker=True``, the tracker step) as a
     static-shape ONNX graph.
 
@@ -197,9 +197,17 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         sequences + their state -> rows + new state; run it with :class:`OnnxTracker`).
         ``width`` must then equal ``params.video_width`` (set it with ``params``).
     control_flow : bool
-        Tracker only: skip the Hough stage (and the tracked fit) with an ONNX ``If`` when no
-        sequence of the batch needs it (default); ``False`` gives a graph without ``If``
-        that always runs both and masks the results (slower; same results).
+        Skip work no image needs with ONNX ``If`` nodes (default): the line search's steps
+        once every image is finished, vote chunks past every image's pixel count, and for the
+        tracker the Hough stage and the tracked fit. ``False`` gives a graph without ``If``
+        that always runs everything and masks the results (slower; same results).
+    scatter_free : bool
+        Vote without ``ScatterElements(reduction="add")`` (prefix sums of constant
+        permutations, re-voted at every line-search step) for runtimes without a scatter
+        reduction (TensorRT). Slower on a CPU; same results.
+    progress : callable, optional
+        Called with a short phase name (``"trace"``, ``"onnx"``, ``"optimize"``, ``"save"``)
+        as each phase of the export starts.
 
     Returns
     -------
@@ -229,25 +237,38 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
                              f"got width {width}")
         from .functional.tracker import TrackerState
 
-        module = static.StaticTrackerStep(height, width, params, control_flow=control_flow).eval()
+        module = static.StaticTrackerStep(height, width, params, control_flow=control_flow,
+                                          scatter_free=scatter_free).eval()
         empty = TrackerState.empty(batch, params)
         args = (images, veg_lab, torch.ones(batch, dtype=torch.bool)) + tuple(
             getattr(empty, f) for f in static.TRACKER_STATE)
         names, outputs = list(static.TRACKER_INPUTS), list(static.TRACKER_OUTPUTS)
     else:
-        module = static.StaticDetector(height, width, params).eval()
+        module = static.StaticDetector(height, width, params, flow="cond" if control_flow else "always",
+                                       scatter_free=scatter_free).eval()
         args = (images, veg_lab)
         names, outputs = ["images", "veg_lab"], list(static.GRAPH_OUTPUTS)
-    with warnings.catch_warnings(), torch.no_grad():
+    import sys
+
+    shown = sys.stdout  # the exporter's own prints are silenced below; the caller's progress is not
+
+    def note(phase: str) -> None:
+        if progress is not None:
+            with contextlib.redirect_stdout(shown):
+                progress(phase)
+
+    with warnings.catch_warnings(), torch.no_grad(), _quiet_exporter():
         warnings.simplefilter("ignore")
+        note("trace")
         ep = torch.export.export(module, args, strict=False)
         # bool <-> uint8/int8 reinterpretations in the vegetation stage only ever hold 0/1,
         # whose bit patterns equal their cast values: export them as Cast.
-        if not (tracker and control_flow):
+        if not control_flow:
             ep = ep.run_decompositions({torch.ops.aten.view.dtype: _view_as_cast})
             table = None
         else:  # re-decomposing a program with torch.cond subgraphs fails validation: translate instead
             table = {torch.ops.aten.view.dtype: _view_dtype_onnx}
+        note("onnx")
         with float64_python_constants():
             prog = torch.onnx.export(ep, dynamo=True, opset_version=opset, input_names=names,
                                      output_names=outputs, verbose=False, optimize=False,
@@ -258,11 +279,14 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
             # of this unrolled graph (hundreds of thousands of match attempts) for no gain.
             from onnxscript import optimizer
 
+            note("optimize")
             optimizer.fold_constants_ir(prog.model)
             optimizer.remove_unused_nodes(prog.model)
+    note("save")
     model = _compact(_drop_unused_initializers(legalize(prog.model_proto)))
     meta = {"torchrow_format": "1", "kind": "tracker" if tracker else "detector", "height": str(height),
-            "width": str(width), "batch": str(batch), "control_flow": str(bool(tracker and control_flow)),
+            "width": str(width), "batch": str(batch), "control_flow": str(bool(control_flow)),
+            "scatter_free": str(bool(scatter_free)),
             "params": json.dumps(_params_dict(params)), "exporter": f"torch.onnx dynamo, torch {torch.__version__}",
             "opset": str(opset)}
     for k, v in meta.items():
@@ -270,6 +294,27 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         entry.key, entry.value = k, v
     onnx.save(model, str(path))
     return path
+
+
+@contextlib.contextmanager
+def _quiet_exporter():
+    """Silence the exporter's logged notices (``torchvision is not installed. Skipping ...``,
+    one line per torchvision op) and its progress prints, which are not warnings."""
+    import io
+    import logging
+
+    names = ("torch.onnx", "torch.onnx._internal.exporter._registration", "torch.export", "torch._export",
+             "onnxscript")
+    loggers = [logging.getLogger(n) for n in names]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.ERROR)
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):
+            yield
+    finally:
+        for lg, lv in zip(loggers, levels):
+            lg.setLevel(lv)
 
 
 @contextlib.contextmanager
@@ -493,6 +538,7 @@ def _open(runner, model_path: str | Path, kind: str, threads: int | None) -> Non
         raise ValueError(f"{path.name} is a torchrow {info['kind']} model; run it with {other}")
     so = ort.SessionOptions()
     so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_BASIC
+    so.log_severity_level = 3  # errors only: normal use prints nothing
     if threads:
         so.intra_op_num_threads = int(threads)
     runner.session = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
@@ -566,6 +612,62 @@ class OnnxTracker:
             x = torch.from_numpy(np.stack([self._records.prepare(f) for f in frames])).permute(0, 3, 1, 2)
         stepped, new = self.forward(x.contiguous(), state)
         return self._records.results(stepped, new, x.shape[3], x.shape[2], names), new
+
+
+    def track_iter(self, sequences, sources=None):
+        """Track up to ``B`` (the model's batch) sequences in lock-step, lazily, as
+        :meth:`torchrow.Tracker.track_iter`: yields ``(sequence index, FrameResult, working
+        RGB or None)``; unreadable frames and frames of another working size than the
+        model's get ``error`` records. Slots without a sequence, or whose sequence has ended
+        or has no readable frame now, are fed as inactive (they keep their state)."""
+        from .steering import FrameResult
+        from .video import load_item
+
+        n = len(sequences)
+        if n > self.batch:
+            raise ValueError(f"the model {self.path.name} tracks {self.batch} sequence(s) at once, got {n}")
+        srcs = list(sources) if sources is not None else [None] * n
+        iters = [iter(s) for s in sequences]
+        alive = [True] * n
+        index = [0] * n
+        state = None
+        h, w = self.height, self.width
+        while any(alive):
+            got: list = [None] * n
+            frames = np.zeros((self.batch, h, w, 3), dtype=np.uint8)
+            act = np.zeros(self.batch, dtype=bool)
+            for b in range(n):
+                if not alive[b]:
+                    continue
+                try:
+                    item = next(iters[b])
+                except StopIteration:
+                    alive[b] = False
+                    continue
+                fr = load_item(item, self.params.video_width)
+                if fr.rgb is not None and fr.rgb.shape[:2] != (h, w):
+                    fr.error = (f"frame of working size {fr.rgb.shape[1]}x{fr.rgb.shape[0]}; the model "
+                                f"{self.path.name} takes {w}x{h}")
+                    fr.rgb = None
+                if fr.rgb is not None:
+                    frames[b], act[b] = fr.rgb, True
+                got[b] = (index[b], fr)
+                index[b] += 1
+            recs: list = [None] * self.batch
+            if act.any():
+                x = torch.from_numpy(frames).permute(0, 3, 1, 2).contiguous()
+                stepped, state = self.forward(x, state, torch.from_numpy(act))
+                names = [g[1].name if g is not None else None for g in got] + [None] * (self.batch - n)
+                idxs = [g[0] if g is not None else 0 for g in got] + [0] * (self.batch - n)
+                recs = self._records.results(stepped, state, w, h, names, srcs + [None] * (self.batch - n), idxs)
+            for b in range(n):
+                if got[b] is None:
+                    continue
+                i, fr = got[b]
+                if recs[b] is not None:
+                    yield b, recs[b], fr.rgb
+                else:
+                    yield b, FrameResult.failed_frame(srcs[b], i, fr.name, fr.error or "unreadable frame"), None
 
 
 def step_differences(ref, got, tol: float = 1e-9) -> list[str]:

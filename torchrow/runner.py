@@ -180,7 +180,7 @@ def source_size(src, params: Params) -> tuple[int, int] | None:
 
 def track(sources: Sequence, names: Sequence[str], impl: str = "tensor", params: Params | None = None,
           batch_size: int = 8, device: str | None = None, hfov_deg: float | None = None,
-          workers: int | None = None) -> Iterator[tuple[int, FrameResult, np.ndarray | None]]:
+          workers: int | None = None, onnx=None) -> Iterator[tuple[int, FrameResult, np.ndarray | None]]:
     """Track frame sources (:func:`torchrow.video.open_source`); yields ``(source index,
     FrameResult, working RGB or None)``.
 
@@ -188,7 +188,8 @@ def track(sources: Sequence, names: Sequence[str], impl: str = "tensor", params:
     up to ``batch_size`` sources of one working size (lock-step order within a batch).
     Frames that carry a ``stamp_ns`` (ROS bag messages) pass it to their result. Results
     stream as the trackers make them. ``workers``: :class:`~torchrow.tracker.Tracker`'s
-    (default: torch's thread count on a CPU).
+    (default: torch's thread count on a CPU). ``impl="onnx"`` runs ``onnx``, an
+    :class:`~torchrow.export.OnnxTracker`, on batches of its model's batch size.
     """
     params = params or Params()
     stamps: dict[tuple[int, int], int] = {}
@@ -212,6 +213,13 @@ def track(sources: Sequence, names: Sequence[str], impl: str = "tensor", params:
             for res, rgb in ref.track_iter(tapped(b), names[b], source_size(sources[b], params)):
                 yield b, stamped(b, res), rgb
         return
+    if impl == "onnx":
+        if onnx is None:
+            raise ValueError("impl='onnx' needs onnx=OnnxTracker(model)")
+        for batch in track_batches(sources, impl, params, batch_size, onnx=onnx):
+            for k, res, rgb in onnx.track_iter([tapped(b) for b in batch], [names[b] for b in batch]):
+                yield batch[k], stamped(batch[k], res), rgb
+        return
     from .tracker import Tracker
 
     tracker = Tracker(params, device=device, hfov_deg=hfov_deg, workers=workers)
@@ -223,7 +231,7 @@ def track(sources: Sequence, names: Sequence[str], impl: str = "tensor", params:
 
 
 def track_batches(sources: Sequence, impl: str = "tensor", params: Params | None = None,
-                  batch_size: int = 8, sizes: dict | None = None) -> list[list[int]]:
+                  batch_size: int = 8, sizes: dict | None = None, onnx=None) -> list[list[int]]:
     """The batches :func:`track` runs: source indices grouped by their working size
     (:func:`source_size`, stored into ``sizes`` if given), in runs of up to ``batch_size``
     (one source each for the reference).
@@ -236,6 +244,9 @@ def track_batches(sources: Sequence, impl: str = "tensor", params: Params | None
     params = params or Params()
     if impl == "reference":
         return [[b] for b in range(len(sources))]
+    if impl == "onnx":  # the model's static batch; every source has the model's working size
+        step = onnx.batch if onnx is not None else 1
+        return [list(range(lo, min(lo + step, len(sources)))) for lo in range(0, len(sources), step)]
     groups: dict[object, list[int]] = {}
     for b, s in enumerate(sources):  # one working size per batch
         size = source_size(s, params)

@@ -11,17 +11,20 @@ NumPy as the reference computes it), so no float arithmetic decides a vote here.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+from torch import nn
 
 from ..params import Params
 from ..shared import hough_trig, rho_index_table, rho_offset
 from ._checks import check_masks
+from ._flow import branch, check_flow, keep
 
-__all__ = ["HoughState", "pixel_list", "compact", "trig", "rho_table", "line_distance", "accumulate", "votes",
-           "excluded_angles", "peak"]
+__all__ = ["HoughState", "EagerVoter", "StaticVoter", "pickable_angles", "erase_bound", "pixel_list", "compact",
+           "trig", "rho_table", "line_distance", "accumulate", "votes", "excluded_angles", "peak"]
 
 #: Pixels per chunk when accumulating votes: bounds the ``(chunk, n_theta)`` int32 index
 #: temporary to ``180 * 65536 * 4`` bytes (47 MB).
@@ -94,7 +97,8 @@ def pixel_list(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     if n == 0:
         return torch.zeros((b, 0), dtype=torch.int64, device=dev), torch.zeros(b, dtype=torch.int64, device=dev)
     # int32 prefix sums over bytes: 5x faster than a bool cumsum into int64 (n < 2**31)
-    on = torch.cumsum(flat.view(torch.uint8), dim=1, dtype=torch.int32)
+    on = torch.cumsum(flat.to(torch.int32) if torch.compiler.is_exporting() else flat.view(torch.uint8), dim=1,
+                      dtype=torch.int32)
     count = on[:, -1:].clone()  # on is decremented in place below
     pos = torch.arange(n, device=dev)
     other = (pos.to(torch.int32) - on).add_(count)  # other pixels: after all mask pixels, in order
@@ -179,18 +183,25 @@ def excluded_angles(held_theta: torch.Tensor, held_valid: torch.Tensor, params: 
     return ex.unsqueeze(0) | (near & held_valid.unsqueeze(-1)).any(dim=1)
 
 
-def peak(acc: torch.Tensor, excluded: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def peak(acc: torch.Tensor, excluded: torch.Tensor,
+         angles: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Step 5.2: the maximum cell over allowed angles; ties -> smallest rho index, then theta.
 
-    ``acc`` int32 ``(B, n_theta, 2D+1)``, ``excluded`` bool ``(B, n_theta)``. Returns
-    ``(theta_index, rho_index, votes)`` each int64 ``(B,)``; votes 0 means no line.
+    ``acc`` int32 ``(B, A, 2D+1)`` holds the votes of the angle indices ``angles`` int64
+    ``(A,)`` (default: all ``n_theta`` angles, ``A = n_theta``), ``excluded`` bool
+    ``(B, n_theta)``. Returns ``(theta_index, rho_index, votes)`` each int64 ``(B,)``;
+    votes 0 means no line. Angles missing from ``angles`` are never picked.
     """
+    n_theta = excluded.shape[1]
+    if angles is None:
+        angles = torch.arange(n_theta, device=acc.device)
+    else:
+        excluded = excluded.index_select(1, angles)
     # torch.max(dim) does not promise the first index on ties; argmax does.
-    colarg = torch.argmax(acc, dim=2)  # (B, n_theta): smallest rho index of each angle's max
+    colarg = torch.argmax(acc, dim=2)  # (B, A): smallest rho index of each angle's max
     colmax = acc.gather(2, colarg.unsqueeze(2)).squeeze(2).to(torch.int64).masked_fill(excluded, 0)
     best = colmax.max(dim=1, keepdim=True).values
-    n_theta = acc.shape[1]
-    key = colarg * n_theta + torch.arange(n_theta, device=acc.device)
+    key = colarg * n_theta + angles.view(1, -1)
     key = key.masked_fill(colmax != best, torch.iinfo(torch.int64).max)
     flat = key.min(dim=1).values
     w = best.squeeze(1)
@@ -246,3 +257,199 @@ class HoughState:
         hit = self.alive & (dist <= band / 2) & active.unsqueeze(1)
         self.alive = self.alive & ~hit
         accumulate(self.acc, self.idx, hit, -1, self.table)
+
+
+class EagerVoter:
+    """The eager voter of :func:`torchrow.functional.vanishing.find_lines`: a
+    :class:`HoughState` (compact pixel list, host-synchronised chunk loops).
+
+    The voter interface (shared with :class:`StaticVoter`): ``start(hin) -> (state, init)``
+    (``init``: what a restart needs), ``votes(state) -> acc`` over the angle indices
+    :attr:`angles` (``None``: all), ``erase(state, theta, rho, active) -> state``,
+    ``reset(state, init, which) -> state``, and ``d`` (``D``, set by ``start``). ``state``
+    is a tuple (of tensors, for a static voter: it passes through ``torch.cond``).
+    """
+
+    angles = None
+
+    def __init__(self, params: Params) -> None:
+        self.params = params
+
+    def start(self, hin: torch.Tensor) -> tuple[tuple, None]:
+        hs = HoughState.start(hin, self.params)
+        self.d = hs.d
+        return (hs,), None
+
+    def votes(self, state: tuple) -> torch.Tensor:
+        return state[0].acc
+
+    def erase(self, state: tuple, theta: torch.Tensor, rho: torch.Tensor, active: torch.Tensor) -> tuple:
+        if bool(active.any()):
+            state[0].erase(theta, rho, active, self.params)
+        return state
+
+    def reset(self, state: tuple, init: None, which: torch.Tensor) -> tuple:
+        if bool(which.any()):
+            state[0].reset(which)
+        return state
+
+
+def pickable_angles(params: Params) -> np.ndarray:
+    """Angle indices ``j`` with ``|j*theta_step - 90| >= horizontal_excl``, int64 ``(A,)``: the
+    only ones step 5.1 ever lets be a peak, so the only ones a static voter votes for."""
+    return np.array([j for j in range(params.n_theta) if abs(j * params.theta_step - 90) >= params.horizontal_excl],
+                    dtype=np.int64)
+
+
+@functools.lru_cache(maxsize=8)
+def _erase_bound(height: int, width: int, theta_step: int, horizontal_excl: int, n_theta: int, band: int) -> int:
+    ys, xs = np.divmod(np.arange(height * width, dtype=np.int64), width)
+    cos, sin = hough_trig(theta_step)
+    d = rho_offset(height, width)
+    rho = np.arange(-d, d + 1, dtype=np.float64)
+    half = band / 2 + 1e-6  # slack: the band test rounds |p - rho|, these bounds round p +- half
+    best = 0
+    for j in range(n_theta):
+        if abs(j * theta_step - 90) < horizontal_excl:
+            continue
+        p = np.sort(xs * cos[j] + ys * sin[j])
+        best = max(best, int((np.searchsorted(p, rho + half, "right") - np.searchsorted(p, rho - half, "left")).max()))
+    return best
+
+
+def erase_bound(height: int, width: int, params: Params) -> int:
+    """Static bound on the pixels one erase of step 5.3 can remove at this working size: the
+    most pixels of the image within ``hough_band/2`` (plus 1e-6 px of slack) of any line of
+    a pickable angle and integer rho, counted on the sorted projections ``x*c_j + y*s_j``."""
+    return _erase_bound(height, width, params.theta_step, params.horizontal_excl, params.n_theta,
+                        params.hough_band_px(width))
+
+
+class StaticVoter(nn.Module):
+    """Static-shape voter of the exportable graphs, with the :class:`EagerVoter` interface.
+
+    The state is ``(alive bool (B, H*W), acc int32 (B, A, 2D+1))`` over the pickable angles
+    (:func:`pickable_angles`); the untouched input and its votes are kept for restarts.
+
+    * ``scatter_free=False`` (onnxruntime): votes are added once (``ScatterElements`` with
+      ``reduction="add"``) for the Hough input's pixels, compacted to the front of a
+      ``(B, H*W)`` list and added in chunks of :attr:`chunk` pixels; each chunk sits in a
+      :func:`~torchrow.functional._flow.branch` that skips it when no image has pixels left
+      there. An erase subtracts the votes of the erased pixels only, compacted into
+      :func:`erase_bound` slots (about 4% of the image). The rho index is the spec's
+      expression ``rint((x*c_j) + (y*s_j)) + D`` in float64 (no fused multiply-add; equal to
+      the shared table, which a test checks), so no table of ``H*W x A`` entries is stored.
+    * ``scatter_free=True`` (runtimes without a scatter reduction, e.g. TensorRT): no
+      accumulator is kept; each peak re-votes the alive mask by prefix sums of constant
+      permutations (:func:`torchrow.functional.static.votes`).
+
+    Memory (``B`` images): the accumulator twice, ``B*A*(2D+1)*4`` bytes (0.4 MB per image
+    at 320x240), plus a chunk's ``(B, chunk, A)`` int64 cell indices (4.3 MB per image).
+    """
+
+    def __init__(self, height: int, width: int, params: Params, flow: str = "cond", scatter_free: bool = False,
+                 chunk: int = 4096) -> None:
+        super().__init__()
+        self.params = params
+        self.height, self.width = int(height), int(width)
+        self.flow = check_flow(flow)
+        self.scatter_free = bool(scatter_free)
+        self.chunk = int(chunk)
+        self.d = rho_offset(self.height, self.width)
+        self.n_rho = 2 * self.d + 1
+        ang = pickable_angles(params)
+        self.register_buffer("angles", torch.from_numpy(ang), persistent=False)
+        c, s = hough_trig(params.theta_step)
+        self.register_buffer("cos", torch.tensor(c, dtype=torch.float64), persistent=False)
+        self.register_buffer("sin", torch.tensor(s, dtype=torch.float64), persistent=False)
+        self.register_buffer("cos_a", torch.tensor(np.asarray(c)[ang], dtype=torch.float64), persistent=False)
+        self.register_buffer("sin_a", torch.tensor(np.asarray(s)[ang], dtype=torch.float64), persistent=False)
+        ys, xs = np.divmod(np.arange(self.height * self.width, dtype=np.int64), self.width)
+        self.register_buffer("xs", torch.from_numpy(xs.astype(np.float64)), persistent=False)
+        self.register_buffer("ys", torch.from_numpy(ys.astype(np.float64)), persistent=False)
+        self.register_buffer("cell0", torch.arange(len(ang), dtype=torch.int64) * self.n_rho + self.d,
+                             persistent=False)
+        self.bound = min(self.height * self.width, erase_bound(self.height, self.width, params))
+        if self.scatter_free:
+            from .static import vote_tables
+
+            t = vote_tables(self.height, self.width, params)
+            self.register_buffer("order", t.order, persistent=False)
+            self.register_buffer("ends", t.ends, persistent=False)
+            self.register_buffer("run_empty", t.empty, persistent=False)
+
+    # -- voting -------------------------------------------------------------------------------
+    def _add(self, acc: torch.Tensor, pix: torch.Tensor, wgt: torch.Tensor) -> torch.Tensor:
+        """``acc`` plus ``wgt`` int32 ``(B, C)`` votes of the raster pixels ``pix`` int64 ``(B, C)``."""
+        bsz, c = pix.shape
+        x = self.xs[pix].unsqueeze(2)
+        y = self.ys[pix].unsqueeze(2)
+        cell = torch.round(x * self.cos_a + y * self.sin_a).to(torch.int64) + self.cell0  # (B, C, A)
+        upd = wgt.unsqueeze(2).expand(bsz, c, self.cos_a.shape[0])
+        return acc.reshape(bsz, -1).scatter_add(1, cell.reshape(bsz, -1), upd.reshape(bsz, -1)).view(acc.shape)
+
+    def _accumulate(self, acc: torch.Tensor, pix: torch.Tensor, count: torch.Tensor, sign: int,
+                    chunk: int | None = None) -> torch.Tensor:
+        """Add ``sign`` votes of the first ``count`` (B,) entries of the list ``pix`` (B, K),
+        chunk by chunk; chunks past every image's count are skipped (per :attr:`flow`), in
+        blocks of 8 chunks first so that a skip copies the accumulator once, not per chunk."""
+        k = pix.shape[1]
+        top = count.max()
+        chunk = chunk or self.chunk
+
+        def chunks(acc, b0: int, b1: int):
+            for c0 in range(b0, b1, chunk):
+                c1 = min(c0 + chunk, k)
+
+                def add(acc, c0=c0, c1=c1):
+                    wgt = (torch.arange(c0, c1, device=acc.device) < count.unsqueeze(1)).to(torch.int32) * sign
+                    return (self._add(acc, pix[:, c0:c1], wgt),)
+
+                acc, = branch(self.flow, top > c0, add, keep, (acc,)) if c0 > b0 else add(acc)
+            return (acc,)
+
+        block = 8 * chunk
+        for b0 in range(0, k, block):
+            acc, = branch(self.flow, top > b0, lambda acc, b0=b0: chunks(acc, b0, min(b0 + block, k)), keep, (acc,))
+        return acc
+
+    def start(self, hin: torch.Tensor) -> tuple[tuple, tuple]:
+        """Votes of ``hin`` bool ``(B, H, W)``: the state ``(alive, acc)`` (``(alive,)``
+        scatter-free), and the same as ``init`` for restarts."""
+        bsz = hin.shape[0]
+        alive = hin.reshape(bsz, -1)
+        if self.scatter_free:
+            return (alive,), (alive,)
+        pix, count = pixel_list(hin)
+        acc = torch.zeros((bsz, self.angles.shape[0], self.n_rho), dtype=torch.int32, device=hin.device)
+        acc = self._accumulate(acc, pix, count, 1)
+        return (alive, acc), (alive, acc)
+
+    def votes(self, state: tuple) -> torch.Tensor:
+        if self.scatter_free:
+            from .static import VoteTables, votes
+
+            t = VoteTables(self.angles, self.order, self.ends, self.run_empty, self.n_rho, self.d)
+            return votes(state[0], t)
+        return state[1]
+
+    def erase(self, state: tuple, theta: torch.Tensor, rho: torch.Tensor, active: torch.Tensor) -> tuple:
+        """Step 5.3 (the spec's expression, as :meth:`HoughState.erase`) where ``active``."""
+        alive = state[0]
+        band = self.params.hough_band_px(self.width)
+        dist = line_distance(self.xs.unsqueeze(0), self.ys.unsqueeze(0), self.cos[theta].unsqueeze(1),
+                             self.sin[theta].unsqueeze(1), rho.to(torch.float64).unsqueeze(1))
+        hit = alive & (dist <= band / 2) & active.unsqueeze(1)
+        alive = alive & ~hit
+        if self.scatter_free:
+            return (alive,)
+        # the erased pixels, compacted into erase_bound slots by a TopK of the 0/1 mask (the
+        # order among them does not change a sum; a permutation scatter would fold an
+        # H*W-sized constant into every step's graph)
+        pix = torch.topk(hit.to(torch.int32), self.bound, dim=1).indices
+        # smaller chunks than the first vote: a line's band holds far fewer pixels than its bound
+        return (alive, self._accumulate(state[1], pix, hit.sum(1), -1, max(1, self.chunk // 4)))
+
+    def reset(self, state: tuple, init: tuple, which: torch.Tensor) -> tuple:
+        """Restore the untouched input (and its votes) where ``which`` bool ``(B,)``."""
+        return tuple(torch.where(which.view((-1,) + (1,) * (s.dim() - 1)), s0, s) for s, s0 in zip(state, init))

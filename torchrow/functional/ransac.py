@@ -8,6 +8,7 @@ shared table are scored against them in chunks of hypotheses so memory stays bou
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 
@@ -19,7 +20,7 @@ from ..shared import hypothesis_table
 from . import _exact
 from .hough import active_width, cacheable, pixel_list, trig
 
-__all__ = ["RowFits", "fit_rows", "validate_rows", "band_member", "subsample_plan", "principal_direction",
+__all__ = ["RowFits", "fit_rows", "validate_rows", "band_member", "subsample_plan", "max_kept", "principal_direction",
            "REASON_CODES", "SCORE_BUDGET"]
 
 #: Reason codes of :attr:`RowFits.reason`, indices into :data:`torchrow.results.REASONS`.
@@ -98,6 +99,18 @@ def band_member(xs: torch.Tensor, ys: torch.Tensor, theta: torch.Tensor, rho: to
     ta, tb = (t.to(torch.float64).unsqueeze(2) for t in track)  # (B, S, 1)
     r = (xs - ta * ys) - tb
     return r * r <= (half * half) * (1.0 + ta * ta)
+
+
+def max_kept(params: Params) -> int:
+    """Static bound on step 7.2's kept pixels ``n'`` of a row, over every band size ``n``:
+    ``n`` itself while ``n + n//2 <= ransac_max_points``, else ``(ransac_subsample*n) //
+    (n + n//2)``, which is largest for the smallest such ``n`` (it decreases towards
+    ``2*ransac_subsample/3``). With the defaults 467, not 700."""
+    direct = 0
+    while (direct + 1) + (direct + 1) // 2 <= params.ransac_max_points:
+        direct += 1
+    sub = max((params.ransac_subsample * n) // (n + n // 2) for n in range(direct + 1, direct + 4))
+    return max(direct, sub)
 
 
 def subsample_plan(member: torch.Tensor, lin: torch.Tensor, params: Params):
@@ -335,7 +348,9 @@ def validate_rows(cx, cy, dx, dy, hyp, support, present, height: int, hough_band
     directions, i.e. ``dot > cos(min_angle_diff)``; ``atan2(|dy|, |dx|) < horizon_angle`` is
     ``|dy| < sin(horizon_angle)``. Equal except within rounding of a threshold.
     """
-    with torch.no_grad():
+    # (an exported graph has no gradients; a grad-mode region there breaks torch.export's
+    # handling of the torch.cond subgraphs around it)
+    with contextlib.nullcontext() if torch.compiler.is_exporting() else torch.no_grad():
         a = dx / dy
         b = cx - a * cy
     nan = torch.full_like(a, float("nan"))

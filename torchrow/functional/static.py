@@ -40,14 +40,15 @@ import torch
 from torch import nn
 
 from ..params import Params
-from ..shared import hough_trig, hypothesis_table, rho_index_table, rho_offset
+from ..shared import hypothesis_table, rho_index_table, rho_offset
 from . import _exact
 from . import ransac as fransac
 from . import sky as fsky
 from . import tracker as ftrack
 from . import vegetation as fveg
-from .hough import excluded_angles
-from .vanishing import LineSearch, drop_outlier, max_steps, outlier_check
+from ._flow import check_flow
+from .hough import StaticVoter
+from .vanishing import LineSearch, find_lines
 
 __all__ = ["lab", "LINEAR_RGB", "VoteTables", "vote_tables", "votes", "StaticDetector", "finish_rows",
            "GRAPH_OUTPUTS", "StaticTrackerStep", "TRACKER_INPUTS", "TRACKER_OUTPUTS"]
@@ -167,18 +168,6 @@ def votes(alive: torch.Tensor, tables: VoteTables) -> torch.Tensor:
     return upto - torch.cat([torch.zeros_like(upto[:, :, :1]), upto[:, :, :-1]], dim=2)
 
 
-def _peak(acc: torch.Tensor, excluded: torch.Tensor, angles: torch.Tensor, n_theta: int):
-    """:func:`torchrow.functional.hough.peak` over the pickable angles ``angles`` only."""
-    colarg = torch.argmax(acc, dim=2)  # first maximum: the smallest rho index
-    colmax = acc.gather(2, colarg.unsqueeze(2)).squeeze(2).to(torch.int64)
-    colmax = torch.where(excluded, torch.zeros_like(colmax), colmax)
-    best = colmax.max(dim=1, keepdim=True).values
-    key = colarg * n_theta + angles.view(1, -1)
-    key = torch.where(colmax != best, torch.full_like(key, torch.iinfo(torch.int64).max), key)
-    flat = key.min(dim=1).values
-    return flat % n_theta, flat // n_theta, best.squeeze(1)
-
-
 #: Names of the exported graph's outputs, in order (see :class:`StaticDetector`).
 GRAPH_OUTPUTS = ("sky", "bushy", "has_veg", "n_rows", "hough_theta", "hough_rho", "hough_weight", "hough_valid",
                  "out_theta", "out_rho", "out_weight", "out_valid", "vp", "has_vp", "fit_cx", "fit_cy",
@@ -204,88 +193,41 @@ class StaticDetector(nn.Module):
     params : Params, optional
     score_chunks : int
         The RANSAC hypotheses are scored in this many static chunks (bounds memory).
+    flow : str
+        How the line search skips finished work (:mod:`torchrow.functional._flow`):
+        ``"cond"`` (default; ONNX ``If`` per step and per vote chunk: early exit at run time),
+        ``"always"`` (no control flow in the graph), ``"sync"`` (eager only).
+    scatter_free : bool
+        Vote by prefix sums of constant permutations, re-voting at every step, instead of one
+        scatter-add vote updated by the erased bands (:class:`~torchrow.functional.hough.StaticVoter`).
     """
 
     def __init__(self, height: int = 240, width: int = 320, params: Params | None = None,
-                 score_chunks: int = 4) -> None:
+                 score_chunks: int = 4, flow: str = "cond", scatter_free: bool = False) -> None:
         super().__init__()
         self.params = params or Params()
         self.height, self.width = int(height), int(width)
         self.score_chunks = int(score_chunks)
-        t = vote_tables(self.height, self.width, self.params)
-        self.n_rho, self.d = t.n_rho, t.d
-        self.register_buffer("angles", t.angles, persistent=False)
-        self.register_buffer("order", t.order, persistent=False)
-        self.register_buffer("ends", t.ends, persistent=False)
-        self.register_buffer("run_empty", t.empty, persistent=False)
-        c, s = hough_trig(self.params.theta_step)
-        self.register_buffer("cos", torch.tensor(c), persistent=False)
-        self.register_buffer("sin", torch.tensor(s), persistent=False)
-        ys, xs = np.divmod(np.arange(self.height * self.width, dtype=np.int64), self.width)
-        self.register_buffer("xs", torch.from_numpy(xs.astype(np.float64)), persistent=False)
-        self.register_buffer("ys", torch.from_numpy(ys.astype(np.float64)), persistent=False)
+        self.flow = check_flow(flow)
+        self.voter = StaticVoter(self.height, self.width, self.params, flow, scatter_free)
         self.register_buffer("lut", torch.from_numpy(_linear_lut().copy()), persistent=False)
         self.register_buffer("u", torch.from_numpy(hypothesis_table(self.params.seed, self.params.ransac_trials).copy()),
                              persistent=False)
 
-    # -- sections 5-6 ---------------------------------------------------------------------
-    def find_lines(self, hin: torch.Tensor):
-        p = self.params
-        dev = hin.device
-        bsz = hin.shape[0]
-        s_max = p.n_rows
-        o_max = max(p.n_rows - 1, 1) * p.max_outliers
-        tables = VoteTables(self.angles, self.order, self.ends, self.run_empty, self.n_rho, self.d)
-        alive0 = hin.reshape(bsz, -1)
-        alive = alive0
-        i64 = dict(dtype=torch.int64, device=dev)
-        theta = torch.zeros((bsz, s_max), **i64)
-        rho = torch.zeros((bsz, s_max), **i64)
-        weight = torch.zeros((bsz, s_max), **i64)
-        held = torch.zeros(bsz, **i64)
-        out = torch.zeros((bsz, o_max, 3), **i64)
-        n_out = torch.zeros(bsz, **i64)
-        n = torch.full((bsz,), p.n_rows, **i64)
-        dropped = torch.zeros(bsz, **i64)
-        done = n < 2
-        vp = torch.zeros((bsz, 2), dtype=torch.float64, device=dev)
-        has_vp = torch.zeros(bsz, dtype=torch.bool, device=dev)
-        slots = torch.arange(s_max, device=dev).unsqueeze(0)
-        half_band = p.hough_band_px(self.width) / 2
-        for _ in range(max_steps(p)):  # static bound, no early exit (ALGORITHM.md)
-            valid = slots < held.unsqueeze(1)
-            fill = ~done & (held < n)
-            check = ~done & ~fill
-            excl = excluded_angles(theta, valid, p).index_select(1, self.angles)
-            th, r_idx, w = _peak(votes(alive, tables), excl, self.angles, p.n_theta)
-            got = fill & (w > 0)
-            n = torch.where(fill & (w == 0), held, n)
-            put = got.unsqueeze(1) & (slots == held.unsqueeze(1))
-            rho_new = r_idx - self.d
-            theta = torch.where(put, th.unsqueeze(1), theta)
-            rho = torch.where(put, rho_new.unsqueeze(1), rho)
-            weight = torch.where(put, w.unsqueeze(1), weight)
-            held = held + got.to(torch.int64)
-            # step 5.3: erase within hough_band/2 of the new line (spec's expression and order)
-            dist = ((self.xs.unsqueeze(0) * self.cos[th].unsqueeze(1) + self.ys.unsqueeze(0) * self.sin[th].unsqueeze(1))
-                    - rho_new.to(torch.float64).unsqueeze(1)).abs()
-            alive = alive & ~((dist <= half_band) & got.unsqueeze(1))
+    # one copy of each constant: the pixel coordinates and the shared trig tables are the voter's
+    cos = property(lambda self: self.voter.cos)
+    sin = property(lambda self: self.voter.sin)
+    xs = property(lambda self: self.voter.xs)
+    ys = property(lambda self: self.voter.ys)
 
-            no_vp, finish, drop, i, xy = outlier_check(theta, rho, weight, valid, check, p, (self.cos, self.sin))
-            vp = torch.where(finish.unsqueeze(1), xy, vp)
-            has_vp = has_vp | finish
-            theta, rho, weight, out, n_out = drop_outlier(theta, rho, weight, i, drop, out, n_out)
-            held = held - drop.to(torch.int64)
-            dropped = dropped + drop.to(torch.int64)
-            restart = drop & (dropped == p.max_outliers)
-            n = n - restart.to(torch.int64)
-            held = torch.where(restart, torch.zeros_like(held), held)
-            dropped = torch.where(restart, torch.zeros_like(dropped), dropped)
-            alive = torch.where(restart.unsqueeze(1), alive0, alive)
-            done = done | no_vp | finish | (restart & (n < 2))
-        valid = slots < held.unsqueeze(1)
-        out_valid = torch.arange(o_max, device=dev).unsqueeze(0) < n_out.unsqueeze(1)
-        return theta, rho, weight, valid, out, out_valid, n, vp, has_vp
+    # -- sections 5-6 ---------------------------------------------------------------------
+    def find_lines(self, hin: torch.Tensor) -> LineSearch:
+        """Sections 5-6: :func:`torchrow.functional.vanishing.find_lines` with this graph's
+        :class:`~torchrow.functional.hough.StaticVoter` and flow."""
+        # hin may be a dtype view (Canny works on uint8): a copy keeps the view's
+        # decomposition out of the torch.cond branches, which an exported program could not
+        # re-decompose
+        return find_lines(hin.clone(), self.params, self.voter, self.flow)
 
     # -- section 7 ------------------------------------------------------------------------
     def band_points(self, veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, band: torch.Tensor,
@@ -301,7 +243,7 @@ class StaticDetector(nn.Module):
         lin = torch.arange(hw, device=veg.device, dtype=torch.int64).view(1, 1, hw)
         n, n_keep, v_keep, key = fransac.subsample_plan(member, lin, p)
         big = torch.iinfo(torch.int64).max
-        pp = min(hw, max(p.ransac_max_points, p.ransac_subsample))
+        pp = min(hw, fransac.max_kept(p))  # 467 with the defaults: no row keeps more
         sel = torch.topk(key, pp, dim=2, largest=False, sorted=True).indices
         rank_ok = torch.arange(pp, device=veg.device) < n_keep.unsqueeze(2)
         chosen = sel.masked_fill(~rank_ok, big)  # sel is the raster index itself
@@ -362,13 +304,14 @@ class StaticDetector(nn.Module):
         veg = fveg.remove_bushy(raw, sky, p)
         has_veg = veg.flatten(1).any(dim=1)
         hin, bushy = fveg.hough_input(veg, sky, p)
-        theta, rho, weight, valid, out, out_valid, n, vp, has_vp = self.find_lines(hin)
+        ls = self.find_lines(hin)
+        n = ls.n_rows
         band = torch.where(bushy, torch.full_like(n, p.ransac_band_px(w, True)),
                            torch.full_like(n, p.ransac_band_px(w, False)))
-        present = valid & has_vp.unsqueeze(1)
-        cx, cy, sxx, syy, sxy, hyp, support = self.fit_rows(veg, theta, rho, present, vp, band)
-        return (sky, bushy, has_veg, n, theta, rho, weight, valid, out[..., 0], out[..., 1], out[..., 2],
-                out_valid, vp, has_vp, cx, cy, sxx, syy, sxy, hyp, support, present)
+        present = ls.valid & ls.has_vp.unsqueeze(1)
+        cx, cy, sxx, syy, sxy, hyp, support = self.fit_rows(veg, ls.theta, ls.rho, present, ls.vp, band)
+        return (sky, bushy, has_veg, n, ls.theta, ls.rho, ls.weight, ls.valid, ls.out_theta, ls.out_rho,
+                ls.out_weight, ls.out_valid, ls.vp, ls.has_vp, cx, cy, sxx, syy, sxy, hyp, support, present)
 
 
 def finish_rows(cx, cy, sxx, syy, sxy, hyp, support, present, height: int, width: int,
@@ -440,20 +383,20 @@ class StaticTrackerStep(nn.Module):
     score_chunks : int
         RANSAC scoring chunks (bounds memory).
     control_flow : bool
-        Skip unneeded branches with ``torch.cond`` (ONNX ``If``) instead of masking them.
+        Skip unneeded branches with ``torch.cond`` (ONNX ``If``) instead of masking them
+        (the Hough stage, the tracked fit, and the line search's finished steps).
+    scatter_free : bool
+        The detector's scatter-free vote (:class:`StaticDetector`).
     """
 
     def __init__(self, height: int, width: int, params: Params | None = None, score_chunks: int = 4,
-                 control_flow: bool = True) -> None:
+                 control_flow: bool = True, scatter_free: bool = False) -> None:
         super().__init__()
         self.control_flow = bool(control_flow)
-        self.det = StaticDetector(height, width, params, score_chunks)
+        self.det = StaticDetector(height, width, params, score_chunks, "cond" if self.control_flow else "always",
+                                  scatter_free)
         self.params = self.det.params
         self.height, self.width = self.det.height, self.det.width
-
-    def _find_lines(self, hin: torch.Tensor) -> LineSearch:
-        theta, rho, weight, valid, out, out_valid, n, vp, has_vp = self.det.find_lines(hin)
-        return LineSearch(theta, rho, weight, valid, out[..., 0], out[..., 1], out[..., 2], out_valid, n, vp, has_vp)
 
     def _fit_rows(self, veg, theta, rho, present, vp, band, track=None):
         cx, cy, sxx, syy, sxy, hyp, support = self.det.fit_rows(veg, theta, rho, present, vp, band, track)
@@ -495,7 +438,7 @@ class StaticTrackerStep(nn.Module):
             sky=sky, veg_color=torch.zeros((bsz, 3), dtype=torch.uint8, device=images.device), info0=info0,
             ready=ready | start, frames=frames, age=age, prev_valid=prev_valid, vp=vp, has_vp=has_vp, row_a=row_a,
             row_b=row_b, row_present=row_present)
-        stages = ftrack.Stages(find_lines=self._find_lines, fit_rows=self._fit_rows, trig_free=True,
+        stages = ftrack.Stages(find_lines=self.det.find_lines, fit_rows=self._fit_rows, trig_free=True,
                                branches="cond" if self.control_flow else "always")
         step, new = ftrack.advance(veg, k, bushy, active, state, p, stages)
         return tuple(getattr(step, f) for f in TRACKER_STEP) + tuple(getattr(new, f) for f in TRACKER_STATE)

@@ -34,6 +34,7 @@ from . import sky as fsky
 from . import vanishing as fvan
 from . import vegetation as fveg
 from ._checks import check_images
+from ._flow import branch
 
 __all__ = ["TrackerState", "TrackStep", "init_state", "merge_state", "segment", "finish_segment", "advance",
            "coverage", "Stages", "eager_stages",
@@ -267,17 +268,7 @@ class Stages:
     def run(self, pred: torch.Tensor, fn: Callable, skip: Callable, operands: tuple) -> tuple:
         """``fn(*operands)`` if ``pred`` (bool scalar tensor) else ``skip(*operands)``, per
         :attr:`branches`; both return tuples of tensors of the same shapes and dtypes."""
-        if self.branches not in ("sync", "cond", "always"):
-            raise ValueError(f"branches must be 'sync', 'cond' or 'always', got {self.branches!r}")
-        if self.branches == "always":
-            return fn(*operands)
-        if self.branches == "cond" and torch.compiler.is_exporting():
-            def dense(f):  # torch.cond wants dense outputs of matching strides
-                return lambda *a: tuple(t.contiguous() for t in f(*a))
-
-            return tuple(torch.cond(pred, dense(fn), dense(skip), operands))
-        # "sync", or "cond" run eagerly: the same choice, without compiling the branches
-        return fn(*operands) if bool(pred) else skip(*operands)
+        return branch(self.branches, pred, fn, skip, operands)
 
 
 def eager_stages(params: Params) -> Stages:
@@ -328,8 +319,6 @@ def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: tor
     def rows_of(fit, present):
         return fransac.validate_rows(*fit, present, h, hough_band, p, trig_free=st.trig_free)
 
-    ls_names = tuple(f.name for f in dataclasses.fields(fvan.LineSearch))
-
     def no_fit(*_):
         z = torch.zeros((bsz, s), dtype=torch.float64, device=dev)
         return (z, z.clone(), z.clone(), torch.ones_like(z), torch.full((bsz, s), -1, **i64),
@@ -358,26 +347,28 @@ def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: tor
     band = torch.where(bushy, torch.full((bsz,), p.ransac_band_px(w, True), **i64),
                        torch.full((bsz,), p.ransac_band_px(w, False), **i64))
 
-    def hough(hin, veg_h, use_h, band):
-        ls = st.find_lines(hin)
-        present = ls.valid & ls.has_vp.unsqueeze(1) & use_h.unsqueeze(1)
-        return (tuple(getattr(ls, f) for f in ls_names)
-                + tuple(st.fit_rows(veg_h, ls.theta, ls.rho, present, ls.vp, band)))
-
-    def no_hough(*_):
+    def no_lines():
         z = torch.zeros((bsz, s), **i64)
         zo = torch.zeros((bsz, o), **i64)
         b8 = dict(dtype=torch.bool, device=dev)
-        ls = (z, z.clone(), z.clone(), torch.zeros((bsz, s), **b8), zo, zo.clone(), zo.clone(), torch.zeros((bsz, o), **b8),
-              torch.zeros(bsz, **i64), torch.zeros((bsz, 2), dtype=torch.float64, device=dev), torch.zeros(bsz, **b8))
-        return ls + no_fit()
+        return fvan.LineSearch(z, z.clone(), z.clone(), torch.zeros((bsz, s), **b8), zo, zo.clone(), zo.clone(),
+                               torch.zeros((bsz, o), **b8), torch.zeros(bsz, **i64),
+                               torch.zeros((bsz, 2), dtype=torch.float64, device=dev), torch.zeros(bsz, **b8))
 
-    # hin is a dtype view (Canny works on uint8): handing torch.cond a copy keeps the view's
-    # decomposition out of the branch, which an exported program could not re-decompose
-    out = st.run(use_h.any(), hough, no_hough, (hin.clone(), veg_h, use_h, band))
-    ls = fvan.LineSearch(*out[:len(ls_names)])
+    # The line search runs outside any branch: where no sequence needs it, its input is empty
+    # and it finishes in two steps (an exported search skips the rest itself; eagerly it is
+    # skipped at once). Only the fit, the cost, sits in a branch.
+    if st.branches == "sync" and not bool(use_h.any()):
+        ls = no_lines()
+    else:
+        ls = st.find_lines(hin)
     present_h = ls.valid & ls.has_vp.unsqueeze(1) & use_h.unsqueeze(1)
-    rows_h = rows_of(out[len(ls_names):], present_h)
+
+    def hough_fit(veg_h, theta, rho, present_h, vp, band):
+        return st.fit_rows(veg_h, theta, rho, present_h, vp, band)
+
+    fit_h = st.run(use_h.any(), hough_fit, no_fit, (veg_h, ls.theta, ls.rho, present_h, ls.vp, band))
+    rows_h = rows_of(fit_h, present_h)
     all_valid_h = (rows_h.valid | ~rows_h.present).all(dim=1)
     status_h = torch.where(all_valid_h, torch.full((bsz,), STATUS_OK, **i64), torch.full((bsz,), STATUS_INVALID, **i64))
     status_h = torch.where(ls.has_vp, status_h, torch.full_like(status_h, STATUS_NO_VP))

@@ -11,10 +11,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+from torch import nn
 
 from ..params import Params
 from . import _exact
-from .hough import HoughState, excluded_angles, peak, trig
+from ._flow import branch, check_flow, keep
+from .hough import EagerVoter, excluded_angles, peak, trig
 
 __all__ = ["VPSolution", "vanishing_point", "LineSearch", "find_lines", "max_steps"]
 
@@ -134,71 +136,82 @@ def drop_outlier(theta, rho, weight, i, drop, out, n_out):
             n_out + drop.to(torch.int64))
 
 
-def find_lines(hough_in: torch.Tensor, params: Params) -> LineSearch:
+def find_lines(hough_in: torch.Tensor, params: Params, voter=None, flow: str = "sync") -> LineSearch:
     """N-maximum extraction with outlier rejection and N-1 restarts, for every image at once.
+
+    The one state machine of sections 5-6, for the eager detector and tracker and for the
+    exportable graphs: ``voter`` says how votes are kept (:class:`~.hough.EagerVoter`, the
+    default, or :class:`~.hough.StaticVoter`), ``flow`` how finished work is skipped
+    (:mod:`._flow`): ``"sync"`` stops once every image is finished (host sync), ``"cond"``
+    puts each of the :func:`max_steps` steps in a ``torch.cond`` on "some image is not
+    finished" (an exported graph keeps the static bound and exits early at run time),
+    ``"always"`` runs every step with masks.
 
     Parameters
     ----------
     hough_in : bool (B, H, W) Hough input (section 4).
 
-    Memory: the accumulator and a copy of it, int32 ``(B, 2D+1, n_theta)`` each (about
-    37 MB each at B = 64, 320x240), plus the voting temporaries of :mod:`.hough`.
+    Memory: the voter's (eager: the accumulator and a copy of it, int32 ``(B, n_theta, 2D+1)``
+    each, about 37 MB each at B = 64, 320x240, plus the voting temporaries of :mod:`.hough`).
     """
+    check_flow(flow)
+    voter = voter if voter is not None else EagerVoter(params)
     dev = hough_in.device
     bsz = hough_in.shape[0]
     s_max = params.n_rows
     o_max = max(params.n_rows - 1, 1) * params.max_outliers
-    state = HoughState.start(hough_in, params)
+    vstate, init = voter.start(hough_in)
+    tables = (voter.cos, voter.sin) if isinstance(voter, nn.Module) else None
     i64 = dict(dtype=torch.int64, device=dev)
-    theta = torch.zeros((bsz, s_max), **i64)
-    rho = torch.zeros((bsz, s_max), **i64)
-    weight = torch.zeros((bsz, s_max), **i64)
-    held = torch.zeros(bsz, **i64)  # number of held lines
-    out = torch.zeros((bsz, o_max, 3), **i64)
-    n_out = torch.zeros(bsz, **i64)
     n = torch.full((bsz,), params.n_rows, **i64)
-    dropped = torch.zeros(bsz, **i64)
-    done = n < 2
-    vp = torch.zeros((bsz, 2), dtype=torch.float64, device=dev)
-    has_vp = torch.zeros(bsz, dtype=torch.bool, device=dev)
+    carry = (torch.zeros((bsz, s_max), **i64), torch.zeros((bsz, s_max), **i64), torch.zeros((bsz, s_max), **i64),
+             torch.zeros(bsz, **i64), torch.zeros((bsz, o_max, 3), **i64), torch.zeros(bsz, **i64), n,
+             torch.zeros(bsz, **i64), n < 2, torch.zeros((bsz, 2), dtype=torch.float64, device=dev),
+             torch.zeros(bsz, dtype=torch.bool, device=dev)) + tuple(vstate)
     slots = torch.arange(s_max, device=dev).unsqueeze(0)
 
-    for _ in range(max_steps(params)):
-        if bool(done.all()):  # early exit; the bound above is what an exported graph keeps
-            break
+    def step(theta, rho, weight, held, out, n_out, n, dropped, done, vp, has_vp, *vs):
         valid = slots < held.unsqueeze(1)
         fill = ~done & (held < n)
         check = ~done & ~fill
 
-        # --- fill: extract one line (skipped when no image needs one; no result changes) ---
-        if bool(fill.any()):
-            th, r_idx, w = peak(state.acc, excluded_angles(theta, valid, params))
+        # --- fill: extract one line (eagerly skipped when no image needs one) ----------------
+        if flow != "sync" or bool(fill.any()):
+            th, r_idx, w = peak(voter.votes(vs), excluded_angles(theta, valid, params), voter.angles)
             got = fill & (w > 0)
             n = torch.where(fill & (w == 0), held, n)  # extraction ran dry: N becomes the count
             put = got.unsqueeze(1) & (slots == held.unsqueeze(1))
-            rho_new = r_idx - state.d
+            rho_new = r_idx - voter.d
             theta = torch.where(put, th.unsqueeze(1), theta)
             rho = torch.where(put, rho_new.unsqueeze(1), rho)
             weight = torch.where(put, w.unsqueeze(1), weight)
             held = held + got.to(torch.int64)
-            if bool(got.any()):
-                state.erase(th, rho_new, got, params)
+            vs = voter.erase(vs, th, rho_new, got)
 
         # --- check: vanishing point and outlier --------------------------------------------
-        no_vp, finish, drop, i, xy = outlier_check(theta, rho, weight, valid, check, params)
+        no_vp, finish, drop, i, xy = outlier_check(theta, rho, weight, valid, check, params, tables)
         vp = torch.where(finish.unsqueeze(1), xy, vp)
         has_vp = has_vp | finish
         theta, rho, weight, out, n_out = drop_outlier(theta, rho, weight, i, drop, out, n_out)
         held = held - drop.to(torch.int64)
         dropped = dropped + drop.to(torch.int64)
         restart = drop & (dropped == params.max_outliers)
-        if bool(restart.any()):
-            n = n - restart.to(torch.int64)
-            held = torch.where(restart, torch.zeros_like(held), held)
-            dropped = torch.where(restart, torch.zeros_like(dropped), dropped)
-            state.reset(restart)
+        n = n - restart.to(torch.int64)
+        held = torch.where(restart, torch.zeros_like(held), held)
+        dropped = torch.where(restart, torch.zeros_like(dropped), dropped)
+        vs = voter.reset(vs, init, restart)
         done = done | no_vp | finish | (restart & (n < 2))
+        return (theta, rho, weight, held, out, n_out, n, dropped, done, vp, has_vp) + tuple(vs)
 
+    for _ in range(max_steps(params)):
+        if flow == "sync":
+            if bool(carry[8].all()):  # early exit; the bound is what an exported graph keeps
+                break
+            carry = step(*carry)
+        else:
+            carry = branch(flow, ~carry[8].all(), step, keep, carry)
+
+    theta, rho, weight, held, out, n_out, n, _, _, vp, has_vp = carry[:11]
     valid = slots < held.unsqueeze(1)
     out_valid = torch.arange(o_max, device=dev).unsqueeze(0) < n_out.unsqueeze(1)
     return LineSearch(theta, rho, weight, valid, out[..., 0], out[..., 1], out[..., 2], out_valid,
