@@ -1,8 +1,8 @@
 """Local vs Ray engine: overhead, 1 vs 2 actors, equality on all CRBD images; the per-core
 time split used by docs/fleet_sizing.md (decoding, detection, record output).
 
-1. All 281 CRBD images through ``torchrow.runner.run`` (local engine, tensor path, batch 64)
-   and through ``torchrow.distributed.run`` on a local Ray cluster with 1 and 2 actors of one
+1. All 281 CRBD images through ``torchrow.engines.runner.run`` (local engine, tensor path, batch 64)
+   and through ``torchrow.engines.distributed.run`` on a local Ray cluster with 1 and 2 actors of one
    CPU each (cluster start timed apart; each Ray run includes its actors' start). Every
    record must equal the local engine's (the script exits 1 otherwise).
 2. Per-core split (one thread): JPEG decode + resize per image, detection per image
@@ -29,9 +29,9 @@ import torch
 from _common import append_results, data_root  # type: ignore[import-not-found]
 
 from torchrow import Params
-from torchrow.datasets import CRBD
-from torchrow.io import load_image
-from torchrow.runner import run
+from torchrow.core.io import load_image
+from torchrow.engines.runner import run
+from torchrow.evaluation.datasets import CRBD
 
 
 def _records(stream) -> list[str]:
@@ -61,7 +61,7 @@ def main() -> int:
 
     import ray
 
-    from torchrow import distributed
+    from torchrow.engines import distributed
 
     t0 = time.perf_counter()
     ray.init(num_cpus=os.cpu_count(), include_dashboard=False, log_to_driver=False)
@@ -83,7 +83,7 @@ def main() -> int:
     t0 = time.perf_counter()
     rgbs = [load_image(p, params.image_width) for p in paths]
     t_dec = (time.perf_counter() - t0) / n
-    from torchrow.detector import CropRowDetector
+    from torchrow.engines.detector import CropRowDetector
 
     det = CropRowDetector(params, workers=1)
     import numpy as np
@@ -94,7 +94,7 @@ def main() -> int:
         batch = torch.from_numpy(np.stack(rgbs[s:s + 8])).permute(0, 3, 1, 2).contiguous()
         results += det(batch).results([p.name for p in paths[s:s + 8]])
     t_det = (time.perf_counter() - t0) / n
-    from torchrow.sink import RecordSink
+    from torchrow.apps.sink import RecordSink
 
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
@@ -115,8 +115,8 @@ def main() -> int:
                 for f in frames[25 * k:25 * (k + 1)]:
                     os.symlink(f, d / f.name)
                 srcs.append(str(d))
-            from torchrow.runner import track
-            from torchrow.video import open_source
+            from torchrow.apps.video import open_source
+            from torchrow.engines.runner import track
 
             torch.set_num_threads(os.cpu_count() or 1)
             t0 = time.perf_counter()

@@ -24,10 +24,10 @@ import cv2
 import numpy as np
 import torch
 
-from torchrow.datasets import CRBD
-from torchrow.detector import CropRowDetector
-from torchrow.metrics import crda, crda_official
-from torchrow.params import Params
+from torchrow.core.params import Params
+from torchrow.engines.detector import CropRowDetector
+from torchrow.evaluation.datasets import CRBD
+from torchrow.evaluation.metrics import crda, crda_official
 from torchrow.reference import detect
 
 

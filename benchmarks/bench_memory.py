@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from torchrow import Params
-from torchrow.synthetic import FieldSpec, render
+from torchrow.evaluation.synthetic import FieldSpec, render
 
 
 def inputs(d: Path) -> list[tuple[str, Path, list[str]]]:

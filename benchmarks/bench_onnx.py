@@ -1,7 +1,7 @@
 """Exported ONNX detector in onnxruntime vs the torch tensor path, side by side in one run.
 
 Exports the image-mode detector (default parameters, 320x240, batch B) unless ``--model``
-is given, then times onnxruntime and :class:`torchrow.detector.CropRowDetector` on the same
+is given, then times onnxruntime and :class:`torchrow.engines.detector.CropRowDetector` on the same
 CRBD images at batch B and checks that their records agree (discrete outputs equal, rows
 within 1e-4 px). Appends model size, export time, images/s and the parity count to
 RESULTS.md.
@@ -21,9 +21,9 @@ import torch
 from _common import append_results, data_root  # type: ignore[import-not-found]
 
 from torchrow import Params
-from torchrow.datasets import CRBD
-from torchrow.detector import CropRowDetector
-from torchrow.export import OnnxDetector, model_info, to_onnx
+from torchrow.engines.detector import CropRowDetector
+from torchrow.engines.export import OnnxDetector, model_info, to_onnx
+from torchrow.evaluation.datasets import CRBD
 
 
 def to_batch(imgs: list[np.ndarray]) -> torch.Tensor:

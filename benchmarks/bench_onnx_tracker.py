@@ -2,8 +2,8 @@
 
 Exports the tracker step (default parameters, the Caterra working size 500x281, batch 1)
 unless ``--model`` is given, then steps :class:`torchrow.Tracker` and
-:class:`torchrow.export.OnnxTracker` through the same Caterra frames, compares every field of
-every step and state (:func:`torchrow.export.step_differences`: discrete fields equal,
+:class:`torchrow.engines.export.OnnxTracker` through the same Caterra frames, compares every field of
+every step and state (:func:`torchrow.engines.export.step_differences`: discrete fields equal,
 floats within 1e-9) and times both. Appends model size, export time, frames/s and the parity
 count to RESULTS.md.
 
@@ -23,8 +23,8 @@ from _common import append_results, data_root  # type: ignore[import-not-found]
 
 import torchrow
 from torchrow import Params
-from torchrow.export import OnnxTracker, model_info, step_differences, to_onnx
-from torchrow.io import load_image
+from torchrow.core.io import load_image
+from torchrow.engines.export import OnnxTracker, model_info, step_differences, to_onnx
 
 
 def main() -> None:

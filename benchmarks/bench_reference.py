@@ -20,8 +20,8 @@ import numpy as np
 from _common import append_results, data_root  # type: ignore[import-not-found]
 
 from torchrow import ImageResult, Params, Row
-from torchrow.datasets import CRBD
-from torchrow.metrics import crda_official, crda_thesis
+from torchrow.evaluation.datasets import CRBD
+from torchrow.evaluation.metrics import crda_official, crda_thesis
 from torchrow.reference import detect
 
 

@@ -23,10 +23,10 @@ import torch
 from _common import append_results, data_root  # type: ignore[import-not-found]
 
 from torchrow import Params
-from torchrow.datasets import CRBD
-from torchrow.detector import CropRowDetector
+from torchrow.engines.detector import CropRowDetector
+from torchrow.evaluation.datasets import CRBD
+from torchrow.evaluation.synthetic import FieldSpec, render
 from torchrow.reference import detect
-from torchrow.synthetic import FieldSpec, render
 
 
 def to_batch(imgs: list[np.ndarray]) -> torch.Tensor:
@@ -74,8 +74,8 @@ def peak_memory(data: Path, bs: int) -> float:
 import numpy as np, torch
 def hwm():
     return int(open('/proc/self/status').read().split('VmHWM:')[1].split()[0])
-from torchrow.datasets import CRBD
-from torchrow.detector import CropRowDetector
+from torchrow.evaluation.datasets import CRBD
+from torchrow.engines.detector import CropRowDetector
 ds = CRBD({str(data)!r}); imgs = [ds.image(i % len(ds)) for i in range({bs})]
 x = torch.from_numpy(np.stack(imgs)).permute(0, 3, 1, 2).contiguous()
 det = CropRowDetector(); det(x[:1])

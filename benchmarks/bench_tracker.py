@@ -22,7 +22,7 @@ from _common import append_results, data_root  # type: ignore[import-not-found]
 
 import torchrow
 from torchrow import Params
-from torchrow.io import load_image
+from torchrow.core.io import load_image
 from torchrow.reference import Tracker as RefTracker
 
 

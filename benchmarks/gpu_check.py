@@ -28,10 +28,10 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import append_results, data_root  # noqa: E402
 
-from torchrow.datasets import CRBD  # noqa: E402
-from torchrow.detector import CropRowDetector  # noqa: E402
-from torchrow.io import load_image  # noqa: E402
-from torchrow.params import Params  # noqa: E402
+from torchrow.core.io import load_image  # noqa: E402
+from torchrow.core.params import Params  # noqa: E402
+from torchrow.engines.detector import CropRowDetector  # noqa: E402
+from torchrow.evaluation.datasets import CRBD  # noqa: E402
 
 TOL = 1e-6
 

@@ -19,7 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 import torchrow  # noqa: E402
-from torchrow.synthetic import FieldSpec, sequence  # noqa: E402
+from torchrow.evaluation.synthetic import FieldSpec, sequence  # noqa: E402
 
 
 def main() -> None:

@@ -27,8 +27,8 @@ import numpy as np
 import torch
 
 import torchrow
-from torchrow.datasets import CRBD
-from torchrow.notebook_helpers import find_data_root, show_grid, stage_pictures, result_summary
+from torchrow.evaluation.datasets import CRBD
+from torchrow.apps.notebook_helpers import find_data_root, show_grid, stage_pictures, result_summary
 
 warnings.filterwarnings("ignore", message="IProgress not found")   # tqdm in a kernel without widgets
 plt.rcParams.update({"figure.dpi": 70, "savefig.dpi": 70, "font.size": 8})   # small outputs
@@ -122,13 +122,13 @@ plt.show()"""),
 ## 3. Learning the vegetation colour
 
 Target: a band around every ground-truth crop row (30% of the row spacing) below the ground
-truth's first row `v0`. Loss (`torchrow.calibrate.band_loss`): minus the share of the soft mask
+truth's first row `v0`. Loss (`torchrow.nn.calibrate.band_loss`): minus the share of the soft mask
 that falls on the bands (precision), plus a penalty when the mask covers less than 2% of the
 field (so it cannot shrink to a few perfect pixels). Colour (RGB through a sigmoid) and
 temperature (log) are fitted with Adam on 8 training images, starting from the median of the
 colours that the clustering picks on them."""),
     new_code_cell("""\
-from torchrow.calibrate import compare_colors, fit_vegetation_color, load_training_set
+from torchrow.nn.calibrate import compare_colors, fit_vegetation_color, load_training_set
 
 train = crbd.indices("train")[::7][:8]                      # 8 of the 56 training images
 data = load_training_set(crbd, train)
@@ -182,7 +182,7 @@ rows, 9 adjacent ground-truth rows, sigma 0.1; also sigma 0.3) and the thesis' v
 with the ground truth drawn over the detection. About a minute on 2 CPU cores."""),
     new_code_cell(SETUP),
     new_code_cell("""\
-from torchrow.evaluate import evaluate
+from torchrow.apps.evaluate import evaluate
 
 report = evaluate(crbd, impl="tensor", params=params, progress=False)
 print(report.format_summary())
@@ -215,9 +215,9 @@ fig.tight_layout(); plt.show()"""),
 The six lowest official CRDA scores, with the ground-truth rows (white) over the detection
 (valid rows cyan, invalid red, vanishing point magenta, horizon yellow)."""),
     new_code_cell("""\
-from torchrow.annotate import draw_result
-from torchrow.notebook_helpers import gt_polylines
-from torchrow.results import ImageResult
+from torchrow.apps.annotate import draw_result
+from torchrow.apps.notebook_helpers import gt_polylines
+from torchrow.core.results import ImageResult
 
 worst = np.argsort(crda01, kind="stable")[:6]
 pics, titles = [], []

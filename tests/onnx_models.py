@@ -15,7 +15,7 @@ from pathlib import Path
 import torch
 
 from torchrow import Params
-from torchrow.export import to_onnx
+from torchrow.engines.export import to_onnx
 
 #: Op types the graph may contain: all supported by TensorRT's ONNX parser (CumSum, TopK with
 #: k <= 3840, GatherElements, ScatterND without reduction, BitShift/Bitwise ops on ints).
@@ -36,7 +36,7 @@ def _cache_dir() -> Path:
 def _source_key(*key) -> str:
     root = Path(__file__).resolve().parents[1] / "torchrow"
     h = hashlib.sha256()
-    for p in sorted([root / "export.py", root / "params.py", root / "shared.py",
+    for p in sorted([root / "engines" / "export.py", root / "core" / "params.py", root / "core" / "tables.py",
                      *(root / "functional").glob("*.py")]):
         h.update(p.read_bytes())
     h.update(repr((key, torch.__version__)).encode())

@@ -1,4 +1,4 @@
-"""The on-disk LAB table (torchrow.shared.lab_table): verified at load, rebuilt on damage with
+"""The on-disk LAB table (torchrow.core.tables.lab_table): verified at load, rebuilt on damage with
 one notice, never leaving temporary files, usable without a writable folder (issue 11, 5-7).
 
 Most tests shrink the table (``_N_COLORS``) and replace the kornia build by a fast fill: the
@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from torchrow import shared
+from torchrow.core import tables as shared
 
 SMALL = 1 << 12
 
@@ -130,7 +130,7 @@ def test_failed_write_leaves_no_temporary_file(tmp_path: Path) -> None:
     code = textwrap.dedent(f"""
         import resource, warnings
         import numpy as np
-        from torchrow import shared
+        from torchrow.core import tables as shared
         shared._N_COLORS = {SMALL}
         shared._build_lab_table = lambda out: out.fill(1.5)
         resource.setrlimit(resource.RLIMIT_FSIZE, (50_000, 50_000))  # the table is 98 kB

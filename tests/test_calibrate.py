@@ -1,4 +1,4 @@
-"""Colour calibration by gradient descent (torchrow.calibrate): targets, loss, fit, comparison."""
+"""Colour calibration by gradient descent (torchrow.nn.calibrate): targets, loss, fit, comparison."""
 
 from __future__ import annotations
 
@@ -7,9 +7,16 @@ import pytest
 import torch
 
 from torchrow import Params
-from torchrow.calibrate import band_loss, compare_colors, fit_vegetation_color, load_training_set, mask_precision, row_band_target
-from torchrow.datasets import GroundTruth
-from torchrow.synthetic import FieldSpec, render
+from torchrow.evaluation.datasets import GroundTruth
+from torchrow.evaluation.synthetic import FieldSpec, render
+from torchrow.nn.calibrate import (
+    band_loss,
+    compare_colors,
+    fit_vegetation_color,
+    load_training_set,
+    mask_precision,
+    row_band_target,
+)
 
 
 def synthetic_set(seeds=(1, 2)):
@@ -94,7 +101,7 @@ def test_fit_rejects_bad_input():
 
 @pytest.mark.data
 def test_compare_colors_on_crbd(crbd_dir):
-    from torchrow.datasets import CRBD
+    from torchrow.evaluation.datasets import CRBD
 
     crbd = CRBD(crbd_dir)
     idx = crbd.indices("test")[:3]

@@ -11,8 +11,8 @@ import cv2
 import numpy as np
 import pytest
 
-from torchrow.cli import main
-from torchrow.synthetic import FieldSpec, render
+from torchrow.apps.cli import main
+from torchrow.evaluation.synthetic import FieldSpec, render
 
 RECORD_KEYS = {"name", "status", "sky", "veg_color", "k", "bushy", "n_rows", "hough", "outliers", "vp",
                "rows", "width", "height"}

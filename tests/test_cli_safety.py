@@ -12,8 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
-from torchrow.cli import _annotation_names, _record_names, main
-from torchrow.synthetic import FieldSpec, render
+from torchrow.apps.cli import _annotation_names, _record_names, main
+from torchrow.evaluation.synthetic import FieldSpec, render
 
 SMALL = ["--param", "video_width=160"]
 

@@ -11,7 +11,7 @@ from contracts import check_batched_stage
 
 import torchrow.functional as F
 from torchrow import CropRowDetector, Params
-from torchrow.synthetic import FieldSpec, render
+from torchrow.evaluation.synthetic import FieldSpec, render
 
 P = Params()
 

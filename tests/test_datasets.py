@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from torchrow.datasets import CRBD, CRBDItem, GroundTruth, resolve_data_root
+from torchrow.evaluation.datasets import CRBD, CRBDItem, GroundTruth, resolve_data_root
 
 
 # --- a tiny fake CRBD -------------------------------------------------------------------------

@@ -15,8 +15,8 @@ pytest.importorskip("ray.data")
 
 from conftest import data_root  # noqa: E402
 
-from torchrow.cli import main  # noqa: E402
-from torchrow.synthetic import FieldSpec, render, sequence  # noqa: E402
+from torchrow.apps.cli import main  # noqa: E402
+from torchrow.evaluation.synthetic import FieldSpec, render, sequence  # noqa: E402
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -59,7 +59,7 @@ def test_detect_ray_equals_local(images: Path, tmp_path: Path) -> None:
 
 
 def test_read_binary_items_on_ray_equal_the_cli(images: Path, tmp_path: Path) -> None:
-    from torchrow import distributed
+    from torchrow.engines import distributed
 
     local = tmp_path / "local.jsonl"
     assert main(["detect", str(images), "--out", str(local), "-q"]) == 0
@@ -71,7 +71,7 @@ def test_read_binary_items_on_ray_equal_the_cli(images: Path, tmp_path: Path) ->
 
 def test_detect_ray_resume_and_parquet(images: Path, tmp_path: Path) -> None:
     pytest.importorskip("pyarrow")
-    from torchrow.sink import read_records
+    from torchrow.apps.sink import read_records
 
     local = tmp_path / "local.jsonl"
     assert main(["detect", str(images), "--out", str(local), "-q"]) == 0

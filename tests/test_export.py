@@ -1,4 +1,4 @@
-"""ONNX export (torchrow.export): op list, onnxruntime parity with the tensor path, CLI.
+"""ONNX export (torchrow.engines.export): op list, onnxruntime parity with the tensor path, CLI.
 
 The exported graph takes minutes to build on a small CPU, so the model of these tests is
 exported once and cached on disk (``TORCHROW_CACHE`` or ``~/.cache/torchrow``), keyed by
@@ -25,10 +25,10 @@ from onnx_models import ALLOWED_OPS  # noqa: E402
 from onnx_models import exported as _exported
 
 from torchrow import Params  # noqa: E402
-from torchrow.cli import main  # noqa: E402
-from torchrow.detector import CropRowDetector  # noqa: E402
-from torchrow.export import FORBIDDEN_OPS, OnnxDetector, model_info, op_counts, to_onnx  # noqa: E402
-from torchrow.synthetic import FieldSpec, sequence  # noqa: E402
+from torchrow.apps.cli import main  # noqa: E402
+from torchrow.engines.detector import CropRowDetector  # noqa: E402
+from torchrow.engines.export import FORBIDDEN_OPS, OnnxDetector, model_info, op_counts, to_onnx  # noqa: E402
+from torchrow.evaluation.synthetic import FieldSpec, sequence  # noqa: E402
 
 SMALL = Params(n_rows=3, max_outliers=2)
 BATCH = 2
@@ -137,7 +137,7 @@ def test_parity_synthetic(runner: OnnxDetector):
 
 @pytest.mark.data
 def test_parity_crbd_sample(runner: OnnxDetector, crbd_dir: Path):
-    from torchrow.datasets import CRBD
+    from torchrow.evaluation.datasets import CRBD
 
     ds = CRBD(crbd_dir)
     idx = [0, 57, 130, 200, 280]  # odd count: the last batch is padded
@@ -227,7 +227,7 @@ def test_cli_onnx_errors(model_path: Path, tmp_path: Path, capsys):
 @pytest.mark.heavy
 @pytest.mark.data
 def test_parity_all_crbd_default_params(crbd_dir: Path, tmp_path_factory):
-    from torchrow.datasets import CRBD
+    from torchrow.evaluation.datasets import CRBD
 
     path = _exported(Params(), 4, tmp_path_factory.mktemp("onnx-full"))
     det = OnnxDetector(path)
@@ -244,7 +244,7 @@ def test_lab_box_decisions_exhaustive():
     """All 2**24 colours through the graph's LAB in onnxruntime: no box decision of any
     vegetation colour can differ from the shared table's, for image mode's k and every
     adaptive k of video mode (about 30 s)."""
-    from torchrow.export import check_lab
+    from torchrow.engines.export import check_lab
 
     p = Params()
     res = check_lab(k=[p.veg_tol, *range(p.video_k_min, p.video_k_max + 1)])
@@ -259,7 +259,7 @@ def test_python_float_constants_stay_float64():
 
     import onnxruntime as ort
 
-    from torchrow.export import float64_python_constants
+    from torchrow.engines.export import float64_python_constants
 
     class M(torch.nn.Module):
         def forward(self, x):

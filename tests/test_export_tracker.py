@@ -1,7 +1,7 @@
 """ONNX export of the tracker step: one graph, frame + state -> rows + new state.
 
 The exported graph (:class:`torchrow.functional.static.StaticTrackerStep`) runs in
-onnxruntime through :class:`torchrow.export.OnnxTracker` and is compared, frame by frame and
+onnxruntime through :class:`torchrow.engines.export.OnnxTracker` and is compared, frame by frame and
 field by field, with the eager :class:`torchrow.Tracker`: discrete outputs identical, rows,
 vanishing points and confidences within 1e-9 (the issue asks for 1e-4 px). A small working
 size (160 px wide) and ``n_rows=3, max_outliers=2`` keep the export near a minute; the
@@ -24,12 +24,12 @@ from onnx_models import ALLOWED_OPS, exported  # noqa: E402
 
 import torchrow  # noqa: E402
 from torchrow import Params  # noqa: E402
-from torchrow.cli import main  # noqa: E402
-from torchrow.export import OnnxDetector, OnnxTracker, model_info, op_counts, step_differences, to_onnx  # noqa: E402
+from torchrow.apps.cli import main  # noqa: E402
+from torchrow.core.io import resize_to_width  # noqa: E402
+from torchrow.engines.export import OnnxDetector, OnnxTracker, model_info, op_counts, step_differences, to_onnx  # noqa: E402
+from torchrow.evaluation.synthetic import FieldSpec, sequence  # noqa: E402
 from torchrow.functional.static import TRACKER_INPUTS, TRACKER_OUTPUTS  # noqa: E402
 from torchrow.functional.tracker import TrackerState  # noqa: E402
-from torchrow.io import resize_to_width  # noqa: E402
-from torchrow.synthetic import FieldSpec, sequence  # noqa: E402
 
 SMALL = Params(n_rows=3, max_outliers=2, video_width=160)
 BATCH = 2
@@ -143,7 +143,7 @@ def test_late_start_inactive_frames_and_empty_frames(onnx_tracker: OnnxTracker):
 
 def test_caterra_frames_equal_the_eager_tracker(onnx_tracker: OnnxTracker, data_dir: Path):
     """30 frames of the rover video, two sequences started 20 frames apart."""
-    from torchrow.io import load_image
+    from torchrow.core.io import load_image
 
     folder = data_dir / "caterra_video"
     if not folder.is_dir():

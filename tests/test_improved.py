@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 import torch
 
-from torchrow.cli import main
-from torchrow.detector import CropRowDetector
+from torchrow.apps.cli import main
+from torchrow.core.params import Params
+from torchrow.core.results import ImageResult, Row
+from torchrow.engines.detector import CropRowDetector
+from torchrow.evaluation.metrics import crda_official, rows_to_U
 from torchrow.functional import lattice as flat
-from torchrow.metrics import crda_official, rows_to_U
-from torchrow.params import Params
 from torchrow.reference import detect
 from torchrow.reference import lattice as rlat
-from torchrow.results import ImageResult, Row
 
 IMPROVED = Params(mode="improved")
 
@@ -193,7 +193,7 @@ def test_tensor_stages_equal_reference_stages() -> None:
 
 @pytest.fixture(scope="module")
 def crbd_subset(crbd_dir):
-    from torchrow.datasets import CRBD
+    from torchrow.evaluation.datasets import CRBD
 
     crbd = CRBD(crbd_dir)
     idx = [4, 133, 213, 274]  # no vegetation colour match, wrong VPs, a sparse field

@@ -20,9 +20,9 @@ import torch
 import torchrow
 from torchrow import CropRowDetector, Params, Tracker
 from torchrow import reference as ref
-from torchrow.io import ImageError, check_working_size, load_image
-from torchrow.runner import run
-from torchrow.synthetic import FieldSpec, render
+from torchrow.core.io import ImageError, check_working_size, load_image
+from torchrow.engines.runner import run
+from torchrow.evaluation.synthetic import FieldSpec, render
 
 GIB = 1 << 30
 
@@ -99,7 +99,7 @@ def test_working_size_bound_same_rule_in_both_paths() -> None:
 def test_decode_bound_refuses_huge_files_before_decoding(tmp_path: Path, monkeypatch) -> None:
     big = tmp_path / "big.png"
     cv2.imwrite(str(big), np.zeros((600, 500, 3), np.uint8))
-    monkeypatch.setattr(torchrow.io, "MAX_DECODE_PIXELS", 500 * 599)
+    monkeypatch.setattr(torchrow.core.io, "MAX_DECODE_PIXELS", 500 * 599)
     with pytest.raises(ImageError, match="500x600"):
         load_image(big, 320)
 
@@ -174,7 +174,7 @@ def test_detector_failure_record_carries_the_working_size(monkeypatch) -> None:
 
 def test_subsample_hash_cli_is_a_one_line_error(tmp_path: Path, capsys) -> None:
     """Reproducer 9: `--param subsample_hash=1.5` exited 0 with an error record per image."""
-    from torchrow.cli import main
+    from torchrow.apps.cli import main
 
     p = tmp_path / "a.png"
     cv2.imwrite(str(p), np.zeros((24, 32, 3), np.uint8))
@@ -188,7 +188,7 @@ def test_header_size_matches_the_decoded_image(tmp_path: Path) -> None:
     """The sequence size and the decode bound come from headers: EXIF rotation included."""
     from PIL import Image
 
-    from torchrow.io import header_size
+    from torchrow.core.io import header_size
 
     im = Image.fromarray(np.zeros((30, 50, 3), np.uint8))
     exif = im.getexif()

@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from torchrow.metrics import crda, crda_official, crda_thesis, match_score, rows_to_U, summarize
-from torchrow.results import ImageResult, Row
+from torchrow.core.results import ImageResult, Row
+from torchrow.evaluation.metrics import crda, crda_official, crda_thesis, match_score, rows_to_U, summarize
 
 NAN = float("nan")
 
@@ -54,7 +54,7 @@ def crda_loop(U, c, d, m=3, sigma=0.1, adjacent=9, width=320):
 
 
 class GT:
-    """Minimal stand-in for torchrow.datasets.GroundTruth."""
+    """Minimal stand-in for torchrow.evaluation.datasets.GroundTruth."""
 
     def __init__(self, c, d, height):
         self.c, self.d, self.height = np.asarray(c, float), np.asarray(d, float), height
@@ -310,7 +310,7 @@ def test_summarize():
 # --- real data ------------------------------------------------------------------------------
 @pytest.mark.data
 def test_tmgem_figures(crbd_dir: Path):
-    from torchrow.datasets import CRBD
+    from torchrow.evaluation.datasets import CRBD
 
     ds = CRBD(crbd_dir)
     assert len(ds) == 281
@@ -328,7 +328,7 @@ def test_tmgem_figures(crbd_dir: Path):
 @pytest.mark.data
 def test_thesis_baseline_figures(data_dir: Path, crbd_dir: Path):
     """The thesis code's own rows, scored: figures from data/README.md."""
-    from torchrow.datasets import CRBD
+    from torchrow.evaluation.datasets import CRBD
 
     path = data_dir / "thesis_baseline" / "thesis_code_sample.jsonl"
     if not path.is_file():

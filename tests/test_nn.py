@@ -12,6 +12,7 @@ from torch.autograd import gradcheck
 from torch.func import functional_call
 
 from torchrow import Params
+from torchrow.core.tables import hough_theta, rgb_to_lab
 from torchrow.functional import hough as fhough
 from torchrow.functional import vanishing as fvan
 from torchrow.nn import (
@@ -24,7 +25,6 @@ from torchrow.nn import (
     weighted_vanishing_point,
 )
 from torchrow.reference.vegetation import raw_mask as ref_raw_mask
-from torchrow.shared import hough_theta, rgb_to_lab
 
 F64 = torch.float64
 COLOR = (60, 120, 40)
@@ -198,7 +198,7 @@ def test_hough_voting_equals_hard_votes(h, w, step):
 
 
 def test_hough_voting_is_linear_and_small_chunks_agree(monkeypatch):
-    import torchrow.nn as tnn
+    import torchrow.nn.blocks as tnn
 
     hv = HoughVoting(7, 9, Params(theta_step=3))
     g = torch.Generator().manual_seed(7)
@@ -303,7 +303,7 @@ def test_weighted_vp_bad_input():
 # --- the hard pipeline is unaffected --------------------------------------------------------------
 def test_hard_pipeline_unchanged_by_nn_blocks():
     from torchrow import CropRowDetector
-    from torchrow.synthetic import FieldSpec, render
+    from torchrow.evaluation.synthetic import FieldSpec, render
 
     fld = render(FieldSpec(seed=11))
     img = torch.from_numpy(fld.image).permute(2, 0, 1).unsqueeze(0).contiguous()

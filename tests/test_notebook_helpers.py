@@ -1,4 +1,4 @@
-"""Helpers behind the notebooks (torchrow.notebook_helpers), on synthetic fields: no data needed."""
+"""Helpers behind the notebooks (torchrow.apps.notebook_helpers), on synthetic fields: no data needed."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from torchrow import Params
-from torchrow.datasets import GroundTruth
-from torchrow.notebook_helpers import find_data_root, gt_polylines, result_summary, show_grid, stage_pictures
-from torchrow.synthetic import FieldSpec, render
+from torchrow.apps.notebook_helpers import find_data_root, gt_polylines, result_summary, show_grid, stage_pictures
+from torchrow.evaluation.datasets import GroundTruth
+from torchrow.evaluation.synthetic import FieldSpec, render
 
 
 def test_find_data_root(tmp_path, monkeypatch):

@@ -1,4 +1,4 @@
-"""Tests of ``torchrow.params.Params`` (ALGORITHM.md "Parameters") and ``torchrow.io``
+"""Tests of ``torchrow.core.params.Params`` (ALGORITHM.md "Parameters") and ``torchrow.core.io``
 (section 0: loading, conversion to 8-bit RGB, resizing to the working width)."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
-from torchrow.io import ImageError, load_image, resize_to_width, to_rgb8, working_size
-from torchrow.params import Params
+from torchrow.core.io import ImageError, load_image, resize_to_width, to_rgb8, working_size
+from torchrow.core.params import Params
 
 # ----------------------------------------------------------------------------------------
 # Params

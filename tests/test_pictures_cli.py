@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from torchrow.annotate import INVALID, VALID, draw_result, legend_entries, row_top
-from torchrow.cli import main
-from torchrow.results import ImageResult, Row
-from torchrow.video import VideoWriter, draw_frame
+from torchrow.apps.annotate import INVALID, VALID, draw_result, legend_entries, row_top
+from torchrow.apps.cli import main
+from torchrow.apps.video import VideoWriter, draw_frame
+from torchrow.core.results import ImageResult, Row
 
 
 def _result(**kw) -> ImageResult:
@@ -49,7 +49,7 @@ def test_picture_has_legend_strip_and_rows_start_below_vp():
 def test_video_frame_without_fov_has_no_placeholder(monkeypatch):
     import cv2
 
-    from torchrow.steering import FrameResult
+    from torchrow.core.steering import FrameResult
 
     seen: list[str] = []
     real = cv2.putText
@@ -107,7 +107,7 @@ def test_eval_without_out_leaves_its_report(crbd_dir, monkeypatch, tmp_path: Pat
 def test_progress_plain_lines_when_not_a_terminal():
     import io
 
-    from torchrow.progress import PlainProgress, progress
+    from torchrow.apps.progress import PlainProgress, progress
 
     buf = io.StringIO()  # not a terminal
     bar = progress(100, "detect", unit="image", file=buf)

@@ -1,7 +1,7 @@
 """End-to-end tests of ``torchrow.reference.detect`` (ALGORITHM.md sections 0-9).
 
 Covers: real CRBD images (result structure and invariants), a synthetic field with known
-rows, degenerate images, bad inputs, the input conversion rules of ``torchrow.io``,
+rows, degenerate images, bad inputs, the input conversion rules of ``torchrow.core.io``,
 determinism and that the input array is never modified.
 """
 
@@ -14,10 +14,10 @@ import cv2
 import numpy as np
 import pytest
 
-from torchrow.io import ImageError, resize_to_width
-from torchrow.params import Params
+from torchrow.core.io import ImageError, resize_to_width
+from torchrow.core.params import Params
+from torchrow.core.results import REASONS, STATUSES, ImageResult
 from torchrow.reference import detect
-from torchrow.results import REASONS, STATUSES, ImageResult
 
 P = Params()
 CRBD_SAMPLE = (1, 8, 43, 141)
@@ -150,7 +150,7 @@ def test_fewer_rows_asked():
 
 
 # ----------------------------------------------------------------------------------------
-# Input conversion (torchrow.io rules)
+# Input conversion (torchrow.core.io rules)
 # ----------------------------------------------------------------------------------------
 
 def test_grey_inputs_are_replicated():

@@ -19,10 +19,10 @@ import skimage.color
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from torchrow.params import Params
+from torchrow.core.params import Params
+from torchrow.core.results import HoughLine
+from torchrow.core.tables import hough_trig, hypothesis_table, rgb_to_lab
 from torchrow.reference import color, hough, ransac, sky, vanishing, vegetation
-from torchrow.results import HoughLine
-from torchrow.shared import hough_trig, hypothesis_table, rgb_to_lab
 
 P = Params()
 HYP = settings(deadline=None, max_examples=60, suppress_health_check=[HealthCheck.too_slow])

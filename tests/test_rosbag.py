@@ -14,9 +14,9 @@ pytest.importorskip("rosbags")
 
 from bags import encode, write_bag  # noqa: E402
 
-from torchrow.cli import main  # noqa: E402
-from torchrow.rosbag import BagError, is_bag, open_bag  # noqa: E402
-from torchrow.synthetic import FieldSpec, render, sequence  # noqa: E402
+from torchrow.apps.cli import main  # noqa: E402
+from torchrow.apps.rosbag import BagError, is_bag, open_bag  # noqa: E402
+from torchrow.evaluation.synthetic import FieldSpec, render, sequence  # noqa: E402
 
 STORAGES = ("sqlite3", "mcap", "ros1")
 T0 = 1_700_000_000_123_456_789

@@ -14,10 +14,10 @@ from pathlib import Path
 import cv2
 import pytest
 
-from torchrow.cli import main
-from torchrow.runner import run
-from torchrow.sink import RecordSink, SinkError, frame_key, journal_path, read_records
-from torchrow.synthetic import FieldSpec, render, sequence
+from torchrow.apps.cli import main
+from torchrow.apps.sink import RecordSink, SinkError, frame_key, journal_path, read_records
+from torchrow.engines.runner import run
+from torchrow.evaluation.synthetic import FieldSpec, render, sequence
 
 
 def _lines(path: Path) -> list[str]:

@@ -19,15 +19,15 @@ from test_tensor_lines import _adversarial_masks
 
 import torchrow
 from torchrow import Params
-from torchrow.export import step_differences
+from torchrow.core.tables import lab_table_torch, pack_rgb
+from torchrow.engines.export import step_differences
+from torchrow.evaluation.synthetic import FieldSpec, sequence
 from torchrow.functional import hough as fhough
 from torchrow.functional import ransac as fransac
 from torchrow.functional import static
 from torchrow.functional import vanishing as fvan
 from torchrow.functional import vegetation as fveg
 from torchrow.functional.tracker import TrackerState
-from torchrow.shared import lab_table_torch, pack_rgb
-from torchrow.synthetic import FieldSpec, sequence
 
 P = Params()
 
@@ -121,7 +121,7 @@ def test_static_tracker_step_equals_tracker(control_flow: bool) -> None:
     pv = Params(video_width=160, n_rows=3, max_outliers=2)
     seqs = [sequence(FieldSpec.at_size(320, 180, n_rows=5, seed=s), 7, drift_px_per_frame=1.5, gap=(2, 4))
             for s in (3, 9)]
-    from torchrow.io import resize_to_width
+    from torchrow.core.io import resize_to_width
 
     module = static.StaticTrackerStep(90, 160, pv, control_flow=control_flow)
     eager = torchrow.Tracker(pv, workers=1)

@@ -1,4 +1,4 @@
-"""Tests of the synthetic field generator (torchrow.synthetic)."""
+"""Tests of the synthetic field generator (torchrow.evaluation.synthetic)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from torchrow.synthetic import FieldSpec, SyntheticField, demo_field, render, render_batch, save, sequence, write_crp
+from torchrow.evaluation.synthetic import FieldSpec, SyntheticField, demo_field, render, render_batch, save, sequence, write_crp
 
 CLEAN = dict(weeds=0.0, shadows=0.0, plant_density=1.0)
 

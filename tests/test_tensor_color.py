@@ -11,10 +11,10 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from torchrow.core.params import Params
+from torchrow.core.tables import rgb_to_lab
 from torchrow.functional import color as fc
-from torchrow.params import Params
 from torchrow.reference import color as rc
-from torchrow.shared import rgb_to_lab
 
 P = Params()
 
@@ -97,7 +97,7 @@ def shifted(base, axis, k):
 # --------------------------------------------------------------------------- CRBD
 @pytest.fixture(scope="module")
 def crbd_batch(crbd_dir: Path) -> torch.Tensor:
-    from torchrow.io import load_image
+    from torchrow.core.io import load_image
 
     files = sorted(p for p in (crbd_dir / "Images").iterdir() if p.suffix.lower() == ".jpg")
     assert files

@@ -15,18 +15,18 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from torchrow.core.io import load_image
+from torchrow.core.params import Params
+from torchrow.core.results import REASONS
 from torchrow.functional import hough as th
 from torchrow.functional import ransac as tr
 from torchrow.functional import vanishing as tvan
-from torchrow.io import load_image
-from torchrow.params import Params
 from torchrow.reference import color as rcolor
 from torchrow.reference import hough as rh
 from torchrow.reference import ransac as rr
 from torchrow.reference import sky as rsky
 from torchrow.reference import vanishing as rvan
 from torchrow.reference import vegetation as rv
-from torchrow.results import REASONS
 
 P = Params()
 HYP = settings(deadline=None, max_examples=60, suppress_health_check=[HealthCheck.too_slow])

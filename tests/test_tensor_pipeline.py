@@ -14,10 +14,10 @@ import pytest
 import torch
 
 from torchrow import Params
-from torchrow.detector import CropRowDetector
+from torchrow.core.results import ImageResult
+from torchrow.engines.detector import CropRowDetector
+from torchrow.evaluation.synthetic import FieldSpec, render
 from torchrow.reference import detect
-from torchrow.results import ImageResult
-from torchrow.synthetic import FieldSpec, render
 
 TOL = 1e-6
 
@@ -113,7 +113,7 @@ def test_detect_accepts_lists_of_arrays_and_paths(detector: CropRowDetector, tmp
 @pytest.mark.data
 def test_crbd_batch_composition_does_not_matter(detector: CropRowDetector, crbd_dir) -> None:
     """Shuffled batches of 1, 7 and 64 give the same records (and equal the reference)."""
-    from torchrow.datasets import CRBD
+    from torchrow.evaluation.datasets import CRBD
 
     ds = CRBD(crbd_dir)
     idx = list(range(0, len(ds), 4))[:64]
@@ -136,7 +136,7 @@ def test_crbd_batch_composition_does_not_matter(detector: CropRowDetector, crbd_
 @pytest.mark.data
 @pytest.mark.slow
 def test_all_crbd_images_equal_reference(detector: CropRowDetector, crbd_dir) -> None:
-    from torchrow.datasets import CRBD
+    from torchrow.evaluation.datasets import CRBD
 
     ds = CRBD(crbd_dir)
     imgs = [ds.image(i) for i in range(len(ds))]
@@ -157,7 +157,7 @@ def test_batch_without_any_vegetation(detector: CropRowDetector) -> None:
 @pytest.mark.data
 def test_rover_frames_equal_reference(detector: CropRowDetector, data_dir) -> None:
     """Real 1280x720 rover frames (another working size: 320x180) through both paths."""
-    from torchrow.io import load_image
+    from torchrow.core.io import load_image
 
     frames = sorted((data_dir / "caterra_video").glob("rgb*.jpg"))[::20]
     if not frames:

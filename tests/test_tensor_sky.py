@@ -13,9 +13,10 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from torchrow.core.io import load_image
+from torchrow.core.params import Params
+from torchrow.functional import kernels as K
 from torchrow.functional import sky as F
-from torchrow.io import load_image
-from torchrow.params import Params
 from torchrow.reference import sky as R
 
 P = Params()
@@ -70,7 +71,7 @@ def _sky_scene(h: int = 240, w: int = 320, rows: int = 80, colour=(100, 150, 230
 @pytest.mark.parametrize("n", range(1, 8))
 def test_border_index_is_opencv_border_interpolate(n):
     for mode, cv_mode in (("reflect101", cv2.BORDER_REFLECT_101), ("replicate", cv2.BORDER_REPLICATE)):
-        idx = F._border_index(n, 9, 11, mode, torch.device("cpu")).tolist()
+        idx = K._border_index(n, 9, 11, mode, torch.device("cpu")).tolist()
         assert idx == [cv2.borderInterpolate(p, n, cv_mode) for p in range(-9, n + 11)]
 
 
@@ -166,7 +167,7 @@ def test_median_blur_chunking_does_not_change_the_result(monkeypatch):
     x = torch.from_numpy(_planes(5, 37, 23, seed=3))
     full = F.median_blur(x, 5)
     for budget in (1, 27 * 3, 27 * 41, 27 * 41 * 2 + 5):  # row slabs of one image; several images
-        monkeypatch.setattr(F, "MEDIAN_CHUNK_PIXELS_CPU", budget)
+        monkeypatch.setattr(K, "MEDIAN_CHUNK_PIXELS_CPU", budget)
         assert torch.equal(F.median_blur(x, 5), full)
 
 

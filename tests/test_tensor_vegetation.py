@@ -17,13 +17,13 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from torchrow.core.io import load_image
+from torchrow.core.params import Params
+from torchrow.core.tables import rgb_to_lab
 from torchrow.functional import vegetation as tv
-from torchrow.io import load_image
-from torchrow.params import Params
 from torchrow.reference import color as rcolor
 from torchrow.reference import sky as rsky
 from torchrow.reference import vegetation as rv
-from torchrow.shared import rgb_to_lab
 
 P = Params()
 HYP = settings(deadline=None, max_examples=80, suppress_health_check=[HealthCheck.too_slow])

@@ -18,12 +18,12 @@ from test_tensor_pipeline import assert_same
 
 import torchrow
 from torchrow import Params
-from torchrow.cli import main
+from torchrow.apps.cli import main
+from torchrow.apps.video import open_source
+from torchrow.core.results import ImageResult, Row
+from torchrow.core.steering import FrameResult, Steering, focal_from_fov, steering
+from torchrow.evaluation.synthetic import FieldSpec, sequence
 from torchrow.reference import Tracker as RefTracker
-from torchrow.results import ImageResult, Row
-from torchrow.steering import FrameResult, Steering, focal_from_fov, steering
-from torchrow.synthetic import FieldSpec, sequence
-from torchrow.video import open_source
 
 TOL = 1e-6
 P320 = Params(video_width=320)

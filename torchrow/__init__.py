@@ -1,7 +1,7 @@
 """torchrow: crop-row detection as batched tensor programs, with a per-image reference."""
 
-from .params import Params
-from .results import HoughLine, ImageResult, Row
+from torchrow.core.params import Params
+from torchrow.core.results import HoughLine, ImageResult, Row
 
 __version__ = "0.1.0"
 
@@ -12,11 +12,11 @@ __all__ = ["Params", "ImageResult", "Row", "HoughLine", "CropRowDetector", "Batc
 def __getattr__(name: str):
     # torch is imported only when the tensor path is asked for
     if name in ("CropRowDetector", "BatchResult"):
-        from . import detector
+        from torchrow.engines import detector
 
         return getattr(detector, name)
     if name == "Tracker":
-        from . import tracker
+        from torchrow.engines import tracker
 
         return tracker.Tracker
     raise AttributeError(f"module 'torchrow' has no attribute {name!r}")

@@ -1,7 +1,8 @@
 """Batched tensor stages of ALGORITHM.md, kornia-style functional ops.
 
 Conventions shared by every stage module (:mod:`.sky`, :mod:`.color`, :mod:`.vegetation`,
-:mod:`.hough`, :mod:`.vanishing`, :mod:`.ransac`), mirroring :mod:`torchrow.reference`:
+:mod:`.hough`, :mod:`.vanishing`, :mod:`.ransac`, :mod:`.lattice`), mirroring
+:mod:`torchrow.reference`; the OpenCV-exact image kernels they compose are in :mod:`.kernels`:
 
 * images are ``uint8 (B, 3, H, W)`` RGB; masks are ``bool (B, H, W)``; per-image scalars
   (``sky``, ``k``) are ``int64 (B,)``; the vegetation colour is ``uint8 (B, 3)``;
@@ -13,6 +14,6 @@ Conventions shared by every stage module (:mod:`.sky`, :mod:`.color`, :mod:`.veg
 * results equal the reference's for every image, whatever else shares the batch.
 """
 
-from . import color, hough, ransac, sky, vanishing, vegetation  # noqa: E402
+from torchrow.functional import color, hough, kernels, lattice, ransac, sky, vanishing, vegetation  # noqa: E402
 
-__all__ = ["sky", "color", "vegetation", "hough", "vanishing", "ransac"]
+__all__ = ["kernels", "sky", "color", "vegetation", "hough", "vanishing", "ransac", "lattice"]

@@ -25,8 +25,8 @@ reference's bit for bit, whatever else shares the batch. Three steps:
    :func:`vegetation_color` / :class:`VegetationColor` chain the three, in memory-bounded
    chunks of images (``chunk_pixels``).
 
-LAB values come only from :func:`torchrow.shared.lab_table_torch` (the table the reference
-reads through :func:`torchrow.shared.rgb_to_lab`), never from kornia directly.
+LAB values come only from :func:`torchrow.core.tables.lab_table_torch` (the table the reference
+reads through :func:`torchrow.core.tables.rgb_to_lab`), never from kornia directly.
 
 Memory (``P`` = pixels in the batch or chunk, ``M`` = its distinct colours, ~0.2 P on CRBD):
 :func:`distinct_colors` holds about a dozen int64/bool buffers of ``P`` entries and
@@ -45,9 +45,9 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
-from ..params import Params
-from ..shared import lab_table_torch
-from ._checks import check_images
+from torchrow.core.params import Params
+from torchrow.core.tables import lab_table_torch
+from torchrow.functional._checks import check_images
 
 __all__ = [
     "LIME",

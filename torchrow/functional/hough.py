@@ -5,7 +5,7 @@ each image's mask are moved to the front of a ``(B, K)`` index list by a stable 
 ``nonzero``), and votes are accumulated in chunks of that list. A chunk loop stops as soon as
 no image has pixels left in it (the only host synchronisation, an early exit that never
 changes a result). The accumulator row of each (pixel, angle) comes from the shared constant
-table :func:`torchrow.shared.rho_index_table` (``rint(x*c_j + y*s_j) + D``, computed once with
+table :func:`torchrow.core.tables.rho_index_table` (``rint(x*c_j + y*s_j) + D``, computed once with
 NumPy as the reference computes it), so no float arithmetic decides a vote here.
 """
 
@@ -18,10 +18,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..params import Params
-from ..shared import hough_trig, rho_index_table, rho_offset
-from ._checks import check_masks
-from ._flow import branch, check_flow, keep
+from torchrow.core.params import Params
+from torchrow.core.tables import hough_trig, rho_index_table, rho_offset
+from torchrow.functional._checks import check_masks
+from torchrow.functional._flow import branch, check_flow, keep
 
 __all__ = ["HoughState", "EagerVoter", "StaticVoter", "pickable_angles", "erase_bound", "pixel_list", "compact",
            "trig", "rho_table", "line_distance", "accumulate", "votes", "excluded_angles", "peak"]
@@ -53,7 +53,7 @@ def rho_table(height: int, width: int, params: Params, device: torch.device) -> 
     """Flat accumulator offset of every pixel for every angle within one image's accumulator,
     ``j*(2D+1) + rho_index``, as ``(H*W, n_theta)`` int32 on ``device``.
 
-    Built from the shared :func:`torchrow.shared.rho_index_table` (``rint(x*c_j + y*s_j) + D``),
+    Built from the shared :func:`torchrow.core.tables.rho_index_table` (``rint(x*c_j + y*s_j) + D``),
     a constant, so voting does no float arithmetic and an exported graph votes exactly.
     720 bytes per pixel: 55 MB at 320x240, 885 MB at 1280x960 (the last two sizes are kept).
     """
@@ -371,7 +371,7 @@ class StaticVoter(nn.Module):
                              persistent=False)
         self.bound = min(self.height * self.width, erase_bound(self.height, self.width, params))
         if self.scatter_free:
-            from .static import vote_tables
+            from torchrow.functional.static import vote_tables
 
             t = vote_tables(self.height, self.width, params)
             self.register_buffer("order", t.order, persistent=False)
@@ -427,7 +427,7 @@ class StaticVoter(nn.Module):
 
     def votes(self, state: tuple) -> torch.Tensor:
         if self.scatter_free:
-            from .static import VoteTables, votes
+            from torchrow.functional.static import VoteTables, votes
 
             t = VoteTables(self.angles, self.order, self.ends, self.run_empty, self.n_rho, self.d)
             return votes(state[0], t)

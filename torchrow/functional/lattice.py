@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..params import Params
+from torchrow.core.params import Params
 
 __all__ = ["LatticeRows", "excess_green", "otsu_threshold", "green_mask", "init_vp", "comb_search",
            "solve_normal", "normal_equations", "fit_lattice", "improved_rows"]
@@ -283,7 +283,7 @@ def improved_rows(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor, has
 def as_row_fits(rows: LatticeRows):
     """The lattice rows as section 7's :class:`~torchrow.functional.ransac.RowFits` (all present;
     reason ``no_support`` where invalid, hypothesis -1)."""
-    from .ransac import REASON_CODES, RowFits
+    from torchrow.functional.ransac import REASON_CODES, RowFits
 
     reason = torch.where(rows.valid, torch.zeros_like(rows.a, dtype=torch.int64),
                          torch.full_like(rows.a, REASON_CODES["no_support"], dtype=torch.int64))
@@ -292,5 +292,5 @@ def as_row_fits(rows: LatticeRows):
 
 
 def curve_fields(rows: LatticeRows) -> dict[str, torch.Tensor]:
-    """The :class:`~torchrow.detector.BatchResult` fields only the improved mode has."""
+    """The :class:`~torchrow.engines.detector.BatchResult` fields only the improved mode has."""
     return {"row_c": rows.c, "row_confidence": rows.confidence, "image_confidence": rows.image_confidence}

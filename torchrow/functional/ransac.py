@@ -14,16 +14,16 @@ from dataclasses import dataclass
 
 import torch
 
-from ..params import Params
-from ..results import REASONS
-from ..shared import hypothesis_table
-from . import _exact
-from .hough import active_width, cacheable, pixel_list, trig
+from torchrow.core.params import Params
+from torchrow.core.results import REASONS
+from torchrow.core.tables import hypothesis_table
+from torchrow.functional import _exact
+from torchrow.functional.hough import active_width, cacheable, pixel_list, trig
 
 __all__ = ["RowFits", "fit_rows", "validate_rows", "band_member", "subsample_plan", "max_kept", "principal_direction",
            "REASON_CODES", "SCORE_BUDGET"]
 
-#: Reason codes of :attr:`RowFits.reason`, indices into :data:`torchrow.results.REASONS`.
+#: Reason codes of :attr:`RowFits.reason`, indices into :data:`torchrow.core.results.REASONS`.
 REASON_CODES = {r: i for i, r in enumerate(REASONS)}
 
 #: Elements per scoring temporary ``(B, S, T_chunk, P)``: 1M (8 MB of float64, a few alive),

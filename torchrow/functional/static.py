@@ -1,19 +1,19 @@
 """Static-shape, scatter-free formulation of the image-mode detector and of the tracker step
 (:class:`StaticTrackerStep`, at the end), for ONNX export.
 
-Same results as :class:`torchrow.detector.CropRowDetector` (ALGORITHM.md sections 1 and 3-7),
+Same results as :class:`torchrow.engines.detector.CropRowDetector` (ALGORITHM.md sections 1 and 3-7),
 written so that ``torch.onnx.export(..., dynamo=True)`` gives a graph whose every shape is
 fixed by ``(B, H, W)`` and the parameters alone:
 
 * **LAB** (section 3) is computed in the graph in float64 (:func:`lab`), not gathered from the
   400 MB shared table. Its values are not always bit-identical to the table (the table comes
   from kornia's BLAS ``einsum``), but the box decisions are: ``scripts``/tests check all
-  2**24 colours (see :func:`torchrow.export.check_lab`). The vegetation colour's own LAB
+  2**24 colours (see :func:`torchrow.engines.export.check_lab`). The vegetation colour's own LAB
   ``c`` is a graph **input** read from the shared table on the host, so ``c - k`` and
   ``c + k`` are the reference's bits.
 * **Hough voting** (section 5) has no scatter: for every pickable angle a constant
   permutation lists the pixels sorted by their rho index (from the shared
-  :func:`torchrow.shared.rho_index_table`), so the votes of one rho cell are a run of that
+  :func:`torchrow.core.tables.rho_index_table`), so the votes of one rho cell are a run of that
   order. Votes = differences of the prefix sum of the gathered mask at the runs' constant
   ends (``Gather``, ``CumSum``, ``GatherElements``, ``Sub``). TensorRT cannot take
   ``ScatterElements``/``ScatterND`` with a reduction, which a scatter-add vote would need;
@@ -39,16 +39,16 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..params import Params
-from ..shared import hypothesis_table, rho_index_table, rho_offset
-from . import _exact
-from . import ransac as fransac
-from . import sky as fsky
-from . import tracker as ftrack
-from . import vegetation as fveg
-from ._flow import check_flow
-from .hough import StaticVoter
-from .vanishing import LineSearch, find_lines
+from torchrow.core.params import Params
+from torchrow.core.tables import hypothesis_table, rho_index_table, rho_offset
+from torchrow.functional import _exact
+from torchrow.functional import ransac as fransac
+from torchrow.functional import sky as fsky
+from torchrow.functional import tracker as ftrack
+from torchrow.functional import vegetation as fveg
+from torchrow.functional._flow import check_flow
+from torchrow.functional.hough import StaticVoter
+from torchrow.functional.vanishing import LineSearch, find_lines
 
 __all__ = ["lab", "LINEAR_RGB", "VoteTables", "vote_tables", "votes", "StaticDetector", "finish_rows",
            "GRAPH_OUTPUTS", "StaticTrackerStep", "TRACKER_INPUTS", "TRACKER_OUTPUTS"]
@@ -78,7 +78,7 @@ def lab(images: torch.Tensor, lut: torch.Tensor | None = None) -> torch.Tensor:
     XYZ matrix as ``(k0*r + k1*g) + k2*b``, white-point division, the cube root branch and
     ``L = 116*y - 16``, ``a = 500*(x - y)``, ``b = 200*(y - z)``. Values may differ from the
     shared table by an ulp; the decisions of the vegetation box do not (checked on all
-    2**24 colours by :func:`torchrow.export.check_lab`).
+    2**24 colours by :func:`torchrow.engines.export.check_lab`).
     """
     if lut is None:
         lut = torch.from_numpy(_linear_lut()).to(images.device)

@@ -27,20 +27,20 @@ from typing import Callable
 
 import torch
 
-from ..params import Params
-from . import color as fcolor
-from . import ransac as fransac
-from . import sky as fsky
-from . import vanishing as fvan
-from . import vegetation as fveg
-from ._checks import check_images
-from ._flow import branch
+from torchrow.core.params import Params
+from torchrow.functional import color as fcolor
+from torchrow.functional import ransac as fransac
+from torchrow.functional import sky as fsky
+from torchrow.functional import vanishing as fvan
+from torchrow.functional import vegetation as fveg
+from torchrow.functional._checks import check_images
+from torchrow.functional._flow import branch
 
 __all__ = ["TrackerState", "TrackStep", "init_state", "merge_state", "segment", "finish_segment", "advance",
            "coverage", "Stages", "eager_stages",
            "STATUS_OK", "STATUS_INVALID", "STATUS_NO_VP", "STATUS_NO_VEGETATION"]
 
-# codes into torchrow.results.STATUSES
+# codes into torchrow.core.results.STATUSES
 STATUS_OK, STATUS_INVALID, STATUS_NO_VP, STATUS_NO_VEGETATION = 0, 1, 2, 3
 
 
@@ -121,7 +121,7 @@ def merge_state(old: TrackerState, new: TrackerState, mask: torch.Tensor) -> Tra
 class TrackStep:
     """One lock-step frame of ``B`` sequences; rows (B, S), everything else (B,) unless said.
 
-    ``status`` int64 code into :data:`torchrow.results.STATUSES`; ``k`` int64; ``bushy``
+    ``status`` int64 code into :data:`torchrow.core.results.STATUSES`; ``k`` int64; ``bushy``
     bool; ``n_rows`` int64; Hough lines ``hough_*`` (B, S) with ``hough_valid`` and dropped
     outliers ``out_*`` (B, O) with ``out_valid`` (all invalid on tracked frames); ``vp``
     float64 (B, 2) with ``has_vp``; rows ``row_a``/``row_b`` float64, ``row_valid``,
@@ -207,7 +207,7 @@ def finish_segment(raw: torch.Tensor, sky: torch.Tensor, params: Params) -> tupl
 
 def coverage(veg: torch.Tensor, a: torch.Tensor, b: torch.Tensor, valid: torch.Tensor, sky: torch.Tensor,
              half_band: float) -> torch.Tensor:
-    """Per-row coverage of :func:`torchrow.steering.row_coverage`, batched: float64 (B, S).
+    """Per-row coverage of :func:`torchrow.core.steering.row_coverage`, batched: float64 (B, S).
 
     ``veg`` bool (B, H, W); rows ``x = a*y + b`` (B, S) with ``valid``; ``sky`` int64 (B,).
     A row ``y >= sky`` counts when a column ``x`` has ``veg`` and

@@ -13,10 +13,10 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from ..params import Params
-from . import _exact
-from ._flow import branch, check_flow, keep
-from .hough import EagerVoter, excluded_angles, peak, trig
+from torchrow.core.params import Params
+from torchrow.functional import _exact
+from torchrow.functional._flow import branch, check_flow, keep
+from torchrow.functional.hough import EagerVoter, excluded_angles, peak, trig
 
 __all__ = ["VPSolution", "vanishing_point", "LineSearch", "find_lines", "max_steps"]
 

@@ -43,7 +43,7 @@ hold the LAB of the whole batch: peak is the output (``N`` bytes) plus one chunk
 ``(B, H+2, W+2)`` (~12 B/pixel, ~60 MB at B=64 and 320x240); :func:`remove_bushy` about
 four (~4 B/pixel). :func:`hough_input` runs Canny on every image and selects per image. The
 LAB table itself is the shared 400 MB memory map on the CPU (a 400 MB copy per accelerator
-device, made once by :func:`torchrow.shared.lab_table_torch`).
+device, made once by :func:`torchrow.core.tables.lab_table_torch`).
 
 Speed notes (CPU): masks are combined as 0/1 ``uint8`` views of the ``bool`` tensors, the
 neighbourhood operations run as contiguous 1-D slices of a flattened padded grid, and the
@@ -58,9 +58,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..params import Params
-from ..shared import lab_table_torch
-from ._checks import check_images, check_masks, check_rows
+from torchrow.core.params import Params
+from torchrow.core.tables import lab_table_torch
+from torchrow.functional._checks import as_u8, below_horizon, check_images, check_masks, check_params, check_rows, clamp_sky
+from torchrow.functional.kernels import CANNY_SHIFT, TG22, canny_binary  # noqa: F401  (re-exported: stage modules keep their names)
 
 __all__ = [
     "CANNY_SHIFT",
@@ -79,33 +80,7 @@ __all__ = [
 
 # OpenCV canny.cpp fixed-point direction test (implementation constants of cv2.Canny, not
 # parameters of the algorithm): tan(22.5°) in Q15, rounded half up.
-CANNY_SHIFT = 15
-TG22 = int(0.4142135623730950488016887242097 * (1 << CANNY_SHIFT) + 0.5)  # 13573
 
-
-def _small_direction_rule() -> tuple[int, int, int, int]:
-    """Small-integer form of OpenCV's direction test on a 0/1 image.
-
-    On ``src = 255 * mask`` the Sobel-3 derivatives are ``255 * d`` with ``d`` in
-    ``[-4, 4]``, so ``|dx|, |dy| = 255 * ax, 255 * ay`` with ``ax, ay`` in ``0..4``. The
-    fixed-point tests ``Y < T22`` and ``Y > T67`` (module docstring) are evaluated here,
-    literally, for all 25 pairs and are shown to equal ``5*ay < 2*ax`` (horizontal) and
-    ``2*ay > 5*ax`` (vertical), which :func:`canny_binary` evaluates in int8. Returns the
-    coefficients ``(5, 2, 2, 5)``; raises if the equivalence failed (it cannot).
-    """
-    h_num, h_den, v_num, v_den = 5, 2, 2, 5
-    for ax in range(5):
-        for ay in range(5):
-            x, y = 255 * ax, (255 * ay) << CANNY_SHIFT
-            tg22x = x * TG22
-            horiz = y < tg22x
-            vert = not horiz and y > tg22x + (x << (CANNY_SHIFT + 1))
-            if horiz != (h_num * ay < h_den * ax) or vert != (v_num * ay > v_den * ax):
-                raise AssertionError(f"direction rule differs at |dx|/255={ax}, |dy|/255={ay}")
-    return h_num, h_den, v_num, v_den
-
-
-_H_NUM, _H_DEN, _V_NUM, _V_DEN = _small_direction_rule()
 
 # Pixels per chunk of the LAB gather (bounds the temporaries of lab/raw_mask/adapt_k).
 _CHUNK_PIXELS = 1 << 18
@@ -129,31 +104,6 @@ def _check_vector(t: torch.Tensor, batch: int, name: str, allow_int: bool) -> No
         got = f"{t.dtype} {tuple(t.shape)}" if isinstance(t, torch.Tensor) else type(t).__name__
         kind = "an integer or float" if allow_int else "a float"
         raise ValueError(f"{name}: expected {kind} tensor of shape ({batch},), got {got}")
-
-
-def _check_params(params: Params) -> None:
-    if not isinstance(params, Params):
-        raise TypeError(f"params: expected torchrow.params.Params, got {type(params).__name__}")
-
-
-def _sky(sky: torch.Tensor, height: int, device: torch.device) -> torch.Tensor:
-    """``sky`` as int64 on ``device``, clamped to ``[0, H]``."""
-    return sky.to(device=device, dtype=torch.int64).clamp(0, height)
-
-
-def _below(sky: torch.Tensor, height: int) -> torch.Tensor:
-    """``uint8 (B, H, 1)``, 1 where row ``y`` lies below the horizon (``y >= sky[b]``).
-
-    Masks are combined as 0/1 ``uint8`` (``bool`` viewed as ``uint8``, no copy): on the CPU,
-    PyTorch's ``bool`` ``&``/``|``/``where`` kernels are 10-30x slower than ``uint8`` ones.
-    """
-    rows = torch.arange(height, device=sky.device, dtype=torch.int64)
-    return (rows.view(1, height) >= sky.view(-1, 1)).unsqueeze(2).view(torch.uint8)
-
-
-def _u8(mask: torch.Tensor) -> torch.Tensor:
-    """A ``bool`` tensor viewed as 0/1 ``uint8`` (no copy)."""
-    return mask.view(torch.uint8)
 
 
 def _pack(images: torch.Tensor) -> torch.Tensor:
@@ -196,7 +146,7 @@ def _inside(vals: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Ten
 def _fraction(mask: torch.Tensor, sky: torch.Tensor) -> torch.Tensor:
     """Ones of ``mask`` in rows ``y >= sky`` divided by the number of such pixels (0 if none)."""
     _, h, w = mask.shape
-    count = (_u8(mask) & _below(sky, h)).sum(dim=(1, 2), dtype=torch.int64)
+    count = (as_u8(mask) & below_horizon(sky, h)).sum(dim=(1, 2), dtype=torch.int64)
     return k_fractions(count.view(-1, 1), sky, h, w).view(-1)
 
 
@@ -216,7 +166,7 @@ def lab(images: torch.Tensor) -> torch.Tensor:
     -------
     torch.Tensor
         ``float64 (B, 3, H, W)`` (L*, a*, b*), on the input's device; bit-identical to
-        :func:`torchrow.shared.rgb_to_lab` (both read :func:`torchrow.shared.lab_table`).
+        :func:`torchrow.core.tables.rgb_to_lab` (both read :func:`torchrow.core.tables.lab_table`).
 
     Notes
     -----
@@ -283,8 +233,8 @@ def raw_mask(images: torch.Tensor, color: torch.Tensor, k: torch.Tensor,
         n = chunk.shape[0]
         vals = table.index_select(0, _pack(chunk)).view(n, h * w, 3)
         lo_c, hi_c = lo[b0:b0 + n], hi[b0:b0 + n]
-        _u8(out[b0:b0 + n]).copy_(_inside(vals, lo_c, hi_c).view(n, h, w))
-    _u8(out).bitwise_and_(_below(_sky(sky, h, dev), h))
+        as_u8(out[b0:b0 + n]).copy_(_inside(vals, lo_c, hi_c).view(n, h, w))
+    as_u8(out).bitwise_and_(below_horizon(clamp_sky(sky, h, dev), h))
     return out
 
 
@@ -306,7 +256,7 @@ def raw_fraction(raw: torch.Tensor, sky: torch.Tensor) -> torch.Tensor:
     """
     check_masks(raw, "raw")
     check_rows(sky, raw.shape[0])
-    return _fraction(raw, _sky(sky, raw.shape[1], raw.device))
+    return _fraction(raw, clamp_sky(sky, raw.shape[1], raw.device))
 
 
 def _min_k(lab: torch.Tensor, c: torch.Tensor, k_min: int, k_max: int, static: bool = False) -> torch.Tensor:
@@ -410,7 +360,7 @@ def adapt_k(images: torch.Tensor, color: torch.Tensor, sky: torch.Tensor, info0:
     raw : torch.Tensor
         ``bool (B, H, W)``, :func:`raw_mask` at that ``k``.
     """
-    _check_params(params)
+    check_params(params)
     check_images(images)
     b, _, h, w = images.shape
     _check_color(color, b)
@@ -419,8 +369,8 @@ def adapt_k(images: torch.Tensor, color: torch.Tensor, sky: torch.Tensor, info0:
     dev = images.device
     k_min, k_max = params.video_k_min, params.video_k_max
     n_k = k_max - k_min + 1
-    skyc = _sky(sky, h, dev)
-    below = _below(skyc, h).expand(b, h, w).reshape(b, h * w).to(torch.bool)
+    skyc = clamp_sky(sky, h, dev)
+    below = below_horizon(skyc, h).expand(b, h, w).reshape(b, h * w).to(torch.bool)
     kstar = torch.full((b, h * w), k_max + 1, dtype=torch.int64, device=dev)
     if b > 0:
         table = lab_table_torch(dev)
@@ -465,17 +415,17 @@ def remove_bushy(raw: torch.Tensor, sky: torch.Tensor, params: Params) -> torch.
     torch.Tensor
         ``bool (B, H, W)``, False above the horizon.
     """
-    _check_params(params)
+    check_params(params)
     check_masks(raw, "raw")
     b, h, w = raw.shape
     check_rows(sky, b)
     if b == 0:
         return torch.zeros_like(raw)
-    below = _below(_sky(sky, h, raw.device), h)
+    below = below_horizon(clamp_sky(sky, h, raw.device), h)
     ew, eh = params.bushy_erode
     ax, ay = ew // 2, eh // 2
     # Outside the region is 1 (never erodes): rows above the horizon and the padding.
-    src = _u8(raw) | (below ^ 1)
+    src = as_u8(raw) | (below ^ 1)
     pad = F.pad(src, (ax, ew - 1 - ax, ay, eh - 1 - ay), value=1)
     hp, wp = pad.shape[1:]
     flat = pad.reshape(-1)
@@ -490,149 +440,13 @@ def remove_bushy(raw: torch.Tensor, sky: torch.Tensor, params: Params) -> torch.
     full = torch.ones(flat.numel(), dtype=torch.uint8, device=raw.device)
     full[0:n] = eroded
     eroded = full.view(b, hp, wp)[:, 0:h, 0:w]
-    veg = (eroded ^ 1).bitwise_and_(_u8(raw)).bitwise_and_(below)
+    veg = (eroded ^ 1).bitwise_and_(as_u8(raw)).bitwise_and_(below)
     return veg.view(torch.bool)
 
 
 # ----------------------------------------------------------------------------------------
 # Section 4: Canny and the Hough input
 # ----------------------------------------------------------------------------------------
-
-def _replicate(t: torch.Tensor) -> torch.Tensor:
-    """Pad ``(B, H, W)`` by one pixel on every side, replicating the edge (``aaa|abcd|ddd``)."""
-    t = torch.cat([t[:, :1], t, t[:, -1:]], dim=1)
-    return torch.cat([t[:, :, :1], t, t[:, :, -1:]], dim=2)
-
-
-def _dilate8(t: torch.Tensor) -> torch.Tensor:
-    p = F.pad(t, (1, 1, 1, 1), value=False)
-    h, w = t.shape[1:]
-    rows = p[:, 0:h] | p[:, 1:h + 1] | p[:, 2:h + 2]
-    return rows[:, :, 0:w] | rows[:, :, 1:w + 1] | rows[:, :, 2:w + 2]
-
-
-def canny_binary(veg: torch.Tensor, sky: torch.Tensor, params: Params) -> torch.Tensor:
-    """``cv2.Canny(region * 255, canny_low, canny_high, L2gradient=False) > 0`` per image.
-
-    ``region`` = the rows ``y >= sky[b]`` of ``veg``, treated as the whole image (OpenCV's
-    borders at its top row, not at row 0). Bit-exact with OpenCV's ``canny.cpp``; the rules
-    (Sobel with replicated border, zero-bordered magnitude for non-maximum suppression, the
-    Q15 tangent test and its ``>``/``>=`` comparisons, hysteresis) are listed in the module
-    docstring.
-
-    Parameters
-    ----------
-    veg : torch.Tensor
-        ``bool (B, H, W)`` binary mask; its rows above the horizon are ignored.
-    sky : torch.Tensor
-        ``int (B,)`` horizon rows (clamped to ``[0, H]``).
-    params : Params
-        Uses ``canny_low`` and ``canny_high`` (swapped if ``low > high``, as OpenCV).
-
-    Returns
-    -------
-    torch.Tensor
-        ``bool (B, H, W)`` edges, False above the horizon.
-    """
-    _check_params(params)
-    check_masks(veg, "veg")
-    b, h, w = veg.shape
-    check_rows(sky, b)
-    dev = veg.device
-    low, high = sorted((int(params.canny_low), int(params.canny_high)))
-    skyc = _sky(sky, h, dev)
-    below = _below(skyc, h)
-    if b == 0:
-        return torch.zeros_like(veg)
-    # Rows above the horizon take the value of the region's top row, so that a replicated
-    # image border reproduces the region's replicated border for rows >= sky.
-    vu8 = _u8(veg)
-    top = vu8.gather(1, skyc.clamp(max=h - 1).view(b, 1, 1).expand(b, 1, w))  # (B, 1, W)
-    # Work on the flattened padded grid (B, H+2, W+2): every neighbour is a constant offset
-    # (+-1, +-r, +-r+-1 with r = W+2), so each step below is one contiguous 1-D operation,
-    # done in place where possible (fresh multi-MB temporaries cost page faults on the CPU).
-    # Values are on the 0/1 scale (see _small_direction_rule): OpenCV's divided by 255.
-    r = w + 2
-    src = (vu8 & below).bitwise_or_(top & (below ^ 1))
-    grid = _replicate(src).view(torch.int8).reshape(-1)
-    total = grid.numel()
-    n = total - 2 * (r + 1)  # positions r+1 .. total-r-2 cover every interior pixel
-
-    def g(off: int) -> torch.Tensor:
-        return grid[r + 1 + off:r + 1 + off + n]
-
-    # Sobel 3x3 with replicated border (the grid's padding and the rows above the horizon
-    # carry the replicated values): dx = [-1 0 1] x [1 2 1]^T, dy its transpose; in [-4, 4].
-    dx = g(1 - r) + g(1 + r)
-    for off in (1, 1):
-        dx += g(off)
-    for off in (-1 - r, r - 1, -1, -1):
-        dx -= g(off)
-    dy = g(r - 1) + g(r + 1)
-    for off in (r, r):
-        dy += g(off)
-    for off in (-r - 1, 1 - r, -r, -r):
-        dy -= g(off)
-    same = torch.bitwise_xor(dx, dy).ge_(0).view(torch.bool).view(torch.uint8)  # s = +1
-    ax, ay = dx.abs_(), dy.abs_()
-    t1, t2 = torch.mul(ay, _H_NUM), torch.mul(ax, _H_DEN)
-    horiz = (t1 < t2).view(torch.uint8)  # (|dy|<<15) < |dx|*TG22
-    torch.mul(ay, _V_NUM, out=t1)
-    torch.mul(ax, _V_DEN, out=t2)
-    vert = (t1 > t2).view(torch.uint8)  # (|dy|<<15) > |dx|*TG22 + (|dx|<<16)
-    del t1, t2
-    # L1 magnitude in [0, 8], zero on the grid's frame and above the horizon (NMS border).
-    mag = torch.zeros(total, dtype=torch.int8, device=dev)
-    m = mag[r + 1:r + 1 + n]
-    torch.add(ax, ay, out=m)
-    mag2 = mag.view(b, h + 2, r)
-    # the frame holds values computed across image boundaries: clear it (zero_(), not "= 0",
-    # which would trace to lifted scalar constants that an exported program with torch.cond
-    # subgraphs cannot re-decompose)
-    mag2[:, 0].zero_()
-    mag2[:, h + 1].zero_()
-    mag2[:, :, 0].zero_()
-    mag2[:, :, r - 1].zero_()
-    mag2[:, 1:h + 1].bitwise_and_(below.view(torch.int8).neg())  # 0 or all ones
-    del ax, ay, dx, dy
-    tmp = torch.empty(n, dtype=torch.bool, device=dev)
-    tmp_u8 = tmp.view(torch.uint8)
-
-    def both(op1, off1: int, op2, off2: int) -> torch.Tensor:
-        """``(m op1 m[off1]) & (m op2 m[off2])`` as a fresh 0/1 uint8 tensor."""
-        out = op1(m, mag[r + 1 + off1:r + 1 + off1 + n]).view(torch.uint8)
-        op2(m, mag[r + 1 + off2:r + 1 + off2 + n], out=tmp)
-        return out.bitwise_and_(tmp_u8)
-
-    keep = both(torch.gt, -1, torch.ge, 1).bitwise_and_(horiz)  # m > left, m >= right
-    keep.bitwise_or_(both(torch.gt, -r, torch.ge, r).bitwise_and_(vert))  # m > up, m >= down
-    # Diagonal, both strict: s = +1 -> (y-1, x-1), (y+1, x+1); s = -1 -> (y-1, x+1), (y+1, x-1).
-    diag = horiz.bitwise_or_(vert).bitwise_xor_(1)
-    d_pos = both(torch.gt, -r - 1, torch.gt, r + 1).bitwise_and_(same)
-    d_neg = both(torch.gt, 1 - r, torch.gt, r - 1).bitwise_and_(same.bitwise_xor_(1))
-    keep.bitwise_or_(d_pos.bitwise_or_(d_neg).bitwise_and_(diag))
-    del d_pos, d_neg, diag, vert, same
-    # m * 255 > low  <=>  m > low // 255 for integer m >= 0 (same for high).
-    torch.gt(m, low // 255, out=tmp)
-    keep.bitwise_and_(tmp_u8)
-    torch.gt(m, high // 255, out=tmp)
-
-    def to_image(flat: torch.Tensor) -> torch.Tensor:
-        full = torch.zeros(total, dtype=torch.uint8, device=dev)
-        full[r + 1:r + 1 + n] = flat
-        return full.view(b, h + 2, r)[:, 1:h + 1, 1:w + 1].contiguous().view(torch.bool)
-
-    edges = to_image(tmp_u8 & keep)
-    cand = to_image(keep)
-    # Weak edges exist only if some multiple of 255 (the possible magnitudes) is in (low, high].
-    if high // 255 > low // 255:
-        weak = cand & ~edges
-        for _ in range(h * w):  # static bound; stops at the fixed point
-            grown = edges | (weak & _dilate8(edges))
-            if torch.equal(grown, edges):
-                break
-            edges = grown
-    return edges
 
 
 def density(veg: torch.Tensor, sky: torch.Tensor) -> torch.Tensor:
@@ -652,7 +466,7 @@ def density(veg: torch.Tensor, sky: torch.Tensor) -> torch.Tensor:
     """
     check_masks(veg, "veg")
     check_rows(sky, veg.shape[0])
-    return _fraction(veg, _sky(sky, veg.shape[1], veg.device))
+    return _fraction(veg, clamp_sky(sky, veg.shape[1], veg.device))
 
 
 def hough_input(veg: torch.Tensor, sky: torch.Tensor,
@@ -676,13 +490,13 @@ def hough_input(veg: torch.Tensor, sky: torch.Tensor,
     bushy : torch.Tensor
         ``bool (B,)``.
     """
-    _check_params(params)
+    check_params(params)
     check_masks(veg, "veg")
     check_rows(sky, veg.shape[0])
     bushy = density(veg, sky) > params.bushy_ratio
     edges = canny_binary(veg, sky, params)
     sel = bushy.view(-1, 1, 1).view(torch.uint8)
-    out = (_u8(edges) & sel).bitwise_or_(_u8(veg) & (sel ^ 1))
+    out = (as_u8(edges) & sel).bitwise_or_(as_u8(veg) & (sel ^ 1))
     return out.view(torch.bool), bushy
 
 
@@ -700,7 +514,7 @@ class VegetationMask(nn.Module):
     def __init__(self, params: Params | None = None) -> None:
         super().__init__()
         self.params = params if params is not None else Params()
-        _check_params(self.params)
+        check_params(self.params)
 
     def forward(self, images: torch.Tensor, color: torch.Tensor, sky: torch.Tensor,
                 k: torch.Tensor | None = None) -> torch.Tensor:
@@ -718,7 +532,7 @@ class HoughInput(nn.Module):
     def __init__(self, params: Params | None = None) -> None:
         super().__init__()
         self.params = params if params is not None else Params()
-        _check_params(self.params)
+        check_params(self.params)
 
     def forward(self, veg: torch.Tensor, sky: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return hough_input(veg, sky, self.params)

@@ -6,8 +6,8 @@ One module per stage, named as in the tensor path: :mod:`.sky` (section 1), :mod
 where they read best.
 """
 
-from . import color, hough, ransac, sky, vanishing, vegetation
-from .pipeline import detect, prepare
-from .tracker import Tracker, TrackerState
+from torchrow.reference import color, hough, ransac, sky, vanishing, vegetation
+from torchrow.reference.pipeline import detect, prepare
+from torchrow.reference.tracker import Tracker, TrackerState
 
 __all__ = ["detect", "prepare", "Tracker", "TrackerState", "sky", "color", "vegetation", "hough", "vanishing", "ransac"]

@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..params import Params
-from ..shared import pack_rgb, rgb_to_lab
+from torchrow.core.params import Params
+from torchrow.core.tables import pack_rgb, rgb_to_lab
 
 __all__ = ["ColorCluster", "distinct_colors", "cluster_colors", "vegetation_color", "LIME"]
 

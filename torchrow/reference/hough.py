@@ -6,9 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..params import Params
-from ..results import HoughLine
-from ..shared import hough_trig, rho_offset
+from torchrow.core.params import Params
+from torchrow.core.results import HoughLine
+from torchrow.core.tables import hough_trig, rho_offset
 
 __all__ = ["rho_offset", "line_distance", "votes", "excluded_angles", "HoughState", "extract_line"]
 

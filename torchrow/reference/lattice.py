@@ -21,8 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..params import Params
-from ..results import Row
+from torchrow.core.params import Params
+from torchrow.core.results import Row
 
 __all__ = ["LatticeFit", "excess_green", "otsu_threshold", "green_mask", "init_vp", "comb_search",
            "solve_normal", "row_cells", "normal_equations", "fit_lattice", "lattice_rows", "N_COEF"]

@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..io import check_color, resize_to_width, to_rgb8
-from ..params import Params
-from ..results import ImageResult
-from .color import vegetation_color
-from .lattice import improved_rows
-from .ransac import fit_row, validate_rows
-from .sky import sky_row
-from .vanishing import find_lines
-from .vegetation import hough_input, raw_mask, remove_bushy
+from torchrow.core.io import check_color, resize_to_width, to_rgb8
+from torchrow.core.params import Params
+from torchrow.core.results import ImageResult
+from torchrow.reference.color import vegetation_color
+from torchrow.reference.lattice import improved_rows
+from torchrow.reference.ransac import fit_row, validate_rows
+from torchrow.reference.sky import sky_row
+from torchrow.reference.vanishing import find_lines
+from torchrow.reference.vegetation import hough_input, raw_mask, remove_bushy
 
 __all__ = ["detect", "prepare"]
 
@@ -26,7 +26,7 @@ def prepare(image: np.ndarray, params: Params) -> np.ndarray:
         If ``image`` is not a numpy array.
     ImageError
         (a ``ValueError``) if it is empty, not convertible to ``uint8 (H, W, 3)``, or its
-        working size exceeds ``params.max_pixels`` (:func:`torchrow.io.check_working_size`).
+        working size exceeds ``params.max_pixels`` (:func:`torchrow.core.io.check_working_size`).
     """
     if not isinstance(image, np.ndarray):
         raise TypeError(f"detect expects a numpy array of shape (H, W, 3), got {type(image).__name__}")
@@ -40,7 +40,7 @@ def detect(image: np.ndarray, params: Params | None = None, name: str | None = N
     Parameters
     ----------
     image : numpy.ndarray
-        ``(H, W, 3)`` uint8 RGB (grey, RGBA and 16-bit are converted, see :mod:`torchrow.io`).
+        ``(H, W, 3)`` uint8 RGB (grey, RGBA and 16-bit are converted, see :mod:`torchrow.core.io`).
         Resized to ``params.image_width`` (``cv2.INTER_AREA``) unless already that wide.
     params : Params, optional
         Constants; ``Params()`` by default.
@@ -49,7 +49,7 @@ def detect(image: np.ndarray, params: Params | None = None, name: str | None = N
     veg_color : (int, int, int), optional
         RGB vegetation colour to use instead of section 2's clustering (a colour calibrated
         once for a field, or a video's frame-0 colour): integers in [0, 255], checked by
-        :func:`torchrow.io.check_color` as in the tensor path (floats raise ``TypeError``).
+        :func:`torchrow.core.io.check_color` as in the tensor path (floats raise ``TypeError``).
 
     Returns
     -------

@@ -7,9 +7,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..params import Params
-from ..results import HoughLine, Row
-from ..shared import hough_trig, hypothesis_table, subsample_key
+from torchrow.core.params import Params
+from torchrow.core.results import HoughLine, Row
+from torchrow.core.tables import hough_trig, hypothesis_table, subsample_key
 
 __all__ = ["RowFit", "band_points", "track_band_points", "subsample", "score_hypotheses", "refit", "fit_row",
            "fit_tracked_row", "validate_rows"]

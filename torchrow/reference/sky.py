@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..params import Params
+from torchrow.core.params import Params
 
 __all__ = ["gray", "horizon_mask", "column_median", "sky_mask", "sky_row"]
 

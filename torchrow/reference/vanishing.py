@@ -7,10 +7,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..params import Params
-from ..results import HoughLine
-from ..shared import hough_trig
-from .hough import HoughState, extract_line
+from torchrow.core.params import Params
+from torchrow.core.results import HoughLine
+from torchrow.core.tables import hough_trig
+from torchrow.reference.hough import HoughState, extract_line
 
 __all__ = ["VPSolution", "vanishing_point", "LineSearch", "find_lines"]
 

@@ -10,8 +10,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..params import Params
-from ..shared import rgb_to_lab
+from torchrow.core.params import Params
+from torchrow.core.tables import rgb_to_lab
 
 __all__ = ["raw_mask", "remove_bushy", "density", "hough_input", "adapt_k", "raw_fraction"]
 

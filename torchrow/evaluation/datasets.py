@@ -275,8 +275,8 @@ class CRBD:
 
     # --- content -----------------------------------------------------------------------
     def image(self, i: int) -> np.ndarray:
-        """Image ``i`` as ``uint8 (H, W, 3)`` RGB (:func:`torchrow.io.load_image`)."""
-        from .io import load_image
+        """Image ``i`` as ``uint8 (H, W, 3)`` RGB (:func:`torchrow.core.io.load_image`)."""
+        from torchrow.core.io import load_image
 
         return load_image(self.image_path(i))
 

@@ -11,13 +11,13 @@ from typing import Sequence
 
 import numpy as np
 
-from .datasets import CRBD
-from .io import ImageError
-from .metrics import crda, crda_official, crda_thesis, summarize
-from .params import Params
-from .results import ImageResult
-from .runner import _progress, run
-from .sink import RecordSink, read_records
+from torchrow.apps.sink import RecordSink, read_records
+from torchrow.core.io import ImageError
+from torchrow.core.params import Params
+from torchrow.core.results import ImageResult
+from torchrow.engines.runner import _progress, run
+from torchrow.evaluation.datasets import CRBD
+from torchrow.evaluation.metrics import crda, crda_official, crda_thesis, summarize
 
 __all__ = ["EvalRow", "EvalReport", "evaluate", "score_tmg_files", "SUBSETS"]
 
@@ -123,7 +123,7 @@ def plot_cumulative(series: Sequence[tuple[str, Sequence[float]]], path: Path, t
 
 def _load_crbd(path: str, width: int) -> np.ndarray:
     """A CRBD image; its width must be the working width (the ground truth is in its pixels)."""
-    from .io import load_image
+    from torchrow.core.io import load_image
 
     rgb = load_image(path)
     if rgb.shape[1] != width:
@@ -143,7 +143,7 @@ def evaluate(crbd: CRBD, indices: Sequence[int] | None = None, impl: str = "tens
     size for the tensor path. ``sink``: records are streamed to it as they come; images
     whose record it already holds (``RecordSink(..., resume=True)``) are not detected again
     but scored from that record (``seconds`` NaN). ``engine="ray"`` detects on a Ray cluster
-    (:func:`torchrow.distributed.run`, ``address``, ``workers``).
+    (:func:`torchrow.engines.distributed.run`, ``address``, ``workers``).
     """
     import functools
 
@@ -157,7 +157,7 @@ def evaluate(crbd: CRBD, indices: Sequence[int] | None = None, impl: str = "tens
     items = [(crbd.names[i], functools.partial(_load_crbd, str(crbd.image_path(i)), params.image_width))
              for i in todo]
     if engine == "ray":
-        from .distributed import run as ray_run
+        from torchrow.engines.distributed import run as ray_run
 
         stream = ray_run(items, impl, params, batch_size, device, progress, desc=f"eval ({impl}, ray)",
                          workers=workers, address=address)

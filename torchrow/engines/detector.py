@@ -2,7 +2,7 @@
 
 :class:`CropRowDetector` runs ALGORITHM.md sections 1-7 on ``uint8 (B, 3, H, W)`` batches and
 returns a :class:`BatchResult` of padded tensors with masks; :meth:`BatchResult.results`
-turns it into the same per-image :class:`~torchrow.results.ImageResult` records as
+turns it into the same per-image :class:`~torchrow.core.results.ImageResult` records as
 :func:`torchrow.reference.detect`.
 """
 
@@ -19,16 +19,16 @@ import numpy as np
 import torch
 from torch import nn
 
-from .functional import color as fcolor
-from .functional import lattice as flattice
-from .functional import ransac as fransac
-from .functional import sky as fsky
-from .functional import vanishing as fvan
-from .functional import vegetation as fveg
-from .functional._checks import check_device, check_images
-from .io import check_color, check_working_size, load_image, resize_to_width, to_rgb8
-from .params import Params
-from .results import REASONS, STATUSES, HoughLine, ImageResult, Row
+from torchrow.core.io import check_color, check_working_size, load_image, resize_to_width, to_rgb8
+from torchrow.core.params import Params
+from torchrow.core.results import REASONS, STATUSES, HoughLine, ImageResult, Row
+from torchrow.functional import color as fcolor
+from torchrow.functional import lattice as flattice
+from torchrow.functional import ransac as fransac
+from torchrow.functional import sky as fsky
+from torchrow.functional import vanishing as fvan
+from torchrow.functional import vegetation as fveg
+from torchrow.functional._checks import check_device, check_images
 
 __all__ = ["BatchResult", "CropRowDetector", "STATUS_CODES"]
 
@@ -39,12 +39,12 @@ STATUS_CODES = {s: i for i, s in enumerate(STATUSES)}
 class BatchResult:
     """Detections of a batch of ``B`` images of one working size ``width x height``.
 
-    Per image: ``status`` int64 (code into :data:`torchrow.results.STATUSES`), ``sky``,
+    Per image: ``status`` int64 (code into :data:`torchrow.core.results.STATUSES`), ``sky``,
     ``k``, ``n_rows`` int64, ``bushy`` bool, ``veg_color`` uint8 ``(B, 3)``, ``vp`` float64
     ``(B, 2)`` with ``has_vp``. Hough lines ``hough_*`` ``(B, n_rows)`` with ``hough_valid``;
     dropped outliers ``out_*`` ``(B, O)`` with ``out_valid``; rows ``row_a``/``row_b`` float64
     ``(B, n_rows)`` (``x = a*y + b``), ``row_valid``, ``row_reason`` (code into
-    :data:`torchrow.results.REASONS`), ``row_hypothesis``, ``row_present``.
+    :data:`torchrow.core.results.REASONS`), ``row_hypothesis``, ``row_present``.
     ``timings`` holds seconds per stage when the detector was asked to profile.
     """
 
@@ -115,7 +115,7 @@ class BatchResult:
 
 
 def _color_override(color: object, batch: int, device: torch.device) -> torch.Tensor:
-    """Validate a given vegetation colour (:func:`torchrow.io.check_color`, the reference's
+    """Validate a given vegetation colour (:func:`torchrow.core.io.check_color`, the reference's
     rule: integers in [0, 255], any integer dtype or a list) and broadcast it to ``uint8 (B, 3)``."""
     a = check_color(color, batched=True)
     if a.shape == (3,):
@@ -215,8 +215,8 @@ class CropRowDetector(nn.Module):
 
     def _warm(self, height: int, width: int) -> None:
         """Build the shared constant tables once, before worker threads read them."""
-        from .functional import hough as fhough
-        from .shared import lab_table_torch
+        from torchrow.core.tables import lab_table_torch
+        from torchrow.functional import hough as fhough
         fhough.trig(self.params, self.device)
         fhough.rho_table(height, width, self.params, self.device)
         fransac._table(self.params, self.device)
@@ -305,13 +305,13 @@ class CropRowDetector(nn.Module):
         """Detect rows in a ``uint8 (B, 3, H, W)`` tensor, or a list of same-sized arrays or paths.
 
         Lists are converted and resized as :func:`torchrow.reference.detect` does. Inputs of
-        different working sizes go through :func:`torchrow.runner.run`, which groups them.
+        different working sizes go through :func:`torchrow.engines.runner.run`, which groups them.
         """
         if isinstance(images, torch.Tensor):
             return self(images)
         arrays = [self.prepare(im) for im in images]
         if len({a.shape for a in arrays}) > 1:
-            raise ValueError("images of different working sizes: use torchrow.runner.run, which groups them")
+            raise ValueError("images of different working sizes: use torchrow.engines.runner.run, which groups them")
         if not arrays:
             raise ValueError("detect got an empty list")
         return self(torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).contiguous())

@@ -34,9 +34,9 @@ from typing import Mapping, Sequence
 import numpy as np
 import torch
 
-from .datasets import CRBD, GroundTruth
-from .nn import SoftVegetationMask
-from .params import Params
+from torchrow.core.params import Params
+from torchrow.evaluation.datasets import CRBD, GroundTruth
+from torchrow.nn import SoftVegetationMask
 
 __all__ = ["TrainingSet", "FitResult", "ColorComparison", "row_band_target", "load_training_set",
            "band_loss", "mask_precision", "fit_vegetation_color", "compare_colors"]
@@ -226,8 +226,8 @@ def fit_vegetation_color(images: torch.Tensor, targets: torch.Tensor, regions: t
     the soft box and its gradient only: 25-55 ms per 320x240 image and step with the
     defaults, measured on a shared (busy) 2-core machine.
     """
-    from .functional.color import vegetation_color
-    from .functional.vegetation import lab as lab_of
+    from torchrow.functional.color import vegetation_color
+    from torchrow.functional.vegetation import lab as lab_of
 
     p = params or Params()
     if not (isinstance(images, torch.Tensor) and images.dtype == torch.uint8 and images.dim() == 4
@@ -321,9 +321,9 @@ def compare_colors(crbd: CRBD, indices: Sequence[int], colors: Mapping[str, Sequ
     batch_size : int
         Images per detector call.
     """
-    from .detector import CropRowDetector
-    from .functional.vegetation import raw_mask
-    from .metrics import crda_official
+    from torchrow.engines.detector import CropRowDetector
+    from torchrow.evaluation.metrics import crda_official
+    from torchrow.functional.vegetation import raw_mask
 
     p = params or Params()
     det = CropRowDetector(p)

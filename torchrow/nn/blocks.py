@@ -4,7 +4,7 @@ The hard pipeline (:mod:`torchrow.functional`, :class:`torchrow.CropRowDetector`
 discrete decisions (an inclusive LAB box, integer votes, picked peaks) and has no useful
 gradient. The blocks here are smooth counterparts of three of its stages, written so that a
 loss on their outputs can be minimised by gradient descent (for instance to fit the
-vegetation colour to ground truth, :mod:`torchrow.calibrate`). Each is a typed functional op
+vegetation colour to ground truth, :mod:`torchrow.nn.calibrate`). Each is a typed functional op
 plus a thin :class:`torch.nn.Module` holding its parameters, kornia style:
 
 * :class:`SoftVegetationMask`: float ``(B, 3, H, W)`` RGB in [0, 1] -> float ``(B, H, W)``
@@ -30,8 +30,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from .params import Params
-from .shared import rho_index_table, rho_offset
+from torchrow.core.params import Params
+from torchrow.core.tables import rho_index_table, rho_offset
 
 __all__ = [
     "soft_lab_box",
@@ -314,7 +314,7 @@ class SoftVegetationMask(nn.Module):
         sky : torch.Tensor, optional
             Integer ``(B,)`` horizon rows (default: no sky, 0).
         """
-        from .functional.vegetation import raw_mask
+        from torchrow.functional.vegetation import raw_mask
 
         if not isinstance(images, torch.Tensor) or images.dtype != torch.uint8:
             raise ValueError(f"images: expected a uint8 tensor (B, 3, H, W) RGB, got {_describe(images)}")
@@ -388,7 +388,7 @@ class HoughVoting(nn.Module):
     """Differentiable Hough accumulator of per-pixel weights (ALGORITHM.md section 5).
 
     Every pixel adds its weight to the cells ``(j, rint(x cos_j + y sin_j) + D)`` read from the
-    same shared table as the hard path (:func:`torchrow.shared.rho_index_table`), so with 0/1
+    same shared table as the hard path (:func:`torchrow.core.tables.rho_index_table`), so with 0/1
     weights the result equals :func:`torchrow.functional.hough.votes` exactly (as floats).
 
     Parameters

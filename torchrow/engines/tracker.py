@@ -18,14 +18,14 @@ import numpy as np
 import torch
 from torch import nn
 
-from .detector import BatchResult
-from .functional import tracker as ftrack
-from .functional._checks import check_device, check_images
-from .functional.tracker import TrackerState, TrackStep
-from .io import check_working_size, load_image, resize_to_width, to_rgb8
-from .params import Params
-from .steering import FrameResult
-from .video import load_item
+from torchrow.apps.video import load_item
+from torchrow.core.io import check_working_size, load_image, resize_to_width, to_rgb8
+from torchrow.core.params import Params
+from torchrow.core.steering import FrameResult
+from torchrow.engines.detector import BatchResult
+from torchrow.functional import tracker as ftrack
+from torchrow.functional._checks import check_device, check_images
+from torchrow.functional.tracker import TrackerState, TrackStep
 
 __all__ = ["Tracker", "TrackerState", "TrackStep"]
 
@@ -135,9 +135,9 @@ class Tracker(nn.Module):
         """``fn(group)`` for every group, concurrently on single-threaded workers."""
         if len(groups) == 1:
             return [fn(groups[0])]
-        from .functional import hough as fhough
-        from .functional import ransac as fransac
-        from .shared import lab_table_torch
+        from torchrow.core.tables import lab_table_torch
+        from torchrow.functional import hough as fhough
+        from torchrow.functional import ransac as fransac
 
         fhough.trig(self.params, self.device)  # shared constants exist before the threads read them
         fransac._table(self.params, self.device)
@@ -168,7 +168,7 @@ class Tracker(nn.Module):
         groups = self._groups(veg.shape[0])
         if veg.shape[0] >= 2 and len(groups) > 1:
             # rho_table is per working size: build it once, outside the threads
-            from .functional import hough as fhough
+            from torchrow.functional import hough as fhough
             fhough.rho_table(veg.shape[1], veg.shape[2], self.params, self.device)
         parts = self._parallel(lambda g: ftrack.advance(veg[g], k[g], bushy[g], act[g], state.select(g), self.params),
                                groups)
@@ -257,12 +257,12 @@ class Tracker(nn.Module):
         ----------
         sequences : sequence of iterables
             One iterable of items per sequence (frames or ``(name, frame)``, see
-            :mod:`torchrow.video`); lengths may differ.
+            :mod:`torchrow.apps.video`); lengths may differ.
         sources : sequence of str, optional
             Sequence names stored in the records.
         size : (int, int), optional
             Working ``(H, W)`` of the batch (e.g. the sequences'
-            :meth:`torchrow.video.FrameSource.working_size`); default: the first loaded
+            :meth:`torchrow.apps.video.FrameSource.working_size`); default: the first loaded
             frame's.
 
         Yields

@@ -2,7 +2,7 @@
 
 A *sequence* handed to a tracker's ``track``/``track_iter`` is any iterable of *items*. An
 item is a frame or ``(name, frame)``; a frame is an ``(H, W, 3)`` uint8 RGB array, a
-callable returning one (it may raise :class:`~torchrow.io.ImageError` or ``OSError``), or
+callable returning one (it may raise :class:`~torchrow.core.io.ImageError` or ``OSError``), or
 ``None`` (unreadable). Unreadable frames become ``error`` records and the tracker skips them.
 """
 
@@ -14,7 +14,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from .io import IMAGE_EXTENSIONS, ImageError, header_size, load_image, resize_to_width, to_rgb8, working_size
+from torchrow.core.io import IMAGE_EXTENSIONS, ImageError, header_size, load_image, resize_to_width, to_rgb8, working_size
 
 __all__ = ["LoadedFrame", "load_item", "VIDEO_EXTENSIONS", "FrameSource", "open_source", "VideoWriter"]
 
@@ -130,7 +130,7 @@ class FrameSource:
 
 def open_source(path: str | Path, topic: str | None = None):
     """A folder holding image files, a video file readable by OpenCV, or a ROS bag
-    (:func:`torchrow.rosbag.open_bag`: a rosbag2 folder or a ROS 1 ``.bag``; ``topic``
+    (:func:`torchrow.apps.rosbag.open_bag`: a rosbag2 folder or a ROS 1 ``.bag``; ``topic``
     chooses its image topic, by default the only one).
 
     Raises
@@ -139,9 +139,9 @@ def open_source(path: str | Path, topic: str | None = None):
         If the path does not exist.
     ImageError
         If a folder holds no images or a video cannot be opened (a bag:
-        :class:`torchrow.rosbag.BagError`, a subclass).
+        :class:`torchrow.apps.rosbag.BagError`, a subclass).
     """
-    from .rosbag import is_bag, open_bag
+    from torchrow.apps.rosbag import is_bag, open_bag
 
     p = Path(path)
     if is_bag(p):
@@ -294,13 +294,13 @@ LATERAL = (255, 255, 0)
 
 
 def draw_frame(rgb: np.ndarray, result, scale: int = 2) -> np.ndarray:
-    """Annotated frame: :func:`torchrow.annotate.draw_result` plus a Hough-frame marker, the
+    """Annotated frame: :func:`torchrow.apps.annotate.draw_result` plus a Hough-frame marker, the
     steering signals as text (only those the frame has: ``heading_rad`` needs ``--fov``), the
     central row's bottom x with the lateral offset drawn as an arrow from the image centre, and
     a legend strip below. ``(H, W, 3)`` uint8 -> ``(scale*H + legend, scale*W, 3)``."""
     import cv2
 
-    from .annotate import draw_result, legend, legend_entries
+    from torchrow.apps.annotate import draw_result, legend, legend_entries
 
     img = draw_result(rgb, result, scale, with_legend=False)
     h, w = img.shape[:2]

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .params import Params
+from torchrow.core.params import Params
 
 __all__ = [
     "CacheWarning",

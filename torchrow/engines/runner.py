@@ -2,7 +2,7 @@
 
 ``impl="reference"`` calls :func:`torchrow.reference.detect` image by image;
 ``impl="tensor"`` batches images of the same working size through
-:class:`torchrow.detector.CropRowDetector`. Both yield ``(index, working rgb or None, result,
+:class:`torchrow.engines.detector.CropRowDetector`. Both yield ``(index, working rgb or None, result,
 seconds)`` in input order (``seconds``: detection time of the image; for a batch, its wall
 time divided by its size); an input that cannot be loaded, or a failure inside detection,
 yields an ``error`` result and the run goes on.
@@ -24,10 +24,10 @@ from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from .io import ImageError
-from .params import Params
-from .results import ImageResult
-from .steering import FrameResult
+from torchrow.core.io import ImageError
+from torchrow.core.params import Params
+from torchrow.core.results import ImageResult
+from torchrow.core.steering import FrameResult
 
 __all__ = ["IMPLS", "run", "default_window", "track", "track_batches", "source_size"]
 
@@ -37,7 +37,7 @@ Loader = Callable[[], np.ndarray]
 
 
 def _progress(total: int, desc: str, enabled: bool):
-    from .progress import progress
+    from torchrow.apps.progress import progress
 
     return progress(total, desc, enabled, unit="image")
 
@@ -63,10 +63,10 @@ def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Param
     ``items`` may be a lazy iterable (read one item at a time; ``total`` sizes the progress
     bar when it has no ``len``). Results come back in input order, each as soon as every
     earlier input's result is out; ``window`` bounds the images held (module docstring). ``impl="onnx"`` runs the exported
-    model ``model`` (:mod:`torchrow.export`) in onnxruntime, in batches of the model's static
+    model ``model`` (:mod:`torchrow.engines.export`) in onnxruntime, in batches of the model's static
     batch size (the last one padded; ``batch_size`` is ignored) with the model's parameters;
     images of another working size than the model's get an ``error`` record. ``detector``: an
-    already built :class:`~torchrow.detector.CropRowDetector` (or ``OnnxDetector``) to use
+    already built :class:`~torchrow.engines.detector.CropRowDetector` (or ``OnnxDetector``) to use
     instead of a new one (the Ray engine's workers keep one each).
     """
     params = params or Params()
@@ -76,8 +76,8 @@ def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Param
         total = len(items)  # type: ignore[arg-type]
     if impl == "onnx":
         if model is None:
-            raise ValueError("impl='onnx' needs model= (an ONNX file written by torchrow.export.to_onnx)")
-        from .export import OnnxDetector
+            raise ValueError("impl='onnx' needs model= (an ONNX file written by torchrow.engines.export.to_onnx)")
+        from torchrow.engines.export import OnnxDetector
 
         det = detector if detector is not None else OnnxDetector(model)
         batch_size = det.batch
@@ -89,7 +89,7 @@ def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Param
     bar = _progress(total, desc, progress)
     try:
         if impl == "reference":
-            from .reference import detect
+            from torchrow.reference import detect
 
             for i, (name, loader) in enumerate(items):
                 rgb, err = _load(name, loader)
@@ -110,7 +110,7 @@ def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Param
 def _run_tensor(items, params, batch_size, window, device, bar, det=None):
     import torch
 
-    from .detector import CropRowDetector
+    from torchrow.engines.detector import CropRowDetector
 
     if det is None:
         det = CropRowDetector(params, device=device)
@@ -164,10 +164,10 @@ def _run_tensor(items, params, batch_size, window, device, bar, det=None):
 
 
 def source_size(src, params: Params) -> tuple[int, int] | None:
-    """A sequence's working ``(H, W)``: :meth:`torchrow.video.FrameSource.working_size` (the
+    """A sequence's working ``(H, W)``: :meth:`torchrow.apps.video.FrameSource.working_size` (the
     size most of its frames have) where the source has one, else that of its first readable
     frame; ``None`` if no frame is readable."""
-    from .video import load_item
+    from torchrow.apps.video import load_item
 
     if hasattr(src, "working_size"):
         return src.working_size(params.video_width, params.max_pixels)
@@ -181,15 +181,15 @@ def source_size(src, params: Params) -> tuple[int, int] | None:
 def track(sources: Sequence, names: Sequence[str], impl: str = "tensor", params: Params | None = None,
           batch_size: int = 8, device: str | None = None, hfov_deg: float | None = None,
           workers: int | None = None, onnx=None) -> Iterator[tuple[int, FrameResult, np.ndarray | None]]:
-    """Track frame sources (:func:`torchrow.video.open_source`); yields ``(source index,
+    """Track frame sources (:func:`torchrow.apps.video.open_source`); yields ``(source index,
     FrameResult, working RGB or None)``.
 
     ``impl="reference"`` tracks the sources one after the other; ``"tensor"`` in batches of
     up to ``batch_size`` sources of one working size (lock-step order within a batch).
     Frames that carry a ``stamp_ns`` (ROS bag messages) pass it to their result. Results
-    stream as the trackers make them. ``workers``: :class:`~torchrow.tracker.Tracker`'s
+    stream as the trackers make them. ``workers``: :class:`~torchrow.engines.tracker.Tracker`'s
     (default: torch's thread count on a CPU). ``impl="onnx"`` runs ``onnx``, an
-    :class:`~torchrow.export.OnnxTracker`, on batches of its model's batch size.
+    :class:`~torchrow.engines.export.OnnxTracker`, on batches of its model's batch size.
     """
     params = params or Params()
     stamps: dict[tuple[int, int], int] = {}
@@ -206,7 +206,7 @@ def track(sources: Sequence, names: Sequence[str], impl: str = "tensor", params:
         return res
 
     if impl == "reference":
-        from .reference import Tracker as RefTracker
+        from torchrow.reference import Tracker as RefTracker
 
         ref = RefTracker(params, hfov_deg=hfov_deg)
         for b in range(len(sources)):
@@ -220,7 +220,7 @@ def track(sources: Sequence, names: Sequence[str], impl: str = "tensor", params:
             for k, res, rgb in onnx.track_iter([tapped(b) for b in batch], [names[b] for b in batch]):
                 yield batch[k], stamped(batch[k], res), rgb
         return
-    from .tracker import Tracker
+    from torchrow.engines.tracker import Tracker
 
     tracker = Tracker(params, device=device, hfov_deg=hfov_deg, workers=workers)
     sizes: dict[int, tuple[int, int] | None] = {}

@@ -9,7 +9,7 @@ docstring describes the image-mode detector.
 scatter-free formulation of ALGORITHM.md sections 1 and 3-7) with torch's dynamo-based
 exporter (``torch.onnx.export(..., dynamo=True)``, opset 18 by default) for one working
 size and batch size. :class:`OnnxDetector` runs such a model in onnxruntime and returns the
-same :class:`~torchrow.detector.BatchResult` / records as :class:`~torchrow.detector.CropRowDetector`.
+same :class:`~torchrow.engines.detector.BatchResult` / records as :class:`~torchrow.engines.detector.CropRowDetector`.
 
 What runs where:
 
@@ -43,8 +43,8 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from .detector import STATUS_CODES, BatchResult
-from .params import Params
+from torchrow.core.params import Params
+from torchrow.engines.detector import STATUS_CODES, BatchResult
 
 __all__ = ["to_onnx", "OnnxDetector", "OnnxTracker", "step_differences", "float64_python_constants", "legalize",
            "op_counts", "model_info",
@@ -222,7 +222,7 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
 
     import onnx
 
-    from .functional import static
+    from torchrow.functional import static
 
     _check_shape(height, width, batch, opset)
     params = params or Params()
@@ -235,7 +235,7 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         if width != params.video_width:
             raise ValueError(f"the tracker step works at params.video_width = {params.video_width} px, "
                              f"got width {width}")
-        from .functional.tracker import TrackerState
+        from torchrow.functional.tracker import TrackerState
 
         module = static.StaticTrackerStep(height, width, params, control_flow=control_flow,
                                           scatter_free=scatter_free).eval()
@@ -467,10 +467,10 @@ class OnnxDetector:
         """Detect rows in ``uint8 (N, 3, H, W)`` images (any ``N``; run in batches of the
         model's ``B``, the last one padded). ``veg_color`` ``uint8 (N, 3)`` or ``(3,)``
         replaces the per-image colour clustering, as for :class:`CropRowDetector`."""
-        from .detector import _color_override
-        from .functional import color as fcolor
-        from .functional._checks import check_images
-        from .shared import lab_table_torch, pack_rgb
+        from torchrow.core.tables import lab_table_torch, pack_rgb
+        from torchrow.engines.detector import _color_override
+        from torchrow.functional import color as fcolor
+        from torchrow.functional._checks import check_images
 
         check_images(images)
         n, _, h, w = images.shape
@@ -497,7 +497,7 @@ class OnnxDetector:
         return _concat(parts)
 
     def _result(self, outs: list[torch.Tensor], color: torch.Tensor) -> BatchResult:
-        from .functional.static import GRAPH_OUTPUTS, finish_rows
+        from torchrow.functional.static import GRAPH_OUTPUTS, finish_rows
 
         o = dict(zip(GRAPH_OUTPUTS, outs))
         p = self.params
@@ -552,7 +552,7 @@ class OnnxTracker:
 
     Same interface and results as :class:`torchrow.Tracker` for ``B`` sequences in
     lock-step, ``B`` the model's static batch: :meth:`forward` (tensors) and :meth:`step`
-    (arrays in, :class:`~torchrow.steering.FrameResult` records out). The host computes only
+    (arrays in, :class:`~torchrow.core.steering.FrameResult` records out). The host computes only
     the vegetation colour of each sequence's frame 0 (section 2) and its LAB; everything
     else, frame 0's sky and ``info0`` included, runs in the graph.
 
@@ -566,7 +566,7 @@ class OnnxTracker:
     """
 
     def __init__(self, model_path: str | Path, hfov_deg: float | None = None, threads: int | None = None) -> None:
-        from .tracker import Tracker
+        from torchrow.engines.tracker import Tracker
 
         _open(self, model_path, "tracker", threads)
         self._records = Tracker(self.params, hfov_deg=hfov_deg)  # records and frame loading only
@@ -574,11 +574,11 @@ class OnnxTracker:
     def forward(self, frames: torch.Tensor, state=None, active: torch.Tensor | None = None):
         """One lock-step frame: ``uint8 (B, 3, H, W)`` frames at working size ->
         ``(TrackStep, TrackerState)``, as :meth:`torchrow.Tracker.forward`."""
-        from .functional import color as fcolor
-        from .functional._checks import check_images
-        from .functional.static import TRACKER_STATE, TRACKER_STEP
-        from .functional.tracker import TrackerState, TrackStep
-        from .shared import lab_table_torch, pack_rgb
+        from torchrow.core.tables import lab_table_torch, pack_rgb
+        from torchrow.functional import color as fcolor
+        from torchrow.functional._checks import check_images
+        from torchrow.functional.static import TRACKER_STATE, TRACKER_STEP
+        from torchrow.functional.tracker import TrackerState, TrackStep
 
         check_images(frames, "frames")
         b, _, h, w = frames.shape
@@ -620,8 +620,8 @@ class OnnxTracker:
         RGB or None)``; unreadable frames and frames of another working size than the
         model's get ``error`` records. Slots without a sequence, or whose sequence has ended
         or has no readable frame now, are fed as inactive (they keep their state)."""
-        from .steering import FrameResult
-        from .video import load_item
+        from torchrow.apps.video import load_item
+        from torchrow.core.steering import FrameResult
 
         n = len(sequences)
         if n > self.batch:
@@ -681,7 +681,7 @@ def step_differences(ref, got, tol: float = 1e-9) -> list[str]:
     """
     import dataclasses
 
-    from .functional.tracker import TrackStep
+    from torchrow.functional.tracker import TrackStep
 
     out = []
     act = ref.active if isinstance(ref, TrackStep) else torch.ones(len(ref.sky), dtype=torch.bool)
@@ -723,12 +723,12 @@ def export_and_time(path: str | Path, **kwargs) -> tuple[Path, float]:
 class _Lab(torch.nn.Module):
     def __init__(self) -> None:
         super().__init__()
-        from .functional.static import _linear_lut
+        from torchrow.functional.static import _linear_lut
 
         self.register_buffer("lut", torch.from_numpy(_linear_lut().copy()), persistent=False)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        from .functional.static import lab
+        from torchrow.functional.static import lab
 
         return lab(images, self.lut)
 
@@ -738,7 +738,7 @@ def check_lab(k: Sequence[float] | None = None, params: Params | None = None, pr
 
     Exports the graph's LAB (:func:`torchrow.functional.static.lab`) alone, runs every
     8-bit colour through onnxruntime (256 slabs of 65536 colours) and compares with
-    :func:`torchrow.shared.lab_table` bit for bit. For every colour whose value differs in a
+    :func:`torchrow.core.tables.lab_table` bit for bit. For every colour whose value differs in a
     channel, it then checks whether any vegetation box bound ``c - k`` or ``c + k`` (``c`` any
     of the 2**24 table values of that channel, ``k`` in ``k``, default ``params.veg_tol``)
     lies between the two values (inclusive): only then could a box decision of
@@ -755,7 +755,7 @@ def check_lab(k: Sequence[float] | None = None, params: Params | None = None, pr
     import tempfile
     import warnings
 
-    from .shared import lab_table
+    from torchrow.core.tables import lab_table
 
     ort = _ort()
     params = params or Params()

@@ -6,10 +6,10 @@ message order (log time):
 
 * ``sensor_msgs/Image`` with encoding ``rgb8``, ``bgr8``, ``rgba8``, ``bgra8``, ``mono8`` or
   ``mono16`` (rows may be padded: ``step`` is honoured; ``is_bigendian`` for ``mono16``),
-  converted by :func:`torchrow.io.to_rgb8` (alpha dropped, grey replicated, 16-bit
+  converted by :func:`torchrow.core.io.to_rgb8` (alpha dropped, grey replicated, 16-bit
   ``(v + 128) // 257``); any other encoding makes that frame an ``error`` record;
 * ``sensor_msgs/CompressedImage`` whose data OpenCV decodes (``jpeg``, ``png``), decoded as
-  :func:`torchrow.io.load_image` decodes a file, so a bag of a folder's JPEG files gives
+  :func:`torchrow.core.io.load_image` decodes a file, so a bag of a folder's JPEG files gives
   the folder's pixels exactly.
 
 Each frame carries the message's header stamp, ``stamp_ns = sec * 10**9 + nanosec``, which
@@ -24,7 +24,7 @@ from typing import Iterator
 
 import numpy as np
 
-from .io import ImageError, decode_image, resize_to_width, to_rgb8
+from torchrow.core.io import ImageError, decode_image, resize_to_width, to_rgb8
 
 __all__ = ["BagError", "BagFrame", "BagSource", "ENCODINGS", "IMAGE_TYPES", "is_bag", "open_bag"]
 
@@ -99,7 +99,7 @@ class BagFrame:
 @dataclass
 class BagSource:
     """One image topic of a bag as a frame source (the interface of
-    :class:`torchrow.video.FrameSource`): iterating yields ``(name, BagFrame)`` items named
+    :class:`torchrow.apps.video.FrameSource`): iterating yields ``(name, BagFrame)`` items named
     by the frame number, ``length`` is the topic's message count."""
 
     path: Path

@@ -12,9 +12,9 @@ from typing import Sequence
 
 import numpy as np
 
-from .datasets import ENV_VAR, GroundTruth
-from .params import Params
-from .results import ImageResult
+from torchrow.core.params import Params
+from torchrow.core.results import ImageResult
+from torchrow.evaluation.datasets import ENV_VAR, GroundTruth
 
 __all__ = ["find_data_root", "gt_polylines", "stage_pictures", "show_grid", "result_summary"]
 
@@ -46,7 +46,7 @@ def find_data_root(start: str | os.PathLike[str] | None = None) -> Path:
 
 def gt_polylines(gt: GroundTruth, width: int, shifts: Sequence[int] = range(-4, 5)) -> list[tuple[np.ndarray, np.ndarray]]:
     """Ground-truth crop rows as ``(ys, xs)`` polylines (image rows ``v0 .. H-1``), for
-    :func:`torchrow.annotate.draw_result`; only the parts inside ``[0, width)`` are kept."""
+    :func:`torchrow.apps.annotate.draw_result`; only the parts inside ``[0, width)`` are kept."""
     ys = np.arange(gt.v0, gt.height, dtype=np.float64)
     out = []
     for s in shifts:
@@ -77,17 +77,17 @@ def stage_pictures(rgb: np.ndarray, params: Params | None = None, gt: GroundTrut
         ``input`` (H, W, 3) with the horizon drawn, ``colour`` (H, W, 3) the vegetation colour
         as a flat swatch, ``raw mask`` / ``vegetation`` / ``hough input`` (H, W) bool,
         ``hough votes`` (n_theta, 2D+1) float (votes of the Hough input, angle down, rho
-        across), ``detection`` (2H + legend, 2W, 3) uint8 (:func:`torchrow.annotate.draw_result`), and
-        ``result`` the :class:`~torchrow.results.ImageResult`.
+        across), ``detection`` (2H + legend, 2W, 3) uint8 (:func:`torchrow.apps.annotate.draw_result`), and
+        ``result`` the :class:`~torchrow.core.results.ImageResult`.
     """
     import torch
 
-    from .annotate import draw_result
-    from .detector import CropRowDetector
-    from .functional import color as fcolor
-    from .functional import hough as fhough
-    from .functional import sky as fsky
-    from .functional import vegetation as fveg
+    from torchrow.apps.annotate import draw_result
+    from torchrow.engines.detector import CropRowDetector
+    from torchrow.functional import color as fcolor
+    from torchrow.functional import hough as fhough
+    from torchrow.functional import sky as fsky
+    from torchrow.functional import vegetation as fveg
 
     p = params or Params()
     x = torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1).unsqueeze(0).contiguous()

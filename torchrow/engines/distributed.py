@@ -1,23 +1,23 @@
 """The Ray engine: ``torchrow detect|eval|video --engine ray`` and its Python entry point.
 
 Needs ``pip install 'torchrow[ray]'`` (Ray Data). Records are identical to the local
-engine's (:mod:`torchrow.runner`): the workers run the same code on the same inputs, and an
+engine's (:mod:`torchrow.engines.runner`): the workers run the same code on the same inputs, and an
 image's or a sequence's result never depends on what else is in its batch.
 
-* **Images** (:func:`run`, a drop-in for :func:`torchrow.runner.run`): the inputs become a
+* **Images** (:func:`run`, a drop-in for :func:`torchrow.engines.runner.run`): the inputs become a
   Ray dataset of ``(index, name, pickled loader)`` rows; ``map_batches`` runs them on an
   actor pool of ``workers`` actors, each holding one
-  :class:`~torchrow.detector.CropRowDetector` (built once, ``cpus_per_worker`` torch
+  :class:`~torchrow.engines.detector.CropRowDetector` (built once, ``cpus_per_worker`` torch
   threads). Inside a batch of ``batch_size`` rows the images are grouped by working size
-  (:func:`torchrow.runner.run`), so mixed sizes cost extra calls, never wrong results.
+  (:func:`torchrow.engines.runner.run`), so mixed sizes cost extra calls, never wrong results.
   Loaders run *on the workers*: they must be picklable (``functools.partial(load_image,
-  path, width)``, a :class:`torchrow.rosbag.BagFrame`, a lambda over a path) and the paths
+  path, width)``, a :class:`torchrow.apps.rosbag.BagFrame`, a lambda over a path) and the paths
   must be readable there (one machine, a shared file system, or object storage read by the
   loader, see :func:`read_binary`). Results come back in input order
   (``preserve_order``), as Ray's streaming executor produces them.
 * **Video** (:func:`track`): one Ray task (a streaming generator) per batch of sequences
   that the local engine would track together (``batch_size`` 1: one task per sequence); it
-  opens its sources itself and runs :func:`torchrow.runner.track` on them; records of a
+  opens its sources itself and runs :func:`torchrow.engines.runner.track` on them; records of a
   sequence come back in frame order, tasks interleaved as they finish chunks.
 
 ``address``: ``None`` joins the cluster of ``RAY_ADDRESS`` if set, else starts a local one
@@ -35,8 +35,8 @@ from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from .params import Params
-from .results import ImageResult
+from torchrow.core.params import Params
+from torchrow.core.results import ImageResult
 
 __all__ = ["init", "run", "track", "read_binary", "RECORDS_PER_CHUNK"]
 
@@ -85,16 +85,16 @@ class _Detect:
         self.impl, self.params = impl, params
         self.det = None
         if impl == "tensor":
-            from .detector import CropRowDetector
+            from torchrow.engines.detector import CropRowDetector
 
             self.det = CropRowDetector(params, device=device, workers=threads)
         elif impl == "onnx":
-            from .export import OnnxDetector
+            from torchrow.engines.export import OnnxDetector
 
             self.det = OnnxDetector(model)
 
     def __call__(self, batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        from .runner import run
+        from torchrow.engines.runner import run
 
         items = [(str(n), pickle.loads(b)) for n, b in zip(batch["name"], batch["loader"])]
         bs = self.det.batch if self.impl == "onnx" else max(len(items), 1)
@@ -110,7 +110,7 @@ def run(items: Iterable[tuple[str, Callable[[], np.ndarray]]], impl: str = "tens
         model: str | None = None, total: int | None = None, workers: int | None = None,
         cpus_per_worker: int = 1, address: str | None = None
         ) -> Iterator[tuple[int, None, ImageResult, float]]:
-    """:func:`torchrow.runner.run` on a Ray cluster: yields ``(index, None, result, seconds)``
+    """:func:`torchrow.engines.runner.run` on a Ray cluster: yields ``(index, None, result, seconds)``
     in input order (no RGB comes back). ``workers``: actors in the pool (default: the
     cluster's CPUs // ``cpus_per_worker``); ``batch_size``: rows per ``map_batches`` call
     (made smaller for short runs, so that every worker gets a batch). The driver holds one
@@ -136,7 +136,7 @@ def run(items: Iterable[tuple[str, Callable[[], np.ndarray]]], impl: str = "tens
     ds = ds.map_batches(_Detect, batch_size=batch_size, batch_format="numpy", concurrency=n_workers,
                         num_cpus=cpus_per_worker, fn_constructor_kwargs=dict(
                             impl=impl, params=params, device=device, model=model, threads=cpus_per_worker))
-    from .runner import _progress
+    from torchrow.engines.runner import _progress
 
     bar = _progress(total if total is not None else len(rows), desc, progress)
     waiting: dict[int, tuple[ImageResult, float]] = {}
@@ -163,8 +163,8 @@ def _track_task(paths: list[str], topic: str | None, names: list[str], impl: str
     ``(position in the batch, record)``."""
     import torch
 
-    from .runner import track as track_local
-    from .video import open_source
+    from torchrow.apps.video import open_source
+    from torchrow.engines.runner import track as track_local
 
     torch.set_num_threads(max(1, min(workers, len(paths))))
     srcs = [open_source(p, topic=topic) for p in paths]
@@ -184,11 +184,11 @@ def track(sources: Sequence[str | Path], names: Sequence[str] | None = None, imp
           params: Params | None = None, device: str | None = None, hfov_deg: float | None = None,
           topic: str | None = None, skip: dict[int, set[int]] | None = None, batch_size: int = 8,
           workers: int | None = None, address: str | None = None) -> Iterator[tuple[int, dict]]:
-    """Track every source (folder, video file or ROS bag, :func:`torchrow.video.open_source`)
+    """Track every source (folder, video file or ROS bag, :func:`torchrow.apps.video.open_source`)
     on a Ray cluster; yields ``(source index, record)`` as records arrive (frame order within
     a source).
 
-    One Ray task per batch of :func:`torchrow.runner.track_batches` (the local engine's
+    One Ray task per batch of :func:`torchrow.engines.runner.track_batches` (the local engine's
     batches: sources of one working size, up to ``batch_size``), so that records are the
     local engine's bit for bit; each task runs its batch in groups on ``workers`` threads
     (default: this process's torch thread count, the local engine's grouping) and reserves
@@ -198,8 +198,8 @@ def track(sources: Sequence[str | Path], names: Sequence[str] | None = None, imp
     """
     import torch
 
-    from .runner import track_batches
-    from .video import open_source
+    from torchrow.apps.video import open_source
+    from torchrow.engines.runner import track_batches
 
     ray = init(address)
     params = params or Params()
@@ -226,11 +226,11 @@ def track(sources: Sequence[str | Path], names: Sequence[str] | None = None, imp
 def read_binary(uri: str | Sequence[str], width: int | None = None) -> Iterator[tuple[str, Callable[[], np.ndarray]]]:
     """Items for :func:`run` from files on any file system pyarrow knows (local paths,
     ``s3://bucket/prefix/``, ``gs://...``): each loader reads its file *on the worker*
-    (:func:`pyarrow.fs.FileSystem.from_uri`) and decodes it as :func:`torchrow.io.load_image`.
+    (:func:`pyarrow.fs.FileSystem.from_uri`) and decodes it as :func:`torchrow.core.io.load_image`.
     A folder URI lists its image files (sorted)."""
     import pyarrow.fs as pafs
 
-    from .io import IMAGE_EXTENSIONS
+    from torchrow.core.io import IMAGE_EXTENSIONS
 
     uris = [uri] if isinstance(uri, str) else list(uri)
     for u in uris:
@@ -254,7 +254,7 @@ class _RemoteFile:
         self.uri, self.width = uri, width
 
     def __call__(self) -> np.ndarray:
-        from .io import ImageError, decode_image
+        from torchrow.core.io import ImageError, decode_image
 
         if "://" in self.uri:
             import pyarrow.fs as pafs
@@ -266,6 +266,6 @@ class _RemoteFile:
             except OSError as exc:
                 raise ImageError(f"cannot read {self.uri}: {exc}") from None
             return decode_image(data, self.width, what=self.uri)
-        from .io import load_image
+        from torchrow.core.io import load_image
 
         return load_image(self.uri, self.width)

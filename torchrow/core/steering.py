@@ -3,7 +3,7 @@
 Definitions (one place; :mod:`torchrow.reference.tracker` and :mod:`torchrow.functional.tracker`
 both use them). Pixel coordinates are those of the working image (``x`` = column, ``y`` =
 row, origin at the top-left pixel); ``W``, ``H`` = working size; the image centre is
-``x = W/2``, the convention of CRBD's ground truth and of :mod:`torchrow.synthetic`.
+``x = W/2``, the convention of CRBD's ground truth and of :mod:`torchrow.evaluation.synthetic`.
 
 =================  =====================================================================
 signal             definition, unit, sign
@@ -49,7 +49,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .results import ImageResult, Row
+from torchrow.core.results import ImageResult, Row
 
 __all__ = ["FrameResult", "Steering", "steering", "focal_from_fov", "row_coverage", "confidence"]
 

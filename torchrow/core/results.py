@@ -79,7 +79,7 @@ class ImageResult:
     name: str | None = None
     error: str | None = None
     #: Image confidence (improved mode, ALGORITHM.md 11.4): mean of the rows'; NaN in faithful mode.
-    #: (Not ``confidence``: a video frame's ``confidence`` is the tracker's, see torchrow.steering.)
+    #: (Not ``confidence``: a video frame's ``confidence`` is the tracker's, see torchrow.core.steering.)
     image_confidence: float = float("nan")
 
     @property

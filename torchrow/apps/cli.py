@@ -14,9 +14,9 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from . import __version__
-from .io import IMAGE_EXTENSIONS
-from .params import Params
+from torchrow import __version__
+from torchrow.core.io import IMAGE_EXTENSIONS
+from torchrow.core.params import Params
 
 __all__ = ["main"]
 
@@ -160,8 +160,8 @@ def _check_engine(args: argparse.Namespace) -> None:
 
 
 def _open_sink(out: Path, key, resume: bool):
-    """The streaming writer of ``--out`` (torchrow.sink); ``--resume`` keeps what is there."""
-    from .sink import RecordSink, SinkError
+    """The streaming writer of ``--out`` (torchrow.apps.sink); ``--resume`` keeps what is there."""
+    from torchrow.apps.sink import RecordSink, SinkError
 
     if out.parent and not out.parent.exists():
         raise CLIError(f"output folder does not exist: {out.parent}")
@@ -178,7 +178,7 @@ def _open_sink(out: Path, key, resume: bool):
 
 def _split_bags(inputs: Sequence[str], topic: str | None) -> tuple[list[str], list]:
     """ROS bag inputs (opened, ``topic`` chosen) apart from image files and folders."""
-    from .rosbag import BagError, is_bag, open_bag
+    from torchrow.apps.rosbag import BagError, is_bag, open_bag
 
     others, bags = [], []
     for raw in inputs:
@@ -197,9 +197,9 @@ def _split_bags(inputs: Sequence[str], topic: str | None) -> tuple[list[str], li
 def cmd_detect(args: argparse.Namespace) -> int:
     import functools
 
-    from .annotate import draw_result, save_rgb
-    from .io import load_image
-    from .sink import image_key
+    from torchrow.apps.annotate import draw_result, save_rgb
+    from torchrow.apps.sink import image_key
+    from torchrow.core.io import load_image
 
     params = _with_mode(_parse_params(args.param), args)
     device = _check_device(args.device)
@@ -208,7 +208,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     others, bags = _split_bags(args.inputs, args.topic)
     paths = _collect_images(others) if others else []
     if model is not None and paths:
-        from .export import model_info
+        from torchrow.engines.export import model_info
 
         info = model_info(model)
         params = info["params"]
@@ -257,11 +257,11 @@ def cmd_detect(args: argparse.Namespace) -> int:
     common = dict(impl=args.impl, params=params, batch_size=args.batch_size, device=device,
                   progress=not args.quiet, model=model, total=total)
     if args.engine == "ray":
-        from .distributed import run as ray_run
+        from torchrow.engines.distributed import run as ray_run
 
         stream = ray_run(todo(), workers=args.workers, address=args.address, **common)
     else:
-        from .runner import run
+        from torchrow.engines.runner import run
 
         stream = run(todo(), **common)
     counts: dict[str, int] = {}
@@ -296,7 +296,7 @@ def _check_model(args: argparse.Namespace) -> str | None:
     try:
         import onnxruntime  # noqa: F401
 
-        from .export import model_info
+        from torchrow.engines.export import model_info
 
         info = model_info(model)
     except ImportError:
@@ -323,7 +323,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         import onnxscript  # noqa: F401
     except ImportError:
         raise CLIError("export needs onnx and onnxscript: pip install 'torchrow[onnx]'") from None
-    from .export import model_info, to_onnx
+    from torchrow.engines.export import model_info, to_onnx
 
     params = _parse_params(args.param)
     if args.tracker:
@@ -366,7 +366,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def _open_crbd(data: str | None):
-    from .datasets import CRBD
+    from torchrow.evaluation.datasets import CRBD
 
     try:
         return CRBD(data)
@@ -377,7 +377,7 @@ def _open_crbd(data: str | None):
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from .evaluate import evaluate
+    from torchrow.apps.evaluate import evaluate
 
     params = _with_mode(_parse_params(args.param), args)
     device = _check_device(args.device)
@@ -389,7 +389,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     indices = list(range(len(crbd)))[:: args.every]
     if args.limit:
         indices = indices[: args.limit]
-    from .sink import image_key
+    from torchrow.apps.sink import image_key
 
     Path(args.out).mkdir(parents=True, exist_ok=True)
     sink = _open_sink(Path(args.out) / "detections.jsonl", image_key, args.resume)
@@ -408,8 +408,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def cmd_score(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .evaluate import score_tmg_files
-    from .metrics import summarize
+    from torchrow.apps.evaluate import score_tmg_files
+    from torchrow.evaluation.metrics import summarize
 
     crbd = _open_crbd(args.data)
     results = Path(args.results)
@@ -431,11 +431,11 @@ def cmd_score(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .annotate import draw_result, save_rgb
-    from .datasets import GroundTruth
-    from .metrics import crda_official
-    from .reference import detect
-    from .synthetic import demo_field
+    from torchrow.apps.annotate import draw_result, save_rgb
+    from torchrow.evaluation.datasets import GroundTruth
+    from torchrow.evaluation.metrics import crda_official
+    from torchrow.evaluation.synthetic import demo_field
+    from torchrow.reference import detect
 
     params = _parse_params(args.param)
     field = demo_field()
@@ -456,9 +456,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _open_sources(raw: Sequence[str], topic: str | None = None):
-    from .io import ImageError
-    from .rosbag import is_bag
-    from .video import open_source
+    from torchrow.apps.rosbag import is_bag
+    from torchrow.apps.video import open_source
+    from torchrow.core.io import ImageError
 
     if topic is not None and not any(is_bag(r) for r in raw):
         raise CLIError("--topic applies to ROS bag sources only (a rosbag2 folder or a .bag file)")
@@ -520,8 +520,8 @@ class _Annotator:
         return stems
 
     def write(self, i: int, res, rgb) -> None:
-        from .annotate import save_rgb
-        from .video import VideoWriter, draw_frame, error_frame
+        from torchrow.apps.annotate import save_rgb
+        from torchrow.apps.video import VideoWriter, draw_frame, error_frame
 
         if self.target is None:
             return
@@ -558,8 +558,8 @@ def _check_plot(plot: Path) -> None:
 
 
 def cmd_video(args: argparse.Namespace) -> int:
-    from .progress import progress
-    from .video import central_jumps, plot_tracks
+    from torchrow.apps.progress import progress
+    from torchrow.apps.video import central_jumps, plot_tracks
 
     args.model_kind = "tracker"
     model = _check_model(args)
@@ -579,8 +579,8 @@ def cmd_video(args: argparse.Namespace) -> int:
     if model is not None:
         if args.engine == "ray":
             raise CLIError("--impl onnx runs with --engine local")
-        from .export import OnnxTracker
-        from .runner import source_size
+        from torchrow.engines.export import OnnxTracker
+        from torchrow.engines.runner import source_size
 
         onnx = OnnxTracker(model, hfov_deg=args.fov)
         params = onnx.params
@@ -591,7 +591,7 @@ def cmd_video(args: argparse.Namespace) -> int:
                                f"{onnx.width}x{onnx.height} (export one with --tracker --height {size[0]})")
     out = Path(args.out)
     plot = None if args.plot == "none" else Path(args.plot) if args.plot else out.with_suffix(".png")
-    from .sink import frame_key, read_records
+    from torchrow.apps.sink import frame_key, read_records
 
     if plot is not None:
         _check_plot(plot)
@@ -612,20 +612,20 @@ def cmd_video(args: argparse.Namespace) -> int:
     # the same batch gives the same bits) and its written frames are skipped
     todo = list(range(len(sources)))
     if args.resume:
-        from .runner import track_batches
+        from torchrow.engines.runner import track_batches
 
         complete = [set(range(s.length)) <= done.get(names[i], set()) for i, s in enumerate(sources)]
         todo = [i for batch in track_batches(sources, args.impl, params, args.batch_size, onnx=onnx)
                 if not all(complete[j] for j in batch) for i in batch]
     if args.engine == "ray":
-        from .distributed import track as ray_track
+        from torchrow.engines.distributed import track as ray_track
 
         stream = ((todo[b], rec, None, None) for b, rec in ray_track(
             [sources[i].path for i in todo], [names[i] for i in todo], args.impl, params, device, args.fov,
             args.topic, skip={b: done.get(names[i], set()) for b, i in enumerate(todo)},
             batch_size=args.batch_size, address=args.address))
     else:
-        from .runner import track
+        from torchrow.engines.runner import track
 
         stream = ((todo[b], None, res, rgb) for b, res, rgb in track(
             [sources[i] for i in todo], [names[i] for i in todo], args.impl, params, args.batch_size, device,

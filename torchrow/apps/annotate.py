@@ -8,7 +8,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from .results import ImageResult
+from torchrow.core.results import ImageResult
 
 __all__ = ["draw_result", "save_rgb", "legend", "legend_entries", "row_top", "GT_COLOR"]
 

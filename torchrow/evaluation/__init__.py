@@ -1,0 +1,3 @@
+"""Evaluation data and scores: the CRBD dataset, CRDA metrics, synthetic fields with exact ground
+truth.
+"""
