@@ -14,6 +14,8 @@ ROOT = Path(__file__).resolve().parents[1]
 #: a ```python block, optionally followed by "prints" and a ```text block of its exact output
 BLOCK = re.compile(r"```python\n(?P<code>.*?)```\n(?:\s*prints\s*\n\s*```text\n(?P<out>.*?)```\n)?", re.S)
 NEEDS_DATA = ("CRBD(", "resolve_data_root", "TORCHROW_DATA")
+#: blocks that export an ONNX model take minutes on a small CPU: run with ``-m heavy``
+HEAVY = ("to_onnx(",)
 
 
 def _blocks() -> list[tuple[str, str, str | None]]:
@@ -31,8 +33,13 @@ def test_readme_has_blocks_with_outputs():
     assert len(blocks) >= 3 and sum(out is not None for _, _, out in blocks) >= 3
 
 
+def _params():
+    return [pytest.param(*b, id=b[0], marks=[pytest.mark.heavy] if any(k in b[1] for k in HEAVY) else [])
+            for b in _blocks()]
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("name, code, expected", _blocks(), ids=[b[0] for b in _blocks()])
+@pytest.mark.parametrize("name, code, expected", _params())
 def test_readme_block_runs(name, code, expected, tmp_path, request):
     env = dict(os.environ, PYTHONWARNINGS="ignore")
     if any(k in code for k in NEEDS_DATA):
