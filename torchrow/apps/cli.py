@@ -703,12 +703,14 @@ def build_parser() -> argparse.ArgumentParser:
                        help="override a Params field, e.g. --param n_rows=4 (repeatable)")
         p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
 
-    def impl(p: argparse.ArgumentParser) -> None:
+    def impl(p: argparse.ArgumentParser, batch: int = 64, item: str = "image",
+             export: str = "torchrow export onnx") -> None:
         p.add_argument("--impl", choices=("tensor", "reference", "onnx"), default="tensor",
-                       help="batched tensor path (default), the per-image reference, or an exported ONNX "
+                       help=f"batched tensor path (default), the per-{item} reference, or an exported ONNX "
                             "model in onnxruntime (--model)")
-        p.add_argument("--model", help="ONNX file for --impl onnx (torchrow export onnx)")
-        p.add_argument("--batch-size", type=int, default=64, help="images per batch for --impl tensor (default 64)")
+        p.add_argument("--model", help=f"ONNX file for --impl onnx ({export})")
+        p.add_argument("--batch-size", type=int, default=batch,
+                       help=f"{item}s per batch for --impl tensor (default {batch})")
         p.add_argument("--device", default=None,
                        help="torch device for --impl tensor (cpu, cuda, cuda:1; default cpu)")
         mode(p)
@@ -775,14 +777,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fov", type=float, default=None, metavar="DEG",
                    help="horizontal field of view of the frames, for heading_rad (null without it)")
     p.add_argument("--plot", default=None, help="plot file (default: --out with suffix .png); 'none': no plot")
-    p.add_argument("--impl", choices=("tensor", "reference", "onnx"), default="tensor",
-                   help="batched tensor tracker (default), the per-sequence reference, or an exported tracker "
-                        "step in onnxruntime (--model)")
-    p.add_argument("--model", help="tracker-step ONNX file for --impl onnx (torchrow export onnx --tracker)")
-    p.add_argument("--batch-size", type=int, default=8, help="sequences per batch for --impl tensor (default 8)")
-    p.add_argument("--device", default=None,
-                   help="torch device for --impl tensor (cpu, cuda, cuda:1; default cpu)")
-    mode(p)
+    impl(p, batch=8, item="sequence", export="a tracker step: torchrow export onnx --tracker")
     common(p)
     p.set_defaults(func=cmd_video)
 
