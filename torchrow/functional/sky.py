@@ -38,6 +38,12 @@ from torchrow.functional._checks import check_images
 from torchrow.functional.kernels import box_blur, column_median, erode_rect, gray, laplacian, median_blur  # noqa: F401  (re-exported: stage modules keep their names)
 
 __all__ = [
+    "gray",
+    "box_blur",
+    "median_blur",
+    "laplacian",
+    "erode_rect",
+    "column_median",
     "horizon_mask",
     "sky_mask",
     "sky_row",
