@@ -486,7 +486,6 @@ class _Annotator:
         self.size: dict[int, tuple[int, int]] = {}
         self.fps = [fps or getattr(s, "fps", None) or self.DEFAULT_FPS for s in sources]
         self.stems = self._stems(sources)
-        self.n = len(sources)
         if self.target is not None:
             folder = self.target.parent if self.is_video else self.target
             if self.is_video and not folder.exists():
@@ -495,9 +494,14 @@ class _Annotator:
 
     def _video_path(self, i: int) -> Path:
         assert self.target is not None
-        if self.n == 1:
-            return self.target
-        return self.target.with_name(f"{self.target.stem}_{self.stems[i]}{self.target.suffix}")
+        return self._video_paths(self.target, self.stems)[i]
+
+    @staticmethod
+    def _video_paths(target: Path, stems: list[str]) -> list[Path]:
+        """One video per source: ``target`` itself for one source, ``STEM_<source>.SUFFIX`` for several."""
+        if len(stems) == 1:
+            return [target]
+        return [target.with_name(f"{target.stem}_{stem}{target.suffix}") for stem in stems]
 
     @classmethod
     def targets(cls, target: str, sources: list) -> list[Path]:
@@ -506,10 +510,7 @@ class _Annotator:
         t = Path(target)
         if t.suffix.lower() not in cls.VIDEO:
             return [t]
-        probe = cls.__new__(cls)
-        probe.target, probe.n = t, len(sources)
-        probe.stems = cls._stems(sources)
-        return [probe._video_path(i) for i in range(len(sources))]
+        return cls._video_paths(t, cls._stems(sources))
 
     @staticmethod
     def _stems(sources: list) -> list[str]:
