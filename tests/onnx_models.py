@@ -2,7 +2,10 @@
 
 The cache (``TORCHROW_CACHE`` or ``~/.cache/torchrow``, folder ``onnx-tests``) is keyed by
 the source of the code that defines the graph, the parameters, the shape and the torch
-version, so a change to any of them exports afresh.
+version, so a change to any of them exports afresh. A file name is
+``<kind>-<source hash>-<arguments hash>.onnx``; models of any other source hash can never be
+read again, and are deleted when a new model is written (the folder holds the current
+models only, not every model ever exported).
 """
 
 from __future__ import annotations
@@ -33,14 +36,21 @@ def _cache_dir() -> Path:
     return (Path(env) if env else Path.home() / ".cache" / "torchrow") / "onnx-tests"
 
 
-def _source_key(*key) -> str:
+def _source_key() -> str:
     root = Path(__file__).resolve().parents[1] / "torchrow"
     h = hashlib.sha256()
     for p in sorted([root / "engines" / "export.py", root / "core" / "params.py", root / "core" / "tables.py",
                      *(root / "functional").glob("*.py")]):
         h.update(p.read_bytes())
-    h.update(repr((key, torch.__version__)).encode())
+    h.update(torch.__version__.encode())
     return h.hexdigest()[:16]
+
+
+def _prune(cache: Path, source: str) -> None:
+    """Delete cached models of other sources (stale: their key can never match again)."""
+    for old in cache.glob("*.onnx"):
+        if f"-{source}-" not in old.name:
+            old.unlink(missing_ok=True)
 
 
 def exported(params: Params, batch: int, tmp: Path, height: int = 240, width: int = 320,
@@ -49,14 +59,16 @@ def exported(params: Params, batch: int, tmp: Path, height: int = 240, width: in
     cache = _cache_dir()
     kind = ("tracker" if tracker else "detector") + ("" if control_flow else "-masked") + (
         "-scatter-free" if scatter_free else "")
-    key = (params, batch, height, width, kind)
-    path = cache / f"{kind}-{_source_key(*key)}.onnx"
+    source = _source_key()
+    args = hashlib.sha256(repr((params, batch, height, width, kind)).encode()).hexdigest()[:12]
+    path = cache / f"{kind}-{source}-{args}.onnx"
     if path.is_file():
         return path
     out = to_onnx(tmp / f"{kind}.onnx", height=height, width=width, batch=batch, params=params, tracker=tracker,
                   control_flow=control_flow, scatter_free=scatter_free)
     try:
         cache.mkdir(parents=True, exist_ok=True)
+        _prune(cache, source)
         shutil.copyfile(out, path)
         return path
     except OSError:

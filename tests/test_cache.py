@@ -165,3 +165,17 @@ def test_empty_real_cache_file_is_rebuilt_and_demo_runs(tmp_path: Path) -> None:
     assert sorted(p.name for p in cache.iterdir()) == sorted([path.name, shared._check_path(path).name])
     # the rebuilt table is the one the rest of the suite uses (same bits)
     np.testing.assert_array_equal(np.load(path, mmap_mode="r")[::9973], shared.lab_table()[::9973])
+
+
+def test_onnx_test_model_cache_keeps_the_current_source_only(tmp_path: Path):
+    """Cached test models of an older source are deleted when a model is written; those of
+    the current source (any arguments) stay."""
+    from onnx_models import _prune, _source_key
+
+    src = _source_key()
+    keep = [tmp_path / f"detector-{src}-aaaaaaaaaaaa.onnx", tmp_path / f"tracker-masked-{src}-bbbbbbbbbbbb.onnx"]
+    stale = [tmp_path / "detector-0123456789abcdef-aaaaaaaaaaaa.onnx", tmp_path / "tracker-77cf9d0f723f56a3.onnx"]
+    for f in keep + stale:
+        f.write_bytes(b"x")
+    _prune(tmp_path, src)
+    assert sorted(tmp_path.iterdir()) == sorted(keep)

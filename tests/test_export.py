@@ -93,12 +93,17 @@ def test_scatter_free_form_equals_torch(scatter_free_path: Path):
 
 
 def test_default_form_votes_by_scatter_add_and_exits_early(model_path: Path):
-    """The onnxruntime form: one scatter-add vote updated by bands, steps in If nodes."""
+    """The onnxruntime form: one scatter-add vote updated by bands, the line search one
+    ``Loop`` (stored once, stopping when every image is done), vote chunks in ``If`` nodes."""
     import onnx
 
+    from torchrow.functional.vanishing import max_steps
+
     ops = op_counts(onnx.load(str(model_path)))
-    assert ops["ScatterElements_reduction"] > 0 and ops["If"] > 0
-    assert not {"NonZero", "Unique", "Loop", "Scan"} & set(ops), ops
+    # the search's body once: an unrolled search holds a peak (ArgMax) per step
+    assert ops["ScatterElements_reduction"] > 0 and ops["Loop"] == 1 and ops["If"] > 0, ops
+    assert ops["ArgMax"] < max_steps(SMALL), ops
+    assert not {"NonZero", "Unique", "Scan"} & set(ops), ops
 
 
 def test_model_metadata(model_path: Path):

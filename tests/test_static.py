@@ -68,8 +68,9 @@ def test_trig_free_validity_equals_atan2_rules() -> None:
     hyp = torch.zeros((2, 5), dtype=torch.int64)
     ok = torch.ones((2, 5), dtype=torch.bool)
     band = torch.full((2,), P.hough_band_px(320), dtype=torch.int64)
-    a = fransac.validate_rows(cx, cy, dx, dy, hyp, ok, ok, 240, band, P)
-    b = fransac.validate_rows(cx, cy, dx, dy, hyp, ok, ok, 240, band, P, trig_free=True)
+    fit = fransac.RowFit(cx, cy, dx, dy, hyp, ok)
+    a = fransac.validate_rows(fit, ok, 240, band, P)
+    b = fransac.validate_rows(fit, ok, 240, band, P, trig_free=True)
     assert torch.equal(a.reason, b.reason) and torch.equal(a.valid, b.valid)
     assert set(a.reason.flatten().tolist()) >= {0, 2, 3}  # valid, horizon and parallel all occur
 
@@ -83,8 +84,7 @@ def test_static_detector_equals_crop_row_detector() -> None:
     lab = lab_table_torch("cpu")[torch.from_numpy(pack_rgb(ref.veg_color.numpy()))]
     with torch.no_grad():
         o = dict(zip(static.GRAPH_OUTPUTS, static.StaticDetector(240, 320, small)(x, lab)))
-    rows = static.finish_rows(o["fit_cx"], o["fit_cy"], o["fit_sxx"], o["fit_syy"], o["fit_sxy"],
-                              o["row_hypothesis"], o["row_support"], o["row_present"], 240, 320, small)
+    rows = static.finish_rows(o, 240, 320, small)
     assert torch.equal(o["hough_theta"], ref.hough_theta) and torch.equal(o["hough_rho"], ref.hough_rho)
     assert torch.equal(rows.valid, ref.row_valid) and torch.equal(rows.reason, ref.row_reason)
     assert torch.allclose(rows.a, ref.row_a, rtol=0, atol=1e-12, equal_nan=True)

@@ -160,7 +160,7 @@ def _check_rows(cases: list[tuple[np.ndarray, np.ndarray, bool]]) -> int:
     veg = torch.from_numpy(np.stack([c[0] for c in cases]))
     h, w = veg.shape[1:]
     fit = tr.fit_rows(veg, theta, rho, present, vp, band, P)
-    rows = tr.validate_rows(*fit, present, h, torch.full_like(band, P.hough_band_px(w)), P)
+    rows = tr.validate_rows(fit, present, h, torch.full_like(band, P.hough_band_px(w)), P)
     compared = 0
     for i, ((vm, _, bushy), sr) in enumerate(zip(cases, searches)):
         if sr.vp is None:

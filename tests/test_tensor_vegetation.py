@@ -566,3 +566,30 @@ def test_errors_on_wrong_shapes_and_dtypes():
         tv.adapt_k(x, c, s, info0, None)
 
 
+
+
+@pytest.mark.parametrize("k_min, k_max", [(3, 13), (1, 20), (0, 5)])
+def test_static_min_k_equals_searchsorted_at_every_bound(k_min: int, k_max: int):
+    """The export's closed-form smallest admitting k (a ceil guess and one correction each
+    way) equals the eager binary search, on random LAB values and on values exactly at,
+    and one ulp either side of, every bound ``fl(c +- k)``, and at the colour itself."""
+    gen = torch.Generator().manual_seed(0)
+    n, p = 3, 4000
+    c = torch.rand((n, 3), generator=gen, dtype=torch.float64) * 200 - 100
+    c[0] = torch.tensor([50.123456789, -3.3, 7.0], dtype=torch.float64)
+    lab = torch.rand((n, 3, p), generator=gen, dtype=torch.float64) * 256 - 128
+    ks = torch.arange(k_min, k_max + 1, dtype=torch.float64)
+    for i in range(n):
+        for ch in range(3):
+            b = torch.cat([c[i, ch] + ks, c[i, ch] - ks])
+            at = torch.cat([b, torch.nextafter(b, b + 1), torch.nextafter(b, b - 1), c[i, ch].view(1)])
+            # the other channels at the colour itself, so that this channel's bound decides
+            span = slice(ch * 1000, ch * 1000 + at.numel())
+            lab[i, :, span] = c[i].view(3, 1)
+            lab[i, ch, span] = at
+    before = lab.clone()
+    eager = tv._min_k(lab, c, k_min, k_max)
+    static = tv._min_k(lab, c, k_min, k_max, static=True)
+    assert torch.equal(eager, static)
+    assert torch.equal(lab, before)
+    assert {int(eager.min()), int(eager.max())} == {k_min, k_max + 1}

@@ -789,8 +789,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tracker", action="store_true",
                    help="export the video tracker step (frame + state -> rows + new state) instead of the detector")
     p.add_argument("--no-control-flow", action="store_true",
-                   help="no ONNX If: every line-search step (and, tracker, both branches) runs, masks choose "
-                        "(slower, same results)")
+                   help="no ONNX Loop or If: every line-search step to the static bound (and, tracker, both "
+                        "branches) runs, masks choose (slower, same results)")
     p.add_argument("--scatter-free", action="store_true",
                    help="vote without ScatterElements(reduction=add), for runtimes that lack it (TensorRT); "
                         "slower on a CPU, same results")

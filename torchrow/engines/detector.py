@@ -270,7 +270,7 @@ class CropRowDetector(nn.Module):
                 parts.append((ls, flattice.improved_rows(x[sl], sky[sl], ls.vp, ls.has_vp & has_veg[sl], p)))
                 continue
             fit = fransac.fit_rows(veg[sl], ls.theta, ls.rho, present, ls.vp, band[sl], p)
-            rows = fransac.validate_rows(*fit, present, h, torch.full_like(band[sl], p.hough_band_px(w)), p)
+            rows = fransac.validate_rows(fit, present, h, torch.full_like(band[sl], p.hough_band_px(w)), p)
             parts.append((ls, rows))
         ls = _cat([q[0] for q in parts])
         rows = _cat([q[1] for q in parts])

@@ -79,7 +79,7 @@ def _narrow_types():
 
 
 def _subgraphs(node):
-    """The graphs held by a node's attributes (an ``If``'s branches)."""
+    """The graphs held by a node's attributes (an ``If``'s branches, a ``Loop``'s body)."""
     from onnx import AttributeProto
 
     for attr in node.attribute:
@@ -103,15 +103,29 @@ def legalize(model):
 
     For each node that is neither data movement, a logical op nor control flow, every input
     of type bool/uint8/int8/int16/uint16 (except ``Where``'s condition) is cast to int32, and
-    each such output is computed in int32 and cast back to its type. ``If`` branches are
+    each such output is computed in int32 and cast back to its type. ``If`` and ``Loop`` bodies are
     walked too. Node names are made unique.
+
+    Two rewrites keep the casts few (the median network and the morphology of the sky and
+    vegetation stages are long chains of ``Min``/``Max``/``Where`` on uint8): a bitwise op
+    whose inputs are all bool becomes its logical op (same truth table, no cast), and the
+    int32 result of a range-preserving op (:data:`_IN_RANGE`: its output lies between its
+    inputs' values, so the cast back to the narrow type is exact) feeds the next widened
+    node directly instead of through a narrow copy; narrow copies no node reads are dropped.
     """
     import onnx
 
     types: dict = {}
     _graph_types(onnx.shape_inference.infer_shapes(model).graph, types)
     _legalize_graph(model.graph, types, "n")
+    used = _used_values(model.graph)
+    _drop_dead_casts(model.graph, used)
     return model
+
+
+# Ops whose every output value is one of (or between) their inputs' values.
+_IN_RANGE = {"Min", "Max", "Where", "ReduceMin", "ReduceMax", "Clip"}
+_BITWISE_LOGICAL = {"BitwiseAnd": "And", "BitwiseOr": "Or", "BitwiseXor": "Xor", "BitwiseNot": "Not"}
 
 
 def _legalize_graph(graph, types: dict, prefix: str) -> None:
@@ -119,35 +133,68 @@ def _legalize_graph(graph, types: dict, prefix: str) -> None:
 
     narrow = _narrow_types()
     out_nodes = []
+    wide_of: dict = {}  # narrow value -> the exact int32 value it was cast from
     for i, node in enumerate(graph.node):
         node.name = f"{prefix}{i}_{node.op_type}"
         for j, g in enumerate(_subgraphs(node)):
             _legalize_graph(g, types, f"{prefix}{i}g{j}_")
+        if node.op_type in _BITWISE_LOGICAL and all(types.get(x) == TensorProto.BOOL for x in node.input):
+            node.op_type = _BITWISE_LOGICAL[node.op_type]
         if node.op_type in _MOVE or node.op_type in _LOGICAL or node.op_type in ("If", "Loop"):
             out_nodes.append(node)
             continue
         pre, post = [], []
+        widened = False
         for k, name in enumerate(node.input):
             if not name or types.get(name) not in narrow or (node.op_type == "Where" and k == 0):
                 continue
             if node.op_type in ("Equal",) and types.get(name) == TensorProto.BOOL:
                 continue
+            widened = True
+            if name in wide_of:
+                node.input[k] = wide_of[name]
+                continue
             wide = f"{name}__i32_{prefix}{i}_{k}"
             pre.append(helper.make_node("Cast", [name], [wide], to=TensorProto.INT32, name=f"{wide}_cast"))
             node.input[k] = wide
-        if pre:
+        if widened:
             for k, name in enumerate(node.output):
                 if types.get(name) in narrow:
                     wide = f"{name}__i32"
                     post.append(helper.make_node("Cast", [wide], [name], to=types[name], name=f"{wide}_cast"))
                     node.output[k] = wide
+                    if node.op_type in _IN_RANGE:
+                        wide_of[name] = wide
         out_nodes += pre + [node] + post
     del graph.node[:]
     graph.node.extend(out_nodes)
 
 
+def _used_values(graph) -> set:
+    """Names read by any node of ``graph`` or its bodies, and the graphs' outputs."""
+    used = {o.name for o in graph.output}
+    for node in graph.node:
+        used.update(node.input)
+        for g in _subgraphs(node):
+            used |= _used_values(g)
+    return used
+
+
+def _drop_dead_casts(graph, used: set) -> None:
+    """Remove the narrow copies :func:`legalize` made that no node reads."""
+    keep = []
+    for node in graph.node:
+        for g in _subgraphs(node):
+            _drop_dead_casts(g, used)
+        if node.op_type == "Cast" and node.name.endswith("__i32_cast") and node.output[0] not in used:
+            continue
+        keep.append(node)
+    del graph.node[:]
+    graph.node.extend(keep)
+
+
 def op_counts(model) -> Counter:
-    """``Counter`` of op types in the graph and its ``If`` branches; scatters with a reduction
+    """``Counter`` of op types in the graph and its ``If``/``Loop`` bodies; scatters with a reduction
     counted as ``<Op>_reduction``."""
     c: Counter = Counter()
 
@@ -197,10 +244,12 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         sequences + their state -> rows + new state; run it with :class:`OnnxTracker`).
         ``width`` must then equal ``params.video_width`` (set it with ``params``).
     control_flow : bool
-        Skip work no image needs with ONNX ``If`` nodes (default): the line search's steps
-        once every image is finished, vote chunks past every image's pixel count, and for the
-        tracker the Hough stage and the tracked fit. ``False`` gives a graph without ``If``
-        that always runs everything and masks the results (slower; same results).
+        Skip work no image needs (default): the line search is one ONNX ``Loop`` that stops
+        once every image is finished (its body traced and stored once: the export takes
+        about a minute, not twenty), and ``If`` nodes skip vote chunks past every image's
+        pixel count and, for the tracker, the Hough stage and the tracked fit. ``False``
+        gives a graph without ``Loop`` or ``If`` that always runs every step to the static
+        bound and masks the results (slower; same results).
     scatter_free : bool
         Vote without ``ScatterElements(reduction="add")`` (prefix sums of constant
         permutations, re-voted at every line-search step) for runtimes without a scatter
@@ -244,7 +293,7 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
             getattr(empty, f) for f in static.TRACKER_STATE)
         names, outputs = list(static.TRACKER_INPUTS), list(static.TRACKER_OUTPUTS)
     else:
-        module = static.StaticDetector(height, width, params, flow="cond" if control_flow else "always",
+        module = static.StaticDetector(height, width, params, flow="loop" if control_flow else "always",
                                        scatter_free=scatter_free).eval()
         args = (images, veg_lab)
         names, outputs = ["images", "veg_lab"], list(static.GRAPH_OUTPUTS)
@@ -269,7 +318,7 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         else:  # re-decomposing a program with torch.cond subgraphs fails validation: translate instead
             table = {torch.ops.aten.view.dtype: _view_dtype_onnx}
         note("onnx")
-        with float64_python_constants():
+        with float64_python_constants(), _nested_subgraph_opsets():
             prog = torch.onnx.export(ep, dynamo=True, opset_version=opset, input_names=names,
                                      output_names=outputs, verbose=False, optimize=False,
                                      custom_translation_table=table)
@@ -347,8 +396,36 @@ def float64_python_constants():
         _building._determine_input_dtype = orig
 
 
+@contextlib.contextmanager
+def _nested_subgraph_opsets():
+    """Let the exporter inline a ``torch.cond`` nested in a ``while_loop`` body.
+
+    The exporter records the call of a nested subgraph function at the model's opset
+    version, the function itself at version 1 of the same private domain
+    (``pkg.torch.__subgraph__``), and its inliner then refuses the mismatch. The domain only
+    names the functions being inlined (nothing of it is left in the model), so its version
+    is made to agree.
+    """
+    from onnx_ir.passes.common import inliner
+
+    orig = inliner.InlinePass._instantiate_call
+
+    def instantiate(self, node, call_site_id):
+        function = self._functions[node.op_identifier()]
+        for key in list(function.opset_imports):
+            if key.startswith("pkg.torch.__subgraph__") and key in self._opset_imports:
+                function.opset_imports[key] = self._opset_imports[key]
+        return orig(self, node, call_site_id)
+
+    inliner.InlinePass._instantiate_call = instantiate
+    try:
+        yield
+    finally:
+        inliner.InlinePass._instantiate_call = orig
+
+
 def _drop_unused_initializers(model):
-    """Remove initializers no node reads (``If`` branches included): constant folding leaves
+    """Remove initializers no node reads (``If``/``Loop`` bodies included): constant folding leaves
     some behind in graphs with control flow, and onnxruntime warns about each."""
     used: set = set()
 
@@ -373,7 +450,7 @@ def _compact(model):
     The exporter attaches the tracing Python's stack and module path to every node and names
     values after closure paths (~100 characters inside ``torch.cond`` branches); on the
     unrolled tracker step that was about half the file. One mapping over all graphs keeps the
-    ``If`` branches' references to outer values consistent.
+    ``If``/``Loop`` bodies' references to outer values consistent.
     """
     keep = {v.name for v in model.graph.input} | {v.name for v in model.graph.output} | {""}
     mapping: dict = {}
@@ -502,8 +579,7 @@ class OnnxDetector:
         o = dict(zip(GRAPH_OUTPUTS, outs))
         p = self.params
         b = color.shape[0]
-        rows = finish_rows(o["fit_cx"], o["fit_cy"], o["fit_sxx"], o["fit_syy"], o["fit_sxy"], o["row_hypothesis"],
-                           o["row_support"], o["row_present"], self.height, self.width, p)
+        rows = finish_rows(o, self.height, self.width, p)
         all_valid = (rows.valid | ~rows.present).all(dim=1)
         i64 = dict(dtype=torch.int64)
         status = torch.where(all_valid, torch.full((b,), STATUS_CODES["ok"], **i64),
@@ -765,7 +841,7 @@ def check_lab(k: Sequence[float] | None = None, params: Params | None = None, pr
         x = torch.zeros((1, 3, 256, 256), dtype=torch.uint8)
         with warnings.catch_warnings(), torch.no_grad():
             warnings.simplefilter("ignore")
-            with float64_python_constants():
+            with float64_python_constants(), _nested_subgraph_opsets():
                 prog = torch.onnx.export(_Lab(), (x,), dynamo=True, opset_version=DEFAULT_OPSET,
                                          input_names=["images"], verbose=False)
         import onnx

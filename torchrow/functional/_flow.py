@@ -5,6 +5,10 @@
 * ``"sync"``: a host synchronisation (``bool(pred)``), eager only;
 * ``"cond"``: ``torch.cond`` while ``torch.export`` traces (an ONNX ``If``: the graph keeps
   the static bound and skips the work at run time); eagerly the same as ``"sync"``;
+* ``"loop"``: as ``"cond"`` for :func:`branch`; a bounded loop (:func:`repeat`) becomes
+  one ``torch._higher_order_ops.while_loop`` while ``torch.export`` traces (an ONNX
+  ``Loop`` whose body is traced and stored once, and which stops when every image is done);
+  eagerly the same as ``"sync"``;
 * ``"always"``: never skipped, masks choose (a graph without control flow).
 """
 
@@ -14,7 +18,7 @@ from typing import Callable
 
 import torch
 
-FLOWS = ("sync", "cond", "always")
+FLOWS = ("sync", "cond", "loop", "always")
 
 
 def check_flow(flow: str) -> str:
@@ -30,7 +34,7 @@ def branch(flow: str, pred: torch.Tensor, fn: Callable, skip: Callable, operands
     check_flow(flow)
     if flow == "always":
         return tuple(fn(*operands))
-    if flow == "cond" and torch.compiler.is_exporting():
+    if flow in ("cond", "loop") and torch.compiler.is_exporting():
         def dense(f):  # torch.cond wants dense outputs of matching strides
             return lambda *a: tuple(t.contiguous() for t in f(*a))
 
@@ -41,3 +45,36 @@ def branch(flow: str, pred: torch.Tensor, fn: Callable, skip: Callable, operands
 def keep(*operands: torch.Tensor) -> tuple:
     """The skip branch that changes nothing (copies: branches may not alias their inputs)."""
     return tuple(t.clone() for t in operands)
+
+
+def repeat(flow: str, steps: int, done: Callable, step: Callable, carry: tuple) -> tuple:
+    """Apply ``step`` (tuple of tensors -> same shapes and dtypes) at most ``steps`` times,
+    stopping once ``done(*carry)`` (bool scalar tensor) holds, per ``flow``: ``"sync"`` checks
+    on the host before each step; ``"cond"`` unrolls ``steps`` :func:`branch` calls (one
+    ``If`` each); ``"loop"`` is one ``while_loop`` while exporting (sync otherwise);
+    ``"always"`` runs every step unmasked by any check (``step`` must leave a done carry
+    unchanged, which the line search's masks guarantee)."""
+    check_flow(flow)
+    if flow == "loop" and torch.compiler.is_exporting():
+        from torch._higher_order_ops import while_loop
+
+        bound = steps
+
+        def cond_fn(i, *c):
+            return (i < bound) & ~done(*c)
+
+        def body_fn(i, *c):
+            return (i + 1,) + tuple(t.contiguous() for t in step(*c))
+
+        i0 = torch.zeros((), dtype=torch.int64, device=carry[0].device)
+        return tuple(while_loop(cond_fn, body_fn, (i0,) + tuple(carry)))[1:]
+    for _ in range(steps):
+        if flow in ("sync", "loop") or (flow == "cond" and not torch.compiler.is_exporting()):
+            if bool(done(*carry)):
+                break
+            carry = tuple(step(*carry))
+        elif flow == "cond":
+            carry = branch(flow, ~done(*carry), step, keep, carry)
+        else:
+            carry = tuple(step(*carry))
+    return carry

@@ -281,13 +281,13 @@ def improved_rows(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor, has
 
 
 def as_row_fits(rows: LatticeRows):
-    """The lattice rows as section 7's :class:`~torchrow.functional.ransac.RowFits` (all present;
+    """The lattice rows as section 7's :class:`~torchrow.functional.ransac.Rows` (all present;
     reason ``no_support`` where invalid, hypothesis -1)."""
-    from torchrow.functional.ransac import REASON_CODES, RowFits
+    from torchrow.functional.ransac import REASON_CODES, Rows
 
     reason = torch.where(rows.valid, torch.zeros_like(rows.a, dtype=torch.int64),
                          torch.full_like(rows.a, REASON_CODES["no_support"], dtype=torch.int64))
-    return RowFits(rows.a, rows.b, rows.valid, reason, torch.full_like(reason, -1),
+    return Rows(rows.a, rows.b, rows.valid, reason, torch.full_like(reason, -1),
                    torch.ones_like(rows.valid))
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 
@@ -20,10 +20,11 @@ from torchrow.core.tables import hypothesis_table
 from torchrow.functional import _exact
 from torchrow.functional.hough import active_width, cacheable, pixel_list, trig
 
-__all__ = ["RowFits", "fit_rows", "validate_rows", "band_member", "subsample_plan", "max_kept", "principal_direction",
+__all__ = ["RowFit", "RowMoments", "Rows", "fit_rows", "score_hypotheses", "exact_counts", "padded_points",
+           "validate_rows", "band_member", "subsample_plan", "max_kept", "principal_direction",
            "REASON_CODES", "SCORE_BUDGET"]
 
-#: Reason codes of :attr:`RowFits.reason`, indices into :data:`torchrow.core.results.REASONS`.
+#: Reason codes of :attr:`Rows.reason`, indices into :data:`torchrow.core.results.REASONS`.
 REASON_CODES = {r: i for i, r in enumerate(REASONS)}
 
 #: Elements per scoring temporary ``(B, S, T_chunk, P)``: 1M (8 MB of float64, a few alive),
@@ -34,11 +35,56 @@ SCORE_BUDGET = 1 << 20
 DEVICE_SCORE_BUDGET = 1 << 27
 
 
+class _Fields:
+    def astuple(self) -> tuple:
+        """The fields in order (what a :func:`~torchrow.functional._flow.branch` passes)."""
+        return tuple(getattr(self, f.name) for f in fields(self))  # type: ignore[arg-type]
+
+
 @dataclass
-class RowFits:
-    """Fitted rows, ``(B, S)`` each: ``x = a*y + b`` (float64, NaN without support),
-    ``valid``/``reason`` (int64 code into REASONS), ``hypothesis`` (int64, -1 when none),
-    ``present`` (bool: the slot holds a row at all)."""
+class RowFit(_Fields):
+    """Steps 7.1-7.5 of every row slot, before the validity rules: the batched
+    :class:`torchrow.reference.ransac.RowFit`, ``(B, S)`` each.
+
+    ``cx, cy`` float64 weighted inlier centroid (px), ``dx, dy`` float64 unit direction
+    (``dy > 0``, or ``dx > 0`` where ``dy = 0``), ``hypothesis`` int64 winning index into the
+    shared table (-1: none), ``support`` bool (where the reference returns ``None``: False).
+    """
+
+    cx: torch.Tensor
+    cy: torch.Tensor
+    dx: torch.Tensor
+    dy: torch.Tensor
+    hypothesis: torch.Tensor
+    support: torch.Tensor
+
+
+@dataclass
+class RowMoments(_Fields):
+    """What an exported graph returns of step 7.5 instead of the direction (ONNX has no
+    ``atan2``): weighted centroid ``cx, cy`` and scatter moments ``sxx, syy, sxy`` (float64),
+    ``hypothesis`` int64, ``support`` bool, ``(B, S)`` each. :meth:`direction` finishes it."""
+
+    cx: torch.Tensor
+    cy: torch.Tensor
+    sxx: torch.Tensor
+    syy: torch.Tensor
+    sxy: torch.Tensor
+    hypothesis: torch.Tensor
+    support: torch.Tensor
+
+    def direction(self, trig_free: bool = False) -> RowFit:
+        """The :class:`RowFit` (principal direction by :func:`principal_direction`)."""
+        dx, dy = principal_direction(self.sxx, self.syy, self.sxy, trig_free=trig_free)
+        return RowFit(self.cx, self.cy, dx, dy, self.hypothesis, self.support)
+
+
+@dataclass
+class Rows(_Fields):
+    """Rows after step 7.6 (the batched list of :class:`torchrow.core.results.Row`),
+    ``(B, S)`` each: ``x = a*y + b`` (float64, NaN without support), ``valid``/``reason``
+    (int64 code into REASONS), ``hypothesis`` (int64, -1 when none), ``present`` (bool: the
+    slot holds a row at all)."""
 
     a: torch.Tensor
     b: torch.Tensor
@@ -46,6 +92,10 @@ class RowFits:
     reason: torch.Tensor
     hypothesis: torch.Tensor
     present: torch.Tensor
+
+
+#: Former name of :class:`Rows`.
+RowFits = Rows
 
 
 def _band_points(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, band: torch.Tensor,
@@ -174,8 +224,9 @@ MARGIN = 1e-12
 FALLBACKS = {"chunks": 0, "total": 0}
 
 
-def _pixel_inliers(pts, px, py, x1, y1, x2, y2, uses_vp, thr: float, bsz: int, s: int, p: int) -> torch.Tensor:
-    """Pixel inliers ``(B, S, T, P)`` of the hypotheses ``(x1, y1) -> (x2, y2)`` ``(B, S, T)``.
+def _pixel_inliers(pts, px, py, x1, y1, dx, dy, lim, uses_vp, bsz: int, s: int, p: int) -> torch.Tensor:
+    """Pixel inliers ``(B, S, T, P)`` of the hypotheses through ``(x1, y1)`` with direction
+    ``(dx, dy) = (x2 - x1, y2 - y1)`` and threshold ``lim`` (``(B, S, T)`` each).
 
     The cross product ``dx*y - dy*x + (dy*x1 - dx*y1)`` is one batched matmul. For two pixel
     picks every term is a small integer, so any evaluation order (fused or not) is exact and
@@ -184,8 +235,6 @@ def _pixel_inliers(pts, px, py, x1, y1, x2, y2, uses_vp, thr: float, bsz: int, s
     :data:`MARGIN` of the threshold are re-tested with the spec's expression (rare: the
     fallback runs only for chunks that have such a point; it never changes a result).
     """
-    dx, dy = x2 - x1, y2 - y1
-    lim = thr * _exact.sqrt(dx * dx + dy * dy)  # (B, S, T), as in the spec
     k = dy * x1 - dx * y1
     t = dx.shape[2]
     coef = torch.stack([dx, -dy, k], dim=3).view(bsz * s, t, 3)  # (BS, T, 3)
@@ -204,9 +253,71 @@ def _pixel_inliers(pts, px, py, x1, y1, x2, y2, uses_vp, thr: float, bsz: int, s
     return inl
 
 
+def padded_points(px: torch.Tensor, py: torch.Tensor, valid_pt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Kept points ``(B, S, P)`` with NaN in the padding slots (``~valid_pt``): a NaN
+    coordinate fails every inlier comparison, so padding never counts."""
+    nan = torch.full_like(px, float("nan"))
+    return torch.where(valid_pt, px, nan), torch.where(valid_pt, py, nan)
+
+
+def exact_counts(qx: torch.Tensor, qy: torch.Tensor):
+    """The spec's pixel-inlier count of step 7.4 for :func:`score_hypotheses`, evaluated as
+    written (no matmul, no fallback): ``qx, qy`` float64 ``(B, S, P)`` NaN-padded points."""
+    qx4, qy4 = qx.unsqueeze(2), qy.unsqueeze(2)  # (B, S, 1, P)
+
+    def counts(x1, y1, dx, dy, lim, sure):
+        pix = (dx.unsqueeze(3) * (qy4 - y1.unsqueeze(3)) - dy.unsqueeze(3) * (qx4 - x1.unsqueeze(3))).abs() \
+            < lim.unsqueeze(3)
+        return pix.sum(dim=3)
+
+    return counts
+
+
+def score_hypotheses(px: torch.Tensor, py: torch.Tensor, n_keep: torch.Tensor, v_keep: torch.Tensor,
+                     vp: torch.Tensor, u: torch.Tensor, chunk: int, thr: float, counts) -> tuple[torch.Tensor,
+                                                                                               torch.Tensor]:
+    """Steps 7.3-7.4, the one scoring loop of the eager and the exported fits: every
+    hypothesis of the shared table ``u`` float64 ``(T, 2)``, in chunks of ``chunk``.
+
+    ``px, py`` float64 ``(B, S, P)`` kept points, ``n_keep``/``v_keep`` int64 ``(B, S)``,
+    ``vp`` float64 ``(B, 2)``. ``counts(x1, y1, dx, dy, lim, uses_vp)`` (all ``(B, S, T)``)
+    returns the pixel-inlier count int64 ``(B, S, T)`` of each hypothesis (``uses_vp``: a
+    real hypothesis through the VP, the only kind whose test rounds); the eager fit passes a
+    batched matmul with an exact fallback, the exported graph :func:`exact_counts`.
+
+    Returns ``best_score`` int64 ``(B, S)`` (-1: every hypothesis degenerate) and the first
+    best hypothesis ``best_t`` int64 ``(B, S)``; an earlier chunk wins ties.
+    """
+    dev = px.device
+    total = (n_keep + v_keep).to(torch.float64).unsqueeze(2)  # (B, S, 1)
+    nk = n_keep.unsqueeze(2)
+    vx, vy = vp[:, 0].view(-1, 1, 1), vp[:, 1].view(-1, 1, 1)
+    best_score = torch.full(n_keep.shape, -2, dtype=torch.int64, device=dev)
+    best_t = torch.zeros(n_keep.shape, dtype=torch.int64, device=dev)
+    for t0 in range(0, u.shape[0], chunk):
+        uc = u[t0:t0 + chunk]
+        i1 = torch.floor(uc[:, 0].view(1, 1, -1) * total).to(torch.int64)
+        i2 = torch.floor(uc[:, 1].view(1, 1, -1) * total).to(torch.int64)
+        degenerate = (i1 == i2) | ((i1 >= nk) & (i2 >= nk))
+        uses_vp = (i1 >= nk) | (i2 >= nk)
+        x1, y1 = _pick(px, py, i1, n_keep, vp)
+        x2, y2 = _pick(px, py, i2, n_keep, vp)
+        dx, dy = x2 - x1, y2 - y1
+        lim = thr * _exact.sqrt(dx * dx + dy * dy)  # (B, S, T), as in the spec
+        vpi = (dx * (vy - y1) - dy * (vx - x1)).abs() < lim
+        score = counts(x1, y1, dx, dy, lim, uses_vp & ~degenerate) + vpi.to(torch.int64) * v_keep.unsqueeze(2)
+        score = score.masked_fill(degenerate, -1)
+        carg = torch.argmax(score, dim=2)  # first maximum within the chunk
+        cmax = score.gather(2, carg.unsqueeze(2)).squeeze(2)
+        better = cmax > best_score  # strict: an earlier chunk wins ties
+        best_score = torch.where(better, cmax, best_score)
+        best_t = torch.where(better, carg + t0, best_t)
+    return best_score, best_t
+
+
 def fit_rows(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, present: torch.Tensor,
              vp: torch.Tensor, band: torch.Tensor, params: Params,
-             track: tuple[torch.Tensor, torch.Tensor] | None = None):
+             track: tuple[torch.Tensor, torch.Tensor] | None = None) -> RowFit:
     """Steps 7.1-7.5 for every row of every image.
 
     Parameters
@@ -220,8 +331,7 @@ def fit_rows(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, present:
 
     Returns
     -------
-    ``(cx, cy, dx, dy)`` float64 (B, S) centroid and unit direction, ``hypothesis`` int64
-    (B, S) (-1: no support) and ``support`` bool (B, S).
+    RowFit
 
     Memory: ``(B, S, K)`` band temporaries (K = most vegetation pixels in an image) plus
     scoring chunks of :data:`SCORE_BUDGET` float64 elements.
@@ -232,50 +342,28 @@ def fit_rows(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, present:
     support = present & (n + n // 2 >= params.ransac_min_points)
     if p == 0:  # no band has a pixel (e.g. an all-soil batch): no row has support
         z = torch.zeros(theta.shape, dtype=torch.float64, device=dev)
-        return z, z, z, z.clone().fill_(1.0), torch.full_like(theta, -1), torch.zeros_like(present)
+        return RowFit(z, z, z, z.clone().fill_(1.0), torch.full_like(theta, -1), torch.zeros_like(present))
     u = _table(params, dev)  # (T, 2)
-    t_all = u.shape[0]
     total = (n_keep + v_keep).to(torch.float64)  # (B, S)
     valid_pt = torch.arange(p, device=dev) < n_keep.unsqueeze(2)  # (B, S, P)
     bsz, s = theta.shape
-    # padding points never count: NaN coordinates fail every comparison
-    qx = torch.where(valid_pt, px, torch.full_like(px, float("nan")))
-    qy = torch.where(valid_pt, py, torch.full_like(py, float("nan")))
+    qx, qy = padded_points(px, py, valid_pt)
     pts = torch.stack([qy, qx, torch.ones_like(qx)], dim=2).view(bsz * s, 3, p)  # (BS, 3, P)
     budget = SCORE_BUDGET if dev.type == "cpu" else DEVICE_SCORE_BUDGET
-    chunk = max(1, budget // max(1, bsz * s * p))
-    best_score = torch.full((bsz, s), -2, dtype=torch.int64, device=dev)
-    best_t = torch.zeros((bsz, s), dtype=torch.int64, device=dev)
-    for t0 in range(0, t_all, chunk):
-        uc = u[t0:t0 + chunk]
-        i1 = torch.floor(uc[:, 0].view(1, 1, -1) * total.unsqueeze(2)).to(torch.int64)
-        i2 = torch.floor(uc[:, 1].view(1, 1, -1) * total.unsqueeze(2)).to(torch.int64)
-        nk = n_keep.unsqueeze(2)
-        degenerate = (i1 == i2) | ((i1 >= nk) & (i2 >= nk))
-        uses_vp = (i1 >= nk) | (i2 >= nk)
-        x1, y1 = _pick(px, py, i1, n_keep, vp)
-        x2, y2 = _pick(px, py, i2, n_keep, vp)
+
+    def counts(x1, y1, dx, dy, lim, sure):
         # only real hypotheses through the VP need the margin (degenerate ones are discarded)
-        unsure_ok = uses_vp & ~degenerate & present.unsqueeze(2)
-        counts = _pixel_inliers(pts, px, py, x1, y1, x2, y2, unsure_ok, params.ransac_threshold,
-                                bsz, s, p).sum(dim=3)
-        dx, dy = x2 - x1, y2 - y1
-        lim = params.ransac_threshold * _exact.sqrt(dx * dx + dy * dy)
-        vpi = (dx * (vp[:, 1].view(-1, 1, 1) - y1) - dy * (vp[:, 0].view(-1, 1, 1) - x1)).abs() < lim
-        score = counts + vpi.to(torch.int64) * v_keep.unsqueeze(2)
-        score = score.masked_fill(degenerate, -1)
-        carg = torch.argmax(score, dim=2)  # first maximum within the chunk
-        cmax = score.gather(2, carg.unsqueeze(2)).squeeze(2)
-        better = cmax > best_score  # strict: an earlier chunk wins ties
-        best_score = torch.where(better, cmax, best_score)
-        best_t = torch.where(better, carg + t0, best_t)
+        return _pixel_inliers(pts, px, py, x1, y1, dx, dy, lim, sure & present.unsqueeze(2), bsz, s, p).sum(dim=3)
+
+    best_score, best_t = score_hypotheses(px, py, n_keep, v_keep, vp, u, max(1, budget // max(1, bsz * s * p)),
+                                          params.ransac_threshold, counts)
     support = support & (best_score >= 0)
     # refit on the inliers of the best hypothesis
     cx, cy, sxx, syy, sxy = best_moments(u, best_t, total, px, py, n_keep, v_keep, valid_pt, vp,
                                          params.ransac_threshold)
     dx, dy = principal_direction(sxx, syy, sxy)
     hyp = torch.where(support, best_t, torch.full_like(best_t, -1))
-    return cx, cy, dx, dy, hyp, support
+    return RowFit(cx, cy, dx, dy, hyp, support)
 
 
 def best_moments(u, best_t, total, px, py, n_keep, v_keep, valid_pt, vp, thr: float):
@@ -338,9 +426,10 @@ def principal_direction(sxx: torch.Tensor, syy: torch.Tensor, sxy: torch.Tensor,
     return torch.where(flip, -dx, dx), torch.where(flip, -dy, dy)
 
 
-def validate_rows(cx, cy, dx, dy, hyp, support, present, height: int, hough_band: torch.Tensor,
-                  params: Params, trig_free: bool = False) -> RowFits:
-    """Step 7.6: validity in row order; ``hough_band`` int64 (B,) px.
+def validate_rows(fit: RowFit, present: torch.Tensor, height: int, hough_band: torch.Tensor,
+                  params: Params, trig_free: bool = False) -> Rows:
+    """Step 7.6: validity in row order of the fits ``fit`` where ``present`` bool ``(B, S)``;
+    ``hough_band`` int64 (B,) px.
 
     ``trig_free=True`` (export) decides the two angle rules without ``atan2``, for unit
     directions with ``dy >= 0`` (:func:`principal_direction`): orientations lie in
@@ -348,6 +437,7 @@ def validate_rows(cx, cy, dx, dy, hyp, support, present, height: int, hough_band
     directions, i.e. ``dot > cos(min_angle_diff)``; ``atan2(|dy|, |dx|) < horizon_angle`` is
     ``|dy| < sin(horizon_angle)``. Equal except within rounding of a threshold.
     """
+    cx, cy, dx, dy, hyp, support = fit.astuple()
     # (an exported graph has no gradients; a grad-mode region there breaks torch.export's
     # handling of the torch.cond subgraphs around it)
     with contextlib.nullcontext() if torch.compiler.is_exporting() else torch.no_grad():
@@ -382,4 +472,4 @@ def validate_rows(cx, cy, dx, dy, hyp, support, present, height: int, hough_band
         r = torch.where(present[:, k], r, torch.zeros_like(r))
         reason[:, k] = r
         valid[:, k] = present[:, k] & (r == 0)
-    return RowFits(a, b, valid, reason, hyp, present)
+    return Rows(a, b, valid, reason, hyp, present)

@@ -41,7 +41,6 @@ from torch import nn
 
 from torchrow.core.params import Params
 from torchrow.core.tables import hypothesis_table, rho_index_table, rho_offset
-from torchrow.functional import _exact
 from torchrow.functional import ransac as fransac
 from torchrow.functional import sky as fsky
 from torchrow.functional import tracker as ftrack
@@ -82,7 +81,8 @@ def lab(images: torch.Tensor, lut: torch.Tensor | None = None) -> torch.Tensor:
     """
     if lut is None:
         lut = torch.from_numpy(_linear_lut()).to(images.device)
-    lin = lut[images.to(torch.int64)]  # (B, 3, H, W)
+    # a flat index_select exports as one Gather (advanced indexing gave a slower GatherND)
+    lin = torch.index_select(lut, 0, images.reshape(-1).to(torch.int64)).view(images.shape)  # (B, 3, H, W)
     r, g, b = lin[:, 0], lin[:, 1], lin[:, 2]
     f = []
     for row, white in zip(_XYZ, _WHITE):
@@ -195,15 +195,18 @@ class StaticDetector(nn.Module):
         The RANSAC hypotheses are scored in this many static chunks (bounds memory).
     flow : str
         How the line search skips finished work (:mod:`torchrow.functional._flow`):
-        ``"cond"`` (default; ONNX ``If`` per step and per vote chunk: early exit at run time),
-        ``"always"`` (no control flow in the graph), ``"sync"`` (eager only).
+        ``"loop"`` (default: the line search is one ONNX ``Loop`` that stops when every image
+        is done, vote chunks past every image's pixel count sit in ``If`` nodes), ``"cond"``
+        (the line search unrolled to its static bound, one ``If`` per step: a graph ~12x
+        larger that takes ~20x longer to export), ``"always"`` (no control flow in the
+        graph), ``"sync"`` (eager only).
     scatter_free : bool
         Vote by prefix sums of constant permutations, re-voting at every step, instead of one
         scatter-add vote updated by the erased bands (:class:`~torchrow.functional.hough.StaticVoter`).
     """
 
     def __init__(self, height: int = 240, width: int = 320, params: Params | None = None,
-                 score_chunks: int = 4, flow: str = "cond", scatter_free: bool = False) -> None:
+                 score_chunks: int = 4, flow: str = "loop", scatter_free: bool = False) -> None:
         super().__init__()
         self.params = params or Params()
         self.height, self.width = int(height), int(width)
@@ -251,9 +254,9 @@ class StaticDetector(nn.Module):
         chosen = torch.where(chosen == big, torch.zeros_like(chosen), chosen)
         return (chosen % self.width).to(torch.float64), (chosen // self.width).to(torch.float64), n_keep, v_keep, n
 
-    def fit_rows(self, veg, theta, rho, present, vp, band, track=None):
-        """Steps 7.1-7.5 up to the weighted moments of the best hypothesis' inliers:
-        ``cx, cy, sxx, syy, sxy`` float64, ``hypothesis`` int64, ``support`` bool, ``(B, S)``."""
+    def fit_rows(self, veg, theta, rho, present, vp, band, track=None) -> fransac.RowMoments:
+        """Steps 7.1-7.5 up to the weighted moments of the best hypothesis' inliers (the
+        arguments of :func:`torchrow.functional.ransac.fit_rows`)."""
         p = self.params
         dev = veg.device
         px, py, n_keep, v_keep, n = self.band_points(veg, theta, rho, band, track)
@@ -261,38 +264,14 @@ class StaticDetector(nn.Module):
         support = present & (n + n // 2 >= p.ransac_min_points)
         total = (n_keep + v_keep).to(torch.float64)
         valid_pt = torch.arange(pp, device=dev) < n_keep.unsqueeze(2)
-        qx = px.masked_fill(~valid_pt, float("nan")).unsqueeze(2)  # (B, S, 1, P); padding fails every test
-        qy = py.masked_fill(~valid_pt, float("nan")).unsqueeze(2)
-        vx, vy = vp[:, 0].view(-1, 1, 1), vp[:, 1].view(-1, 1, 1)
-        t_all = self.u.shape[0]
-        step = -(-t_all // max(1, self.score_chunks))
-        best_score = torch.full(theta.shape, -2, dtype=torch.int64, device=dev)
-        best_t = torch.zeros(theta.shape, dtype=torch.int64, device=dev)
-        nk = n_keep.unsqueeze(2)
-        for t0 in range(0, t_all, step):
-            uc = self.u[t0:t0 + step]
-            i1 = torch.floor(uc[:, 0].view(1, 1, -1) * total.unsqueeze(2)).to(torch.int64)
-            i2 = torch.floor(uc[:, 1].view(1, 1, -1) * total.unsqueeze(2)).to(torch.int64)
-            degenerate = (i1 == i2) | ((i1 >= nk) & (i2 >= nk))
-            x1, y1 = fransac._pick(px, py, i1, n_keep, vp)
-            x2, y2 = fransac._pick(px, py, i2, n_keep, vp)
-            dx, dy = x2 - x1, y2 - y1
-            lim = p.ransac_threshold * _exact.sqrt(dx * dx + dy * dy)
-            pix = (dx.unsqueeze(3) * (qy - y1.unsqueeze(3)) - dy.unsqueeze(3) * (qx - x1.unsqueeze(3))).abs() \
-                < lim.unsqueeze(3)
-            vpi = (dx * (vy - y1) - dy * (vx - x1)).abs() < lim
-            score = pix.sum(dim=3) + vpi.to(torch.int64) * v_keep.unsqueeze(2)
-            score = torch.where(degenerate, torch.full_like(score, -1), score)
-            carg = torch.argmax(score, dim=2)
-            cmax = score.gather(2, carg.unsqueeze(2)).squeeze(2)
-            better = cmax > best_score
-            best_score = torch.where(better, cmax, best_score)
-            best_t = torch.where(better, carg + t0, best_t)
+        step = -(-self.u.shape[0] // max(1, self.score_chunks))
+        best_score, best_t = fransac.score_hypotheses(px, py, n_keep, v_keep, vp, self.u, step, p.ransac_threshold,
+                                                      fransac.exact_counts(*fransac.padded_points(px, py, valid_pt)))
         support = support & (best_score >= 0)
         cx, cy, sxx, syy, sxy = fransac.best_moments(self.u, best_t, total, px, py, n_keep, v_keep, valid_pt, vp,
                                                      p.ransac_threshold)
         hyp = torch.where(support, best_t, torch.full_like(best_t, -1))
-        return cx, cy, sxx, syy, sxy, hyp, support
+        return fransac.RowMoments(cx, cy, sxx, syy, sxy, hyp, support)
 
     def forward(self, images: torch.Tensor, veg_lab: torch.Tensor):
         p = self.params
@@ -309,21 +288,21 @@ class StaticDetector(nn.Module):
         band = torch.where(bushy, torch.full_like(n, p.ransac_band_px(w, True)),
                            torch.full_like(n, p.ransac_band_px(w, False)))
         present = ls.valid & ls.has_vp.unsqueeze(1)
-        cx, cy, sxx, syy, sxy, hyp, support = self.fit_rows(veg, ls.theta, ls.rho, present, ls.vp, band)
+        fit = self.fit_rows(veg, ls.theta, ls.rho, present, ls.vp, band)
         return (sky, bushy, has_veg, n, ls.theta, ls.rho, ls.weight, ls.valid, ls.out_theta, ls.out_rho,
-                ls.out_weight, ls.out_valid, ls.vp, ls.has_vp, cx, cy, sxx, syy, sxy, hyp, support, present)
+                ls.out_weight, ls.out_valid, ls.vp, ls.has_vp) + fit.astuple() + (present,)
 
 
-def finish_rows(cx, cy, sxx, syy, sxy, hyp, support, present, height: int, width: int,
-                params: Params) -> fransac.RowFits:
-    """Host side of 7.5-7.6: principal direction from the moments, then validity.
-
-    Inputs are the graph's float64/int64/bool ``(B, S)`` fit outputs (torch tensors); the
-    direction is computed exactly as :func:`torchrow.functional.ransac.fit_rows` does.
-    """
-    dx, dy = fransac.principal_direction(sxx, syy, sxy)
-    band = torch.full(support.shape[:1], params.hough_band_px(width), dtype=torch.int64)
-    return fransac.validate_rows(cx, cy, dx, dy, hyp, support, present, height, band, params)
+def finish_rows(outputs: dict, height: int, width: int, params: Params) -> fransac.Rows:
+    """Host side of 7.5-7.6 from the graph's outputs (``{name: tensor}`` of
+    :data:`GRAPH_OUTPUTS`): the principal direction of each row's moments (exactly as
+    :func:`torchrow.functional.ransac.fit_rows` computes it), then validity."""
+    o = outputs
+    moments = fransac.RowMoments(o["fit_cx"], o["fit_cy"], o["fit_sxx"], o["fit_syy"], o["fit_sxy"],
+                                 o["row_hypothesis"], o["row_support"])
+    present = o["row_present"]
+    band = torch.full(present.shape[:1], params.hough_band_px(width), dtype=torch.int64)
+    return fransac.validate_rows(moments.direction(), present, height, band, params)
 
 
 # ------------------------------------------------------------------------------------------
@@ -393,15 +372,13 @@ class StaticTrackerStep(nn.Module):
                  control_flow: bool = True, scatter_free: bool = False) -> None:
         super().__init__()
         self.control_flow = bool(control_flow)
-        self.det = StaticDetector(height, width, params, score_chunks, "cond" if self.control_flow else "always",
+        self.det = StaticDetector(height, width, params, score_chunks, "loop" if self.control_flow else "always",
                                   scatter_free)
         self.params = self.det.params
         self.height, self.width = self.det.height, self.det.width
 
-    def _fit_rows(self, veg, theta, rho, present, vp, band, track=None):
-        cx, cy, sxx, syy, sxy, hyp, support = self.det.fit_rows(veg, theta, rho, present, vp, band, track)
-        dx, dy = fransac.principal_direction(sxx, syy, sxy, trig_free=True)
-        return cx, cy, dx, dy, hyp, support
+    def _fit_rows(self, veg, theta, rho, present, vp, band, track=None) -> fransac.RowFit:
+        return self.det.fit_rows(veg, theta, rho, present, vp, band, track).direction(trig_free=True)
 
     def segment(self, images: torch.Tensor, veg_lab: torch.Tensor, sky: torch.Tensor, info0: torch.Tensor,
                 start: torch.Tensor):
@@ -415,7 +392,8 @@ class StaticTrackerStep(nn.Module):
         below = below.reshape(bsz, 1, h * w)
         kstar = fveg._min_k(lab(images, self.det.lut).reshape(bsz, 3, h * w), veg_lab, k_min, k_max, static=True)
         ks = torch.arange(k_min, k_max + 1, device=images.device).view(1, -1, 1)
-        counts = ((kstar.unsqueeze(1) <= ks) & below).sum(2)  # (B, n_k): no histogram scatter
+        # (B, n_k) without a histogram scatter; int32 sums (at most H*W) halve the traffic
+        counts = ((kstar.unsqueeze(1) <= ks) & below).sum(2, dtype=torch.int32)
         frac = fveg.k_fractions(counts, skyc, h, w)
         info0 = torch.where(start, frac[:, p.video_k_start - k_min], info0)
         k = fveg.choose_k(frac, info0, p)

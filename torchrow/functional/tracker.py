@@ -251,8 +251,9 @@ class Stages:
     tracker step (:class:`torchrow.functional.static.StaticTrackerStep`) share one set of rules.
 
     ``find_lines(hin bool (B, H, W)) -> LineSearch`` (sections 5-6);
-    ``fit_rows(veg, theta, rho, present, vp, band, track=None) -> (cx, cy, dx, dy, hypothesis,
-    support)`` (steps 7.1-7.5, as :func:`torchrow.functional.ransac.fit_rows`);
+    ``fit_rows(veg, theta, rho, present, vp, band, track=None) ->``
+    :class:`~torchrow.functional.ransac.RowFit` (steps 7.1-7.5, as
+    :func:`torchrow.functional.ransac.fit_rows`);
     ``trig_free``: step 7.6's angle rules without ``atan2`` (see
     :func:`~torchrow.functional.ransac.validate_rows`). ``branches`` says how the tracked
     and the Hough branch are skipped when no sequence of the batch needs them: ``"sync"``
@@ -316,13 +317,13 @@ def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: tor
     need = active & (~state.prev_valid | (state.age >= p.hough_every))
     trk = active & ~need
 
-    def rows_of(fit, present):
-        return fransac.validate_rows(*fit, present, h, hough_band, p, trig_free=st.trig_free)
+    def rows_of(fit: tuple, present):  # a branch's outputs are the fields of a RowFit
+        return fransac.validate_rows(fransac.RowFit(*fit), present, h, hough_band, p, trig_free=st.trig_free)
 
     def no_fit(*_):
         z = torch.zeros((bsz, s), dtype=torch.float64, device=dev)
-        return (z, z.clone(), z.clone(), torch.ones_like(z), torch.full((bsz, s), -1, **i64),
-                torch.zeros((bsz, s), dtype=torch.bool, device=dev))
+        return fransac.RowFit(z, z.clone(), z.clone(), torch.ones_like(z), torch.full((bsz, s), -1, **i64),
+                              torch.zeros((bsz, s), dtype=torch.bool, device=dev)).astuple()
 
     # --- tracked frames: bands around the previous rows, VP of the last Hough run ---------
     # Only the fits sit in the branches (st.run): they are the cost; the cheap rules around
@@ -333,7 +334,7 @@ def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: tor
     def tracked(veg_t, present_t, vp, row_a, row_b):
         zeros_rows = torch.zeros((bsz, s), **i64)
         return st.fit_rows(veg_t, zeros_rows, zeros_rows, present_t, vp, torch.full((bsz,), p.track_band, **i64),
-                           track=(row_a, row_b))
+                           track=(row_a, row_b)).astuple()
 
     fit = st.run(trk.any(), tracked, no_fit, (veg_t, present_t, state.vp, state.row_a, state.row_b))
     rows_t = rows_of(fit, present_t)
@@ -365,7 +366,7 @@ def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: tor
     present_h = ls.valid & ls.has_vp.unsqueeze(1) & use_h.unsqueeze(1)
 
     def hough_fit(veg_h, theta, rho, present_h, vp, band):
-        return st.fit_rows(veg_h, theta, rho, present_h, vp, band)
+        return st.fit_rows(veg_h, theta, rho, present_h, vp, band).astuple()
 
     fit_h = st.run(use_h.any(), hough_fit, no_fit, (veg_h, ls.theta, ls.rho, present_h, ls.vp, band))
     rows_h = rows_of(fit_h, present_h)
@@ -376,8 +377,7 @@ def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: tor
 
     # --- this frame's outputs: the Hough result where it ran, else the tracked one --------
     status = torch.where(use_h, status_h, torch.full_like(status_h, STATUS_OK))
-    rows = fransac.RowFits(*(_where(use_h, getattr(rows_h, f.name), getattr(rows_t, f.name))
-                             for f in dataclasses.fields(fransac.RowFits)))
+    rows = fransac.Rows(*(_where(use_h, a, b) for a, b in zip(rows_h.astuple(), rows_t.astuple())))
     vp = _where(use_h, ls.vp, state.vp)
     has_vp = torch.where(use_h, ls.has_vp, state.has_vp)
     n_rows = torch.where(use_h, ls.n_rows, state.row_present.sum(1))

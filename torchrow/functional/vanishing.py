@@ -15,7 +15,7 @@ from torch import nn
 
 from torchrow.core.params import Params
 from torchrow.functional import _exact
-from torchrow.functional._flow import branch, check_flow, keep
+from torchrow.functional._flow import check_flow, repeat
 from torchrow.functional.hough import EagerVoter, excluded_angles, peak, trig
 
 __all__ = ["VPSolution", "vanishing_point", "LineSearch", "find_lines", "max_steps"]
@@ -44,22 +44,21 @@ def vanishing_point(theta: torch.Tensor, rho: torch.Tensor, weight: torch.Tensor
     tables : optional ``(cos, sin)`` float64 ``(n_theta,)``, the shared tables (default
         :func:`~torchrow.functional.hough.trig`; an exported module passes its buffers).
 
-    Sums run slot by slot in held order, as in the reference, so the bits agree.
+    Sums run slot by slot in held order, as in the reference, so the bits agree: the terms
+    of all slots are computed at once (the same products, ``(w*c)*c`` and so on), and only
+    the six running sums step through the slots, as one ``(B, 6)`` tensor (a few ops per slot:
+    an exported line-search step holds this once per step).
     """
     cos, sin = tables if tables is not None else trig(params, theta.device)
     co, si = cos[theta], sin[theta]
     w, r = weight.to(torch.float64), rho.to(torch.float64)
     z = torch.zeros(theta.shape[0], dtype=torch.float64, device=theta.device)
-    a = b = c = d = e = wsum = z
+    wc, ws, wr = w * co, w * si, w * r
+    terms = torch.stack([wc * co, ws * si, ws * co, wr * co, wr * si, w], dim=2)  # (B, S, 6)
+    acc = torch.zeros((theta.shape[0], 6), dtype=torch.float64, device=theta.device)
     for k in range(theta.shape[1]):
-        m = valid[:, k]
-        wk, ck, sk, rk = w[:, k], co[:, k], si[:, k], r[:, k]
-        a = torch.where(m, a + wk * ck * ck, a)
-        b = torch.where(m, b + wk * sk * sk, b)
-        c = torch.where(m, c + wk * sk * ck, c)
-        d = torch.where(m, d + wk * rk * ck, d)
-        e = torch.where(m, e + wk * rk * sk, e)
-        wsum = torch.where(m, wsum + wk, wsum)
+        acc = torch.where(valid[:, k:k + 1], acc + terms[:, k], acc)
+    a, b, c, d, e, wsum = acc.unbind(1)
     det = a * b - c * c
     trace = a + b
     ok = (valid.sum(dim=1) >= 2) & ~(det.abs() < params.singular_tol * trace * trace)
@@ -68,9 +67,10 @@ def vanishing_point(theta: torch.Tensor, rho: torch.Tensor, weight: torch.Tensor
     y0 = torch.where(ok, (a * e - c * d) / safe, z)
     res = torch.where(valid, r - x0.unsqueeze(1) * co - y0.unsqueeze(1) * si, torch.zeros_like(r))
     safe_w = torch.where(wsum > 0, wsum, torch.ones_like(wsum))
+    parts = (w / safe_w.unsqueeze(1)) * (res * res)
     s2 = z
     for k in range(theta.shape[1]):
-        s2 = torch.where(valid[:, k], s2 + (w[:, k] / safe_w) * (res[:, k] * res[:, k]), s2)
+        s2 = torch.where(valid[:, k], s2 + parts[:, k], s2)
     return VPSolution(x0, y0, ok, res, _exact.sqrt(s2))
 
 
@@ -145,7 +145,8 @@ def find_lines(hough_in: torch.Tensor, params: Params, voter=None, flow: str = "
     (:mod:`._flow`): ``"sync"`` stops once every image is finished (host sync), ``"cond"``
     puts each of the :func:`max_steps` steps in a ``torch.cond`` on "some image is not
     finished" (an exported graph keeps the static bound and exits early at run time),
-    ``"always"`` runs every step with masks.
+    ``"loop"`` is one ``while_loop`` over the steps (an ONNX ``Loop`` whose body is stored
+    once, stopping when every image is finished), ``"always"`` runs every step with masks.
 
     Parameters
     ----------
@@ -163,11 +164,15 @@ def find_lines(hough_in: torch.Tensor, params: Params, voter=None, flow: str = "
     vstate, init = voter.start(hough_in)
     tables = (voter.cos, voter.sin) if isinstance(voter, nn.Module) else None
     i64 = dict(dtype=torch.int64, device=dev)
-    n = torch.full((bsz,), params.n_rows, **i64)
+    # an image without Hough pixels ends as its first extraction would leave it (N = 0, no
+    # VP): done before the first step, so a search of only such images runs no step at all
+    n = torch.where(hough_in.flatten(1).any(dim=1), params.n_rows, 0).to(torch.int64)
     carry = (torch.zeros((bsz, s_max), **i64), torch.zeros((bsz, s_max), **i64), torch.zeros((bsz, s_max), **i64),
              torch.zeros(bsz, **i64), torch.zeros((bsz, o_max, 3), **i64), torch.zeros(bsz, **i64), n,
              torch.zeros(bsz, **i64), n < 2, torch.zeros((bsz, 2), dtype=torch.float64, device=dev),
-             torch.zeros(bsz, dtype=torch.bool, device=dev)) + tuple(vstate)
+             torch.zeros(bsz, dtype=torch.bool, device=dev))
+    # a loop's carry may not alias what its body reads besides (the restart state ``init``)
+    carry += tuple(v.clone() if isinstance(v, torch.Tensor) and flow == "loop" else v for v in vstate)
     slots = torch.arange(s_max, device=dev).unsqueeze(0)
 
     def step(theta, rho, weight, held, out, n_out, n, dropped, done, vp, has_vp, *vs):
@@ -203,13 +208,8 @@ def find_lines(hough_in: torch.Tensor, params: Params, voter=None, flow: str = "
         done = done | no_vp | finish | (restart & (n < 2))
         return (theta, rho, weight, held, out, n_out, n, dropped, done, vp, has_vp) + tuple(vs)
 
-    for _ in range(max_steps(params)):
-        if flow == "sync":
-            if bool(carry[8].all()):  # early exit; the bound is what an exported graph keeps
-                break
-            carry = step(*carry)
-        else:
-            carry = branch(flow, ~carry[8].all(), step, keep, carry)
+    # early exit once every image is done; the bound is what an exported graph keeps
+    carry = repeat(flow, max_steps(params), lambda *c: c[8].all(), step, carry)
 
     theta, rho, weight, held, out, n_out, n, _, _, vp, has_vp = carry[:11]
     valid = slots < held.unsqueeze(1)

@@ -270,10 +270,12 @@ def _min_k(lab: torch.Tensor, c: torch.Tensor, k_min: int, k_max: int, static: b
     float64 comparisons as :func:`raw_mask`, without a pass per
     ``k``. The raw mask at any ``k`` is then ``min_k <= k``.
 
-    ``static=True`` (ONNX export, which has no batched ``searchsorted``) counts the bounds
-    below each value instead, ``(n, K, P)`` comparisons; a left ``searchsorted`` in an
-    ascending row is exactly that count.
+    ``static=True`` (ONNX export, which has no batched ``searchsorted``) finds the same index
+    from a guess, :func:`_first_admitting`; elementwise ``(n, P)`` work, no ``(n, K, P)``
+    intermediate.
     """
+    if static:
+        return _first_admitting(lab, c, k_min, k_max) + k_min
     n, _, p = lab.shape
     ks = torch.arange(k_min, k_max + 1, device=lab.device, dtype=torch.float64)
     out = torch.zeros((n, p), dtype=torch.int64, device=lab.device)
@@ -282,14 +284,37 @@ def _min_k(lab: torch.Tensor, c: torch.Tensor, k_min: int, k_max: int, static: b
         hi = cc + ks  # (n, K) ascending: v <= c + k
         neg_lo = -(cc - ks)  # (n, K) ascending: c - k <= v  <=>  -(c - k) >= -v
         v = lab[:, ch].contiguous()
-        if static:
-            j_hi = (hi.unsqueeze(2) < v.unsqueeze(1)).sum(1)
-            j_lo = (neg_lo.unsqueeze(2) < (-v).unsqueeze(1)).sum(1)
-        else:
-            j_hi = torch.searchsorted(hi, v, side="left")  # first k with c + k >= v
-            j_lo = torch.searchsorted(neg_lo, -v, side="left")  # first k with -(c - k) >= -v
+        j_hi = torch.searchsorted(hi, v, side="left")  # first k with c + k >= v
+        j_lo = torch.searchsorted(neg_lo, -v, side="left")  # first k with -(c - k) >= -v
         out = torch.maximum(out, torch.maximum(j_hi, j_lo))
     return out + k_min
+
+
+def _first_admitting(lab: torch.Tensor, c: torch.Tensor, k_min: int, k_max: int) -> torch.Tensor:
+    """:func:`_min_k`'s index (``k - k_min``, ``K = k_max - k_min + 1`` where no ``k``
+    admits) without a search: int64 ``(n, P)`` from ``lab`` float64 ``(n, 3, P)`` and
+    ``c`` float64 ``(n, 3)``.
+
+    "Every bound of the box ``k`` admits the pixel" is monotone in ``k``, so its first index
+    is the largest of the six per-bound first indices. The guess ``ceil(max_ch |v - c|) -
+    k_min`` (clamped to ``[0, K]``) is off from it only where some ``|v - c|`` lies within a
+    few ulps (about 1e-13 for LAB values) of an integer, and then by one: one step down
+    where the box one ``k`` smaller already admits the pixel, and one step up where the box
+    at the guess does not, give the exact index. Each box test is section 3.2's own
+    ``fl(c - k) <= v <= fl(c + k)``; a test compares this with the search on values at and
+    one ulp either side of every bound.
+    """
+    n_k = k_max - k_min + 1
+    cc = c.unsqueeze(2)  # (n, 3, 1)
+    gap = (lab - cc).abs().amax(dim=1)  # (n, P); fl(c - v) = -fl(v - c) exactly
+    t = (-torch.floor(-gap) - k_min).clamp(0, n_k).to(torch.int32)  # ceil, from ops every runtime has
+
+    def admits(j: torch.Tensor) -> torch.Tensor:  # the box of index j holds the pixel
+        kk = (j + k_min).to(torch.float64).unsqueeze(1)  # (n, 1, P)
+        return ((cc - kk <= lab) & (lab <= cc + kk)).all(dim=1)
+
+    t = torch.where((t > 0) & admits(t - 1), t - 1, t)
+    return torch.where((t < n_k) & ~admits(t), t + 1, t).to(torch.int64)
 
 
 def k_fractions(counts: torch.Tensor, sky: torch.Tensor, height: int, width: int) -> torch.Tensor:
