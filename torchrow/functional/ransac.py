@@ -172,7 +172,7 @@ def subsample_plan(member: torch.Tensor, lin: torch.Tensor, params: Params):
     or the hash ``(i * subsample_hash) & 0xFFFFFFFF`` when subsampling; non-members get
     ``int64 max``).
     """
-    n = member.sum(dim=2)
+    n = _exact.count(member)
     v = n // 2
     sub = n + v > params.ransac_max_points
     n_keep = torch.where(sub, (params.ransac_subsample * n) // torch.clamp(n + v, min=1), n)
@@ -268,7 +268,7 @@ def exact_counts(qx: torch.Tensor, qy: torch.Tensor):
     def counts(x1, y1, dx, dy, lim, sure):
         pix = (dx.unsqueeze(3) * (qy4 - y1.unsqueeze(3)) - dy.unsqueeze(3) * (qx4 - x1.unsqueeze(3))).abs() \
             < lim.unsqueeze(3)
-        return pix.sum(dim=3)
+        return _exact.count(pix)
 
     return counts
 
