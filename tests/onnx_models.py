@@ -21,11 +21,12 @@ from torchrow import Params
 from torchrow.engines.export import to_onnx
 
 #: Op types the graph may contain: all supported by TensorRT's ONNX parser (CumSum, TopK with
-#: k <= 3840, GatherElements, ScatterND without reduction, BitShift/Bitwise ops on ints).
+#: k <= 3840, GatherElements, ScatterND without reduction, BitShift/Bitwise ops on ints, MatMul
+#: in float32: the exact counts of :func:`torchrow.functional._exact.count`).
 ALLOWED_OPS = {
     "Abs", "Add", "And", "ArgMax", "BitShift", "BitwiseAnd", "BitwiseOr", "BitwiseXor", "Cast", "Clip", "Concat",
     "Constant", "CumSum", "Div", "Equal", "Expand", "Floor", "Gather", "GatherElements", "GatherND", "Greater",
-    "GreaterOrEqual", "Identity", "Less", "LessOrEqual", "Max", "Min", "Mod", "Mul", "Neg", "Not", "Or", "Pad",
+    "GreaterOrEqual", "Identity", "Less", "LessOrEqual", "MatMul", "Max", "Min", "Mod", "Mul", "Neg", "Not", "Or", "Pad",
     "Pow", "Range", "ReduceMax", "ReduceMin", "ReduceSum", "Reshape", "ScatterElements", "ScatterND", "Shape",
     "Slice", "Sqrt", "Squeeze", "Sub", "TopK", "Transpose", "Unsqueeze", "Where", "Xor",
 }

@@ -106,6 +106,46 @@ def test_default_form_votes_by_scatter_add_and_exits_early(model_path: Path):
     assert not {"NonZero", "Unique", "Scan"} & set(ops), ops
 
 
+def test_ort_native_small_integer_ops_run_and_agree_with_int32():
+    """Every (op, type) that legalize leaves narrow for onnxruntime has a CPU kernel in the
+    installed onnxruntime, and gives the int32 computation's values (cast back) on edge
+    values of the type."""
+    import onnxruntime as ort
+    from onnx import TensorProto, helper
+
+    from torchrow.engines.export import ORT_NATIVE
+
+    unary = {"Abs", "BitwiseNot", "Neg", "ReduceMax", "ReduceMin", "ArgMax", "Clip"}
+    compare = {"Equal", "Greater", "GreaterOrEqual", "Less", "LessOrEqual"}
+    for tname, ops in ORT_NATIVE.items():
+        dt = getattr(TensorProto, tname)
+        npt = helper.tensor_dtype_to_np_dtype(dt)
+        info = np.iinfo(npt)
+        a = np.array([info.min, info.min + 1, -1 if info.min < 0 else 2, 0, 1, 7, info.max - 1, info.max], dtype=npt)
+        b = a[::-1].copy()
+        for op in sorted(ops):
+            n_in = 1 if op in unary else (3 if op == "Where" else 2)
+            out_t = TensorProto.BOOL if op in compare else (TensorProto.INT64 if op == "ArgMax" else None)
+
+            def run(t, arrays, op=op, out_t=out_t):
+                names = [f"x{i}" for i in range(len(arrays))]
+                ins = [helper.make_tensor_value_info(n, TensorProto.BOOL if op == "Where" and i == 0 else t, [8])
+                       for i, n in enumerate(names)]
+                g = helper.make_graph([helper.make_node(op, names, ["y"])], "g", ins,
+                                      [helper.make_tensor_value_info("y", out_t or t, None)])
+                m = helper.make_model(g, opset_imports=[helper.make_opsetid("", 18)])
+                m.ir_version = 9
+                sess = ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"])
+                return sess.run(None, dict(zip(names, arrays)))[0]
+
+            args = {1: [a], 2: [a, b], 3: [a > b, a, b]}[n_in]
+            got = run(dt, args)
+            wide = run(TensorProto.INT32, [x if x.dtype == bool else x.astype(np.int32) for x in args])
+            if out_t is None:
+                wide = wide.astype(npt)  # the cast back legalize would have made (wraps)
+            assert np.array_equal(got, wide), (tname, op, got, wide)
+
+
 def test_model_metadata(model_path: Path):
     info = model_info(model_path)
     assert (info["height"], info["width"], info["batch"], info["opset"]) == (240, 320, BATCH, 18)

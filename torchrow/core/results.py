@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["HoughLine", "Row", "ImageResult", "STATUSES", "REASONS", "record_differences"]
+__all__ = ["HoughLine", "Row", "ImageResult", "STATUSES", "REASONS", "record_differences", "concat_batches"]
 
 #: ``ok``: every row valid. ``invalid``: at least one row invalid. ``no_vp``: fewer than two
 #: Hough lines or a singular vanishing-point system, so no rows. ``no_vegetation``: the
@@ -168,3 +168,23 @@ def record_differences(a: Any, b: Any, tol: float = 1e-6, path: str = "") -> lis
     else:
         same = type(a) is type(b) and a == b
     return [] if same else [f"{path or '.'}: {a!r} != {b!r}"]
+
+
+def concat_batches(parts: list) -> Any:
+    """One dataclass of batched tensors from consecutive chunks of a batch (the one
+    concatenator of the detectors, the exported runners and the tracker).
+
+    ``parts``: dataclasses of one type whose tensor fields have the batch as their first
+    dimension. Tensor fields are concatenated along it; other fields (working sizes,
+    ``None``) are taken from the first part. A single part is returned as it is.
+    """
+    import dataclasses
+
+    import torch
+
+    if len(parts) == 1:
+        return parts[0]
+    first = parts[0]
+    return type(first)(**{f.name: (torch.cat([getattr(q, f.name) for q in parts])
+                                   if isinstance(getattr(first, f.name), torch.Tensor) else getattr(first, f.name))
+                          for f in dataclasses.fields(first)})

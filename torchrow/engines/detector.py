@@ -8,7 +8,6 @@ turns it into the same per-image :class:`~torchrow.core.results.ImageResult` rec
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -21,7 +20,7 @@ from torch import nn
 
 from torchrow.core.io import check_color, check_working_size, load_image, resize_to_width, to_rgb8
 from torchrow.core.params import Params
-from torchrow.core.results import REASONS, STATUSES, HoughLine, ImageResult, Row
+from torchrow.core.results import REASONS, STATUSES, HoughLine, ImageResult, Row, concat_batches
 from torchrow.functional import color as fcolor
 from torchrow.functional import lattice as flattice
 from torchrow.functional import ransac as fransac
@@ -125,21 +124,6 @@ def _color_override(color: object, batch: int, device: torch.device) -> torch.Te
     return torch.from_numpy(np.ascontiguousarray(a, dtype=np.uint8)).to(device)
 
 
-def _cat_results(parts: list[BatchResult]) -> BatchResult:
-    """Concatenate the results of consecutive chunks of one batch."""
-    first = parts[0]
-    fields = {f.name: (torch.cat([getattr(q, f.name) for q in parts])
-                       if isinstance(getattr(first, f.name), torch.Tensor) else getattr(first, f.name))
-              for f in dataclasses.fields(BatchResult)}
-    return BatchResult(**fields)
-
-
-def _cat(parts: list):
-    """Concatenate dataclasses of batched tensors (same type) along the batch dimension."""
-    kind = type(parts[0])
-    return kind(**{f.name: torch.cat([getattr(p, f.name) for p in parts]) for f in dataclasses.fields(kind)})
-
-
 class CropRowDetector(nn.Module):
     """Batched crop-row detector (ALGORITHM.md, image mode), identical to the reference.
 
@@ -211,7 +195,7 @@ class CropRowDetector(nn.Module):
                     images[s0:s0 + step], None if color is None else color[s0:s0 + step]), starts))
         finally:
             torch.set_num_threads(threads)
-        return _cat_results(parts)
+        return concat_batches(parts)
 
     def _warm(self, height: int, width: int) -> None:
         """Build the shared constant tables once, before worker threads read them."""
@@ -258,8 +242,7 @@ class CropRowDetector(nn.Module):
         has_veg = veg.flatten(1).any(dim=1)
         hin, bushy = fveg.hough_input(veg, sky, p)
         lap("vegetation")
-        band = torch.where(bushy, torch.full((bsz,), p.ransac_band_px(w, True), **i64),
-                           torch.full((bsz,), p.ransac_band_px(w, False), **i64))
+        band = fransac.ransac_band(bushy, w, p)
         step = self.chunk or max(bsz, 1)
         parts = []
         for s0 in range(0, max(bsz, 1), step):  # chunks of images: memory and cache, never results
@@ -272,17 +255,13 @@ class CropRowDetector(nn.Module):
             fit = fransac.fit_rows(veg[sl], ls.theta, ls.rho, present, ls.vp, band[sl], p)
             rows = fransac.validate_rows(fit, present, h, torch.full_like(band[sl], p.hough_band_px(w)), p)
             parts.append((ls, rows))
-        ls = _cat([q[0] for q in parts])
-        rows = _cat([q[1] for q in parts])
+        ls = concat_batches([q[0] for q in parts])
+        rows = concat_batches([q[1] for q in parts])
         if p.mode == "improved":
             rows, curved = flattice.as_row_fits(rows), rows
         lap("hough+vp+ransac")
-        all_valid = (rows.valid | ~rows.present).all(dim=1)
-        status = torch.where(all_valid, torch.full((bsz,), STATUS_CODES["ok"], **i64),
-                             torch.full((bsz,), STATUS_CODES["invalid"], **i64))
-        if p.mode == "faithful":
-            status = torch.where(ls.has_vp, status, torch.full_like(status, STATUS_CODES["no_vp"]))
-            status = torch.where(has_veg, status, torch.full_like(status, STATUS_CODES["no_vegetation"]))
+        faithful = p.mode == "faithful"
+        status = fransac.image_status(rows, ls.has_vp if faithful else None, has_veg if faithful else None)
         return BatchResult(
             width=w, height=h, status=status, sky=sky.to(torch.int64), veg_color=color, k=k, bushy=bushy,
             n_rows=ls.n_rows if p.mode == "faithful" else torch.full_like(ls.n_rows, rows.a.shape[1]),

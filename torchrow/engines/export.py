@@ -35,7 +35,6 @@ int32 (values never overflow: every such tensor in the detector holds small coun
 from __future__ import annotations
 
 import contextlib
-import time
 from collections import Counter
 from pathlib import Path
 from typing import Sequence
@@ -44,7 +43,8 @@ import numpy as np
 import torch
 
 from torchrow.core.params import Params
-from torchrow.engines.detector import STATUS_CODES, BatchResult
+from torchrow.core.results import concat_batches
+from torchrow.engines.detector import BatchResult
 
 __all__ = ["to_onnx", "OnnxDetector", "OnnxTracker", "step_differences", "float64_python_constants", "legalize",
            "op_counts", "model_info",
@@ -98,12 +98,32 @@ def _graph_types(graph, types: dict) -> None:
             _graph_types(g, types)
 
 
-def legalize(model):
+#: Compute ops onnxruntime's CPU kernels (1.32) run natively on small integer types, by
+#: ONNX element type name: :func:`legalize` leaves them narrow for the onnxruntime graph
+#: (``tests/test_export.py`` runs every entry in the installed onnxruntime). Integer
+#: ``Div``/``Mod`` are left out on purpose (their rounding of negatives is op-specific).
+ORT_NATIVE = {
+    "UINT8": {"Abs", "Add", "ArgMax", "BitwiseAnd", "BitwiseNot", "BitwiseOr", "BitwiseXor", "Clip", "Equal",
+              "Greater", "GreaterOrEqual", "Less", "LessOrEqual", "Max", "Min", "Mul", "ReduceMax", "ReduceMin",
+              "Sub", "Where"},
+    "INT8": {"Abs", "Add", "ArgMax", "BitwiseAnd", "BitwiseNot", "BitwiseOr", "BitwiseXor", "Clip", "Equal",
+             "Greater", "GreaterOrEqual", "Less", "LessOrEqual", "Max", "Min", "Mul", "Neg", "ReduceMax",
+             "ReduceMin", "Sub", "Where"},
+    "INT16": {"Abs", "Add", "BitwiseAnd", "BitwiseNot", "BitwiseOr", "BitwiseXor", "Clip", "Equal", "Greater",
+              "GreaterOrEqual", "Less", "LessOrEqual", "Mul", "Neg", "Sub"},
+}
+
+
+def legalize(model, native: dict | None = None):
     """Widen small-integer/bool inputs of compute nodes to int32 (in place; returns the model).
 
     For each node that is neither data movement, a logical op nor control flow, every input
     of type bool/uint8/int8/int16/uint16 (except ``Where``'s condition) is cast to int32, and
-    each such output is computed in int32 and cast back to its type. ``If`` and ``Loop`` bodies are
+    each such output is computed in int32 and cast back to its type; with ``native`` (e.g.
+    :data:`ORT_NATIVE`), nodes the runtime runs on their narrow types stay as they are. The
+    default (``None``: every such node widened) is for runtimes without small-integer
+    arithmetic (TensorRT); results are the same, since every such tensor here holds small
+    counts, pixel values or 0/1 masks that no step overflows. ``If`` and ``Loop`` bodies are
     walked too. Node names are made unique.
 
     Two rewrites keep the casts few (the median network and the morphology of the sky and
@@ -117,7 +137,10 @@ def legalize(model):
 
     types: dict = {}
     _graph_types(onnx.shape_inference.infer_shapes(model).graph, types)
-    _legalize_graph(model.graph, types, "n")
+    from onnx import TensorProto
+
+    keep = {(op, getattr(TensorProto, t)) for t, ops in (native or {}).items() for op in ops}
+    _legalize_graph(model.graph, types, "n", keep)
     used = _used_values(model.graph)
     _drop_dead_casts(model.graph, used)
     return model
@@ -128,7 +151,7 @@ _IN_RANGE = {"Min", "Max", "Where", "ReduceMin", "ReduceMax", "Clip"}
 _BITWISE_LOGICAL = {"BitwiseAnd": "And", "BitwiseOr": "Or", "BitwiseXor": "Xor", "BitwiseNot": "Not"}
 
 
-def _legalize_graph(graph, types: dict, prefix: str) -> None:
+def _legalize_graph(graph, types: dict, prefix: str, keep: set) -> None:
     from onnx import TensorProto, helper
 
     narrow = _narrow_types()
@@ -137,11 +160,16 @@ def _legalize_graph(graph, types: dict, prefix: str) -> None:
     for i, node in enumerate(graph.node):
         node.name = f"{prefix}{i}_{node.op_type}"
         for j, g in enumerate(_subgraphs(node)):
-            _legalize_graph(g, types, f"{prefix}{i}g{j}_")
+            _legalize_graph(g, types, f"{prefix}{i}g{j}_", keep)
         if node.op_type in _BITWISE_LOGICAL and all(types.get(x) == TensorProto.BOOL for x in node.input):
             node.op_type = _BITWISE_LOGICAL[node.op_type]
         if node.op_type in _MOVE or node.op_type in _LOGICAL or node.op_type in ("If", "Loop"):
             out_nodes.append(node)
+            continue
+        small = [x for k, x in enumerate(node.input)
+                 if x and types.get(x) in narrow and not (node.op_type == "Where" and k == 0)]
+        if small and all((node.op_type, types[x]) in keep for x in small):
+            out_nodes.append(node)  # the runtime's own kernel for this type
             continue
         pre, post = [], []
         widened = False
@@ -332,7 +360,9 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
             optimizer.fold_constants_ir(prog.model)
             optimizer.remove_unused_nodes(prog.model)
     note("save")
-    model = _compact(_drop_unused_initializers(legalize(prog.model_proto)))
+    # onnxruntime runs small-integer arithmetic natively; the scatter-free form is for other
+    # runtimes (TensorRT), which need int32
+    model = _compact(_drop_unused_initializers(legalize(prog.model_proto, None if scatter_free else ORT_NATIVE)))
     meta = {"torchrow_format": "1", "kind": "tracker" if tracker else "detector", "height": str(height),
             "width": str(width), "batch": str(batch), "control_flow": str(bool(control_flow)),
             "scatter_free": str(bool(scatter_free)),
@@ -571,21 +601,18 @@ class OnnxDetector:
                 c = torch.cat([c, torch.zeros((fill, 3), dtype=torch.float64)])
             outs = self.session.run(None, {"images": x.numpy(), "veg_lab": c.numpy()})
             parts.append(self._result([torch.from_numpy(o[:m]) for o in outs], color[s0:s0 + m]))
-        return _concat(parts)
+        return concat_batches(parts)
 
     def _result(self, outs: list[torch.Tensor], color: torch.Tensor) -> BatchResult:
+        from torchrow.functional import ransac as fransac
         from torchrow.functional.static import GRAPH_OUTPUTS, finish_rows
 
         o = dict(zip(GRAPH_OUTPUTS, outs))
         p = self.params
         b = color.shape[0]
         rows = finish_rows(o, self.height, self.width, p)
-        all_valid = (rows.valid | ~rows.present).all(dim=1)
         i64 = dict(dtype=torch.int64)
-        status = torch.where(all_valid, torch.full((b,), STATUS_CODES["ok"], **i64),
-                             torch.full((b,), STATUS_CODES["invalid"], **i64))
-        status = torch.where(o["has_vp"], status, torch.full_like(status, STATUS_CODES["no_vp"]))
-        status = torch.where(o["has_veg"], status, torch.full_like(status, STATUS_CODES["no_vegetation"]))
+        status = fransac.image_status(rows, o["has_vp"], o["has_veg"])
         return BatchResult(
             width=self.width, height=self.height, status=status, sky=o["sky"], veg_color=color,
             k=torch.full((b,), p.veg_tol, **i64), bushy=o["bushy"], n_rows=o["n_rows"],
@@ -774,26 +801,6 @@ def step_differences(ref, got, tol: float = 1e-9) -> list[str]:
         if not same:
             out.append(f"{type(ref).__name__}.{f.name}: {a.tolist()} != {b.tolist()}")
     return out
-
-
-def _concat(parts: list[BatchResult]) -> BatchResult:
-    """Concatenate batch results of one working size along the batch dimension."""
-    import dataclasses
-
-    if len(parts) == 1:
-        return parts[0]
-    fields = {}
-    for f in dataclasses.fields(BatchResult):
-        vals = [getattr(q, f.name) for q in parts]
-        fields[f.name] = torch.cat(vals) if isinstance(vals[0], torch.Tensor) else vals[0]
-    return BatchResult(**fields)
-
-
-def export_and_time(path: str | Path, **kwargs) -> tuple[Path, float]:
-    """:func:`to_onnx` and the seconds it took."""
-    t0 = time.perf_counter()
-    out = to_onnx(path, **kwargs)
-    return out, time.perf_counter() - t0
 
 
 class _Lab(torch.nn.Module):

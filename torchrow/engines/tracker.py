@@ -9,7 +9,6 @@ masking sequences that have ended or whose frame is unreadable. Results equal
 
 from __future__ import annotations
 
-import dataclasses
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Iterable, Iterator, Sequence
@@ -21,6 +20,7 @@ from torch import nn
 from torchrow.apps.video import load_item
 from torchrow.core.io import check_working_size, load_image, resize_to_width, to_rgb8
 from torchrow.core.params import Params
+from torchrow.core.results import concat_batches
 from torchrow.core.steering import FrameResult
 from torchrow.engines.detector import BatchResult
 from torchrow.functional import tracker as ftrack
@@ -172,13 +172,7 @@ class Tracker(nn.Module):
             fhough.rho_table(veg.shape[1], veg.shape[2], self.params, self.device)
         parts = self._parallel(lambda g: ftrack.advance(veg[g], k[g], bushy[g], act[g], state.select(g), self.params),
                                groups)
-        if len(parts) == 1:
-            return parts[0]
-        step = TrackStep(**{f.name: torch.cat([getattr(q[0], f.name) for q in parts])
-                            for f in dataclasses.fields(TrackStep)})
-        new = TrackerState(**{f.name: torch.cat([getattr(q[1], f.name) for q in parts])
-                              for f in dataclasses.fields(TrackerState)})
-        return step, new
+        return concat_batches([q[0] for q in parts]), concat_batches([q[1] for q in parts])
 
     def _start(self, frames: torch.Tensor, state: TrackerState, active: torch.Tensor) -> TrackerState:
         """Initialise the active sequences that have not seen a frame yet from ``frames``."""

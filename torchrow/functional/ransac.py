@@ -15,14 +15,14 @@ from dataclasses import dataclass, fields
 import torch
 
 from torchrow.core.params import Params
-from torchrow.core.results import REASONS
+from torchrow.core.results import REASONS, STATUSES
 from torchrow.core.tables import hypothesis_table
 from torchrow.functional import _exact
 from torchrow.functional.hough import active_width, cacheable, pixel_list, trig
 
 __all__ = ["RowFit", "RowMoments", "Rows", "fit_rows", "score_hypotheses", "exact_counts", "padded_points",
-           "validate_rows", "band_member", "subsample_plan", "max_kept", "principal_direction",
-           "REASON_CODES", "SCORE_BUDGET"]
+           "validate_rows", "ransac_band", "image_status", "BandPoints", "kept_points", "band_member",
+           "subsample_plan", "max_kept", "principal_direction", "REASON_CODES", "SCORE_BUDGET"]
 
 #: Reason codes of :attr:`Rows.reason`, indices into :data:`torchrow.core.results.REASONS`.
 REASON_CODES = {r: i for i, r in enumerate(REASONS)}
@@ -98,16 +98,48 @@ class Rows(_Fields):
 RowFits = Rows
 
 
+@dataclass
+class BandPoints(_Fields):
+    """Steps 7 and 7.2 of every row slot: the kept pixels ``px, py`` float64 ``(B, S, P)``
+    (row-major, padding at the end), ``n_keep`` and ``v_keep`` int64 ``(B, S)`` (kept
+    pixels, VP weight) and ``n`` int64 ``(B, S)`` (pixels in the band before subsampling)."""
+
+    px: torch.Tensor
+    py: torch.Tensor
+    n_keep: torch.Tensor
+    v_keep: torch.Tensor
+    n: torch.Tensor
+
+
+def kept_points(member: torch.Tensor, lin: torch.Tensor, width: int, params: Params,
+                size: int | None = None) -> BandPoints:
+    """Step 7.2 on band members ``member`` bool ``(B, S, K)`` at raster indices ``lin``
+    int64 (broadcastable, row-major): the one selection of the eager and exported fits.
+
+    ``size``: the static ``P`` of an exported graph (at least :func:`max_kept`); ``None``
+    (eager) takes the smallest ``P`` that holds every row's kept pixels (a host sync).
+    """
+    n, n_keep, v_keep, key = subsample_plan(member, lin, params)
+    big = torch.iinfo(torch.int64).max
+    if size is None:
+        size = min(member.shape[2], max(params.ransac_max_points, params.ransac_subsample),
+                   active_width(n_keep.flatten()))
+    sel = torch.topk(key, size, dim=2, largest=False, sorted=True).indices if size > 0 else key[..., :0]
+    rank_ok = torch.arange(size, device=member.device) < n_keep.unsqueeze(2)
+    chosen = torch.where(rank_ok, torch.gather(lin.expand_as(member), 2, sel), torch.full_like(sel, big))
+    chosen = torch.sort(chosen, dim=2).values  # back to row-major order; padding last
+    chosen = torch.where(chosen == big, torch.zeros_like(chosen), chosen)
+    return BandPoints((chosen % width).to(torch.float64), (chosen // width).to(torch.float64), n_keep, v_keep, n)
+
+
 def _band_points(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, band: torch.Tensor,
-                 params: Params, track: tuple[torch.Tensor, torch.Tensor] | None = None):
-    """Steps 7 (band) and 7.2 (subsample): the kept pixels of every row, row-major.
+                 params: Params, track: tuple[torch.Tensor, torch.Tensor] | None = None) -> BandPoints:
+    """Steps 7 (band) and 7.2 (subsample) on the compacted vegetation pixels: the kept
+    pixels of every row, row-major.
 
     With ``track = (a, b)`` (float64 ``(B, S)``, video mode) the band is around the row
     ``x = a*y + b`` instead of the Hough line: ``((x - a*y) - b)**2 <= (band/2)**2 * (1 + a*a)``,
     the expression of :func:`torchrow.reference.ransac.track_band_points`.
-
-    Returns ``px, py`` float64 ``(B, S, P)``, ``n_keep`` and ``v_keep`` int64 ``(B, S)`` and
-    ``n`` (pixels in the band before subsampling).
     """
     bsz, h, w = veg.shape
     idx, count = pixel_list(veg)
@@ -118,17 +150,7 @@ def _band_points(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, band
     cos, sin = trig(params, veg.device)
     member = band_member(xs.to(torch.float64).unsqueeze(1), ys.to(torch.float64).unsqueeze(1), theta, rho, band,
                          cos, sin, track) & live.unsqueeze(1)  # (B, S, K)
-    lin = idx.unsqueeze(1).expand_as(member)  # raster index y*W + x, row-major order
-    n, n_keep, v_keep, key = subsample_plan(member, lin, params)
-    big = torch.iinfo(torch.int64).max
-    p = min(k, max(params.ransac_max_points, params.ransac_subsample))
-    p = min(p, active_width(n_keep.flatten()))
-    sel = torch.topk(key, p, dim=2, largest=False, sorted=True).indices if p > 0 else key[..., :0]
-    rank_ok = torch.arange(p, device=veg.device) < n_keep.unsqueeze(2)
-    chosen = torch.where(rank_ok, torch.gather(lin, 2, sel), torch.full_like(sel, big))
-    chosen = torch.sort(chosen, dim=2).values  # back to row-major order; padding last
-    chosen = torch.where(chosen == big, torch.zeros_like(chosen), chosen)
-    return (chosen % w).to(torch.float64), (chosen // w).to(torch.float64), n_keep, v_keep, n
+    return kept_points(member, idx.unsqueeze(1), w, params)
 
 
 def band_member(xs: torch.Tensor, ys: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, band: torch.Tensor,
@@ -337,7 +359,7 @@ def fit_rows(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, present:
     scoring chunks of :data:`SCORE_BUDGET` float64 elements.
     """
     dev = veg.device
-    px, py, n_keep, v_keep, n = _band_points(veg, theta, rho, band, params, track)
+    px, py, n_keep, v_keep, n = _band_points(veg, theta, rho, band, params, track).astuple()
     p = px.shape[2]
     support = present & (n + n // 2 >= params.ransac_min_points)
     if p == 0:  # no band has a pixel (e.g. an all-soil batch): no row has support
@@ -473,3 +495,27 @@ def validate_rows(fit: RowFit, present: torch.Tensor, height: int, hough_band: t
         reason[:, k] = r
         valid[:, k] = present[:, k] & (r == 0)
     return Rows(a, b, valid, reason, hyp, present)
+
+
+def ransac_band(bushy: torch.Tensor, width: int, params: Params) -> torch.Tensor:
+    """Step 7's band width per image, int64 ``(B,)`` px, from the bushy flag bool ``(B,)``
+    (:meth:`torchrow.core.params.Params.ransac_band_px`): the one band rule of the eager
+    detector, the exported graph and the tracker."""
+    wide = torch.full(bushy.shape, params.ransac_band_px(width, True), dtype=torch.int64, device=bushy.device)
+    return torch.where(bushy, wide, torch.full_like(wide, params.ransac_band_px(width, False)))
+
+
+def image_status(rows: Rows, has_vp: torch.Tensor | None = None, has_veg: torch.Tensor | None = None) -> torch.Tensor:
+    """An image's status code (index into :data:`torchrow.core.results.STATUSES`), int64
+    ``(B,)``: ``no_vegetation`` where ``has_veg`` is False, else ``no_vp`` where ``has_vp``
+    is False, else ``ok`` when every present row is valid, else ``invalid`` (bool ``(B,)``
+    flags; ``None``: not checked). The one status rule of the detectors and the tracker."""
+    code = {s: i for i, s in enumerate(STATUSES)}
+    all_valid = (rows.valid | ~rows.present).all(dim=1)
+    ok = torch.full(all_valid.shape, code["ok"], dtype=torch.int64, device=all_valid.device)
+    status = torch.where(all_valid, ok, torch.full_like(ok, code["invalid"]))
+    if has_vp is not None:
+        status = torch.where(has_vp, status, torch.full_like(status, code["no_vp"]))
+    if has_veg is not None:
+        status = torch.where(has_veg, status, torch.full_like(status, code["no_vegetation"]))
+    return status

@@ -234,32 +234,25 @@ class StaticDetector(nn.Module):
 
     # -- section 7 ------------------------------------------------------------------------
     def band_points(self, veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, band: torch.Tensor,
-                    track: tuple[torch.Tensor, torch.Tensor] | None = None):
-        """Steps 7 and 7.2 with a static ``P``: kept points ``px, py`` float64 ``(B, S, P)``
-        (row-major, padding at the end), ``n_keep``, ``v_keep``, ``n`` int64 ``(B, S)``.
-        ``track = (a, b)``: the band around rows ``x = a*y + b`` (video mode)."""
+                    track: tuple[torch.Tensor, torch.Tensor] | None = None) -> fransac.BandPoints:
+        """Steps 7 and 7.2 over every pixel with a static ``P``
+        (:func:`~torchrow.functional.ransac.kept_points`). ``track = (a, b)``: the band
+        around rows ``x = a*y + b`` (video mode)."""
         p = self.params
         bsz = veg.shape[0]
         hw = self.height * self.width
         member = fransac.band_member(self.xs.view(1, 1, -1), self.ys.view(1, 1, -1), theta, rho, band,
                                      self.cos, self.sin, track) & veg.reshape(bsz, 1, hw)  # (B, S, HW)
         lin = torch.arange(hw, device=veg.device, dtype=torch.int64).view(1, 1, hw)
-        n, n_keep, v_keep, key = fransac.subsample_plan(member, lin, p)
-        big = torch.iinfo(torch.int64).max
-        pp = min(hw, fransac.max_kept(p))  # 467 with the defaults: no row keeps more
-        sel = torch.topk(key, pp, dim=2, largest=False, sorted=True).indices
-        rank_ok = torch.arange(pp, device=veg.device) < n_keep.unsqueeze(2)
-        chosen = sel.masked_fill(~rank_ok, big)  # sel is the raster index itself
-        chosen = torch.topk(chosen, pp, dim=2, largest=False, sorted=True).values  # row-major, padding last
-        chosen = torch.where(chosen == big, torch.zeros_like(chosen), chosen)
-        return (chosen % self.width).to(torch.float64), (chosen // self.width).to(torch.float64), n_keep, v_keep, n
+        # 467 with the defaults: no row keeps more
+        return fransac.kept_points(member, lin, self.width, p, size=min(hw, fransac.max_kept(p)))
 
     def fit_rows(self, veg, theta, rho, present, vp, band, track=None) -> fransac.RowMoments:
         """Steps 7.1-7.5 up to the weighted moments of the best hypothesis' inliers (the
         arguments of :func:`torchrow.functional.ransac.fit_rows`)."""
         p = self.params
         dev = veg.device
-        px, py, n_keep, v_keep, n = self.band_points(veg, theta, rho, band, track)
+        px, py, n_keep, v_keep, n = self.band_points(veg, theta, rho, band, track).astuple()
         pp = px.shape[2]
         support = present & (n + n // 2 >= p.ransac_min_points)
         total = (n_keep + v_keep).to(torch.float64)
@@ -285,8 +278,7 @@ class StaticDetector(nn.Module):
         hin, bushy = fveg.hough_input(veg, sky, p)
         ls = self.find_lines(hin)
         n = ls.n_rows
-        band = torch.where(bushy, torch.full_like(n, p.ransac_band_px(w, True)),
-                           torch.full_like(n, p.ransac_band_px(w, False)))
+        band = fransac.ransac_band(bushy, w, p)
         present = ls.valid & ls.has_vp.unsqueeze(1)
         fit = self.fit_rows(veg, ls.theta, ls.rho, present, ls.vp, band)
         return (sky, bushy, has_veg, n, ls.theta, ls.rho, ls.weight, ls.valid, ls.out_theta, ls.out_rho,

@@ -345,8 +345,7 @@ def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: tor
     # --- Hough frames: sections 4-7 as in image mode ------------------------------------
     veg_h = veg & use_h.view(-1, 1, 1)
     hin, _ = fveg.hough_input(veg_h, sky, p)
-    band = torch.where(bushy, torch.full((bsz,), p.ransac_band_px(w, True), **i64),
-                       torch.full((bsz,), p.ransac_band_px(w, False), **i64))
+    band = fransac.ransac_band(bushy, w, p)
 
     def no_lines():
         z = torch.zeros((bsz, s), **i64)
@@ -370,10 +369,7 @@ def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: tor
 
     fit_h = st.run(use_h.any(), hough_fit, no_fit, (veg_h, ls.theta, ls.rho, present_h, ls.vp, band))
     rows_h = rows_of(fit_h, present_h)
-    all_valid_h = (rows_h.valid | ~rows_h.present).all(dim=1)
-    status_h = torch.where(all_valid_h, torch.full((bsz,), STATUS_OK, **i64), torch.full((bsz,), STATUS_INVALID, **i64))
-    status_h = torch.where(ls.has_vp, status_h, torch.full_like(status_h, STATUS_NO_VP))
-    status_h = torch.where(has_veg, status_h, torch.full_like(status_h, STATUS_NO_VEGETATION))
+    status_h = fransac.image_status(rows_h, ls.has_vp, has_veg)
 
     # --- this frame's outputs: the Hough result where it ran, else the tracked one --------
     status = torch.where(use_h, status_h, torch.full_like(status_h, STATUS_OK))
