@@ -32,7 +32,7 @@ def scene():
     hin, _ = F.vegetation.hough_input(veg, sky, P)
     return dict(x=x, sky=sky, color=color, k=k, raw=raw, veg=veg, hin=hin,
                 info0=torch.tensor([0.01, 0.3, 0.0, 0.2], dtype=torch.float64),
-                gray=F.sky.gray(x))
+                gray=F.kernels.gray(x))
 
 
 B = True  # batched input
@@ -40,7 +40,7 @@ B = True  # batched input
 
 def test_sky_stages(scene):
     x = scene["x"]
-    check_batched_stage(F.sky.gray, (x, B), name="gray")
+    check_batched_stage(F.kernels.gray, (x, B), name="gray")
     check_batched_stage(F.sky.sky_row, (x, B), P, name="sky_row")
     check_batched_stage(F.sky.sky_mask, (x, B), P, name="sky_mask")
     check_batched_stage(F.sky.horizon_mask, (x, B), P, name="horizon_mask")

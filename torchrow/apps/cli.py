@@ -208,9 +208,9 @@ def cmd_detect(args: argparse.Namespace) -> int:
     others, bags = _split_bags(args.inputs, args.topic)
     paths = _collect_images(others) if others else []
     if model is not None and paths:
-        from torchrow.engines.export import model_info
+        from torchrow.engines.export import model_meta
 
-        info = model_info(model)
+        info = model_meta(model)
         params = info["params"]
         try:
             first = load_image(paths[0], params.image_width, params.max_pixels)
@@ -296,9 +296,9 @@ def _check_model(args: argparse.Namespace) -> str | None:
     try:
         import onnxruntime  # noqa: F401
 
-        from torchrow.engines.export import model_info
+        from torchrow.engines.export import model_meta
 
-        info = model_info(model)
+        info = model_meta(model)
     except ImportError:
         raise CLIError("--impl onnx needs onnxruntime: pip install 'torchrow[onnx]'") from None
     except Exception as exc:  # a corrupt or foreign file: one line, not a traceback
@@ -314,6 +314,13 @@ def _check_model(args: argparse.Namespace) -> str | None:
     want = info["params"].image_width if kind == "detector" else info["params"].video_width
     if want != info["width"]:
         raise CLIError(f"model {model} takes {info['width']}x{info['height']} images but its working width is {want}")
+    import torch
+
+    # the host side of an onnxruntime run (colour clustering, records) is small; torch's
+    # OpenMP workers, spinning after each parallel region, would take the cores from
+    # onnxruntime's own pool (measured: OnnxDetector 72 ms per CRBD image with 2 torch
+    # threads on 2 cores, 51 ms with 1; the host work itself is no slower on one)
+    torch.set_num_threads(1)
     return model
 
 

@@ -26,15 +26,17 @@ What runs where:
 Graph inputs: ``images`` uint8 ``(B, 3, H, W)`` RGB, ``veg_lab`` float64 ``(B, 3)``.
 Outputs: :data:`torchrow.functional.static.GRAPH_OUTPUTS`.
 
-onnxruntime's CPU kernels lack many small integer types (e.g. ``Add`` on uint8, ``Where`` on
-bool), which the exporter emits as torch computed them; :func:`legalize` widens such nodes to
-int32 (values never overflow: every such tensor in the detector holds small counts or
-0/1 masks), which TensorRT needs too.
+onnxruntime's CPU kernels lack some small-integer and bool types the exporter emits as torch
+computed them (``Where`` on bool, ``Min`` on int16); :func:`legalize` widens those nodes to
+int32 (values never overflow: every such tensor holds small counts, pixel values or 0/1
+masks) and leaves the ones onnxruntime runs natively (:data:`ORT_NATIVE`) narrow. The
+scatter-free form, meant for other runtimes (TensorRT), has every small-integer node widened.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 from collections import Counter
 from pathlib import Path
 from typing import Sequence
@@ -47,13 +49,14 @@ from torchrow.core.results import concat_batches
 from torchrow.engines.detector import BatchResult
 
 __all__ = ["to_onnx", "OnnxDetector", "OnnxTracker", "step_differences", "float64_python_constants", "legalize",
-           "op_counts", "model_info",
+           "op_counts", "model_info", "model_meta",
            "FORBIDDEN_OPS", "DEFAULT_OPSET"]
 
 DEFAULT_OPSET = 18
 
-#: Ops the graph must not contain: scatters with a reduction (TensorRT has none), and any
-#: op whose output shape depends on data.
+#: Ops the scatter-free graph without control flow (the TensorRT form) must not contain:
+#: scatters with a reduction (TensorRT has none), control flow, and any op whose output
+#: shape depends on data.
 FORBIDDEN_OPS = ("NonZero", "Unique", "Loop", "If", "Scan", "ScatterElements_reduction", "ScatterND_reduction")
 
 # Elementwise/compute ops whose small-integer and bool inputs are widened to int32. Pure
@@ -531,23 +534,85 @@ def _params_dict(params: Params) -> dict:
 
 def model_info(path: str | Path) -> dict:
     """Size (bytes), kind (``detector`` or ``tracker``), static shape, params, exporter and op
-    counts of an exported model."""
-    import json
-
+    counts of an exported model (:func:`model_meta` plus ``ops``, which parses the graph)."""
     import onnx
 
+    info = model_meta(path)
+    info["ops"] = op_counts(onnx.load(str(path)))
+    return info
+
+
+def model_meta(path: str | Path) -> dict:
+    """:func:`model_info` without the op counts, read without the ``onnx`` package (whose
+    import alone took 1.4 s here): the model's top-level ``metadata_props`` are found in
+    the protobuf wire format and the graph is skipped unread. Cached per file version (the
+    CLI's checks and the runner ask for the same file)."""
     path = Path(path)
-    model = onnx.load(str(path))
-    meta = {p.key: p.value for p in model.metadata_props}
+    st = path.stat()
+    return dict(_model_meta(str(path.resolve()), st.st_mtime_ns, st.st_size))
+
+
+def _varint(buf: bytes, i: int) -> tuple[int, int]:
+    shift = value = 0
+    while True:
+        if i >= len(buf):
+            raise ValueError("truncated")
+        b = buf[i]
+        i += 1
+        value |= (b & 0x7F) << shift
+        if b < 0x80:
+            return value, i
+        shift += 7
+
+
+def _fields(buf: bytes):
+    """``(field number, bytes)`` of the length-delimited fields of one protobuf message (other
+    wire types skipped)."""
+    i = 0
+    while i < len(buf):
+        tag, i = _varint(buf, i)
+        kind = tag & 7
+        if kind == 0:
+            _, i = _varint(buf, i)
+        elif kind == 1:
+            i += 8
+        elif kind == 5:
+            i += 4
+        elif kind == 2:
+            n, i = _varint(buf, i)
+            if i + n > len(buf):
+                raise ValueError("truncated")
+            yield tag >> 3, buf[i:i + n]
+            i += n
+        else:
+            raise ValueError(f"wire type {kind}")
+
+
+_METADATA_PROPS = 14  # onnx.ModelProto.metadata_props: StringStringEntryProto {key = 1, value = 2}
+
+
+@functools.lru_cache(maxsize=8)
+def _model_meta(path_str: str, mtime_ns: int, size: int) -> dict:
+    import json
+
+    path = Path(path_str)
+    meta: dict = {}
+    try:
+        for field, entry in _fields(path.read_bytes()):
+            if field == _METADATA_PROPS:
+                kv = {k: v.decode("utf-8") for k, v in _fields(entry)}
+                meta[kv.get(1, "")] = kv.get(2, "")
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path} is not an ONNX model ({exc})") from None
     if meta.get("torchrow_format") != "1":
         raise ValueError(f"{path} is not a torchrow ONNX detector (no torchrow metadata)")
     raw = json.loads(meta["params"])
     raw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in raw.items()}
-    return {"size": path.stat().st_size, "kind": meta.get("kind", "detector"),
+    return {"size": size, "kind": meta.get("kind", "detector"),
             "control_flow": meta.get("control_flow") == "True", "height": int(meta["height"]),
             "width": int(meta["width"]),
             "batch": int(meta["batch"]), "params": Params(**raw), "exporter": meta.get("exporter", ""),
-            "opset": int(meta.get("opset", 0)), "ops": op_counts(model)}
+            "opset": int(meta.get("opset", 0))}
 
 
 class OnnxDetector:
@@ -635,7 +700,7 @@ def _open(runner, model_path: str | Path, kind: str, threads: int | None) -> Non
     path = Path(model_path)
     if not path.is_file():
         raise FileNotFoundError(f"ONNX model not found: {path}")
-    info = model_info(path)
+    info = model_meta(path)
     if info["kind"] != kind:
         other = {"detector": "OnnxDetector", "tracker": "OnnxTracker"}[info["kind"]]
         raise ValueError(f"{path.name} is a torchrow {info['kind']} model; run it with {other}")

@@ -37,13 +37,8 @@ from torchrow.core.params import Params
 from torchrow.functional._checks import check_images
 from torchrow.functional.kernels import box_blur, column_median, erode_rect, gray, laplacian, median_blur  # noqa: F401  (re-exported: stage modules keep their names)
 
+# the kernels stay importable from here (F.sky.gray); they are listed in .kernels' __all__
 __all__ = [
-    "gray",
-    "box_blur",
-    "median_blur",
-    "laplacian",
-    "erode_rect",
-    "column_median",
     "horizon_mask",
     "sky_mask",
     "sky_row",
