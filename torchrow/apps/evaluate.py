@@ -7,7 +7,7 @@ import json
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 
@@ -159,8 +159,8 @@ def evaluate(crbd: CRBD, indices: Sequence[int] | None = None, impl: str = "tens
     if engine == "ray":
         from torchrow.engines.distributed import run as ray_run
 
-        stream = ray_run(items, impl, params, batch_size, device, progress, desc=f"eval ({impl}, ray)",
-                         workers=workers, address=address)
+        stream: Iterator = ray_run(items, impl, params, batch_size, device, progress, desc=f"eval ({impl}, ray)",
+                                   workers=workers, address=address)
     else:
         stream = run(items, impl, params, batch_size, device, progress, desc=f"eval ({impl})")
     got: dict[int, tuple[EvalRow, dict]] = {}

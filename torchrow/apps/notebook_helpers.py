@@ -113,7 +113,7 @@ def stage_pictures(rgb: np.ndarray, params: Params | None = None, gt: GroundTrut
         "hough votes": acc,
         "detection": draw_result(rgb, res, scale=2,
                                  ground_truth=None if gt is None else gt_polylines(gt, rgb.shape[1])),
-        "result": res,  # type: ignore[dict-item]
+        "result": res,
     }
 
 

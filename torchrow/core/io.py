@@ -121,7 +121,7 @@ def header_size(path: str | Path | bytes, what: str | None = None) -> tuple[int,
                     w, h = h, w
                 return w, h
     except Image.DecompressionBombError as exc:  # above 2 * Image.MAX_IMAGE_PIXELS: far too large
-        raise ImageError(f"image too large to decode ({exc}): {what or path}") from None
+        raise ImageError(f"image too large to decode ({exc}): {what or path!s}") from None
     except Exception:  # not a format Pillow knows, or a damaged header
         return None
 

@@ -130,7 +130,7 @@ class ImageResult:
         return cls(
             width=int(rec.get("width", 0)), height=int(rec.get("height", 0)),
             status=rec["status"], sky=int(rec.get("sky", 0)),
-            veg_color=tuple(rec.get("veg_color", (0, 0, 0))),  # type: ignore[arg-type]
+            veg_color=tuple(rec.get("veg_color", (0, 0, 0))),
             k=int(rec.get("k", 4)), bushy=bool(rec.get("bushy", False)),
             n_rows=int(rec.get("n_rows", 0)),
             hough=[line(v) for v in rec.get("hough", [])],

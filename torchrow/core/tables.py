@@ -26,8 +26,12 @@ import tempfile
 import warnings
 import zlib
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import torch
 
 from torchrow.core.params import Params
 
@@ -206,7 +210,7 @@ def lab_table() -> np.ndarray:
 _TORCH_TABLES: dict = {}
 
 
-def lab_table_torch(device: "str | object" = "cpu"):
+def lab_table_torch(device: "str | torch.device" = "cpu"):
     """The LAB table as a torch ``(2**24, 3)`` float64 tensor on ``device`` (cached per device).
 
     On the CPU it shares memory with the memory map (no copy); elsewhere it is copied once.

@@ -290,8 +290,8 @@ def crda_thesis(result: Any, gt: Any, sigma: float = 0.3, candidates: int = 13,
     j = np.arange(-(candidates // 2), candidates // 2 + 1, dtype=np.float64)[:, None]  # (J, 1)
     u_gt = c[None, :] + j * d[None, :] + result.width / 2  # (J, n)
     total = 0.0
-    for a, b, c in lines:
-        x = _x_of(a, b, c, v)  # (n,)
+    for a, b, curv in lines:  # (c above is the ground truth's column array)
+        x = _x_of(a, b, curv, v)  # (n,)
         s = match_score(u_gt, x[None, :], d[None, :], sigma)  # (J, n)
         if nearest == "image_row":
             total += float(s.max(axis=0).sum() / n)

@@ -460,7 +460,7 @@ class VegetationColor(nn.Module):
         super().__init__()
         self.params = params if params is not None else Params()
 
-    def forward(self, images: torch.Tensor, return_clusters: bool = False):  # type: ignore[override]
+    def forward(self, images: torch.Tensor, return_clusters: bool = False):
         out = vegetation_clusters(images, self.params)
         return out if return_clusters else out.color
 

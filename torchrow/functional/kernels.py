@@ -340,12 +340,12 @@ def _median_programs(k: int) -> tuple:
     col = _select_program([("r", i) for i in range(k)] + [None] * (nc - k), _batcher_pairs(nc),
                           list(range(k)))
     pad = [None] * (nc - k)
-    wires = [("a", i) for i in range(k)] + pad + [("b", i) for i in range(k)] + pad
-    pair = _select_program(wires, _merge_pairs(2, nc), list(range(2 * k)))
+    ab: list = [("a", i) for i in range(k)] + pad + [("b", i) for i in range(k)] + pad
+    pair = _select_program(ab, _merge_pairs(2, nc), list(range(2 * k)))
     m = k // 2
     npair = _pow2(2 * k)
     nblocks = _pow2(m)
-    wires = []
+    wires: list = []
     for j in range(nblocks):
         wires += ([("p", j, i) for i in range(2 * k)] + [None] * (npair - 2 * k)) if j < m else [None] * npair
     # rank r of (A = the m merged pairs, k*k - k sorted values) united with (C = the last

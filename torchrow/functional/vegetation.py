@@ -134,12 +134,13 @@ def _inside(vals: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Ten
     ``(c - k <= lab) & (lab <= c + k)``; one channel at a time (a contiguous inner loop over
     pixels instead of a broadcast inner loop of length 3, ~5x faster on the CPU).
     """
-    acc = None
+    acc: torch.Tensor | None = None
     for ch in range(3):
         v = vals[..., ch]
         a = torch.le(lo[:, :, ch], v).view(torch.uint8)
         a.bitwise_and_(torch.le(v, hi[:, :, ch]).view(torch.uint8))
         acc = a if acc is None else acc.bitwise_and_(a)
+    assert acc is not None  # three channels
     return acc
 
 

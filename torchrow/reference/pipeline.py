@@ -63,7 +63,8 @@ def detect(image: np.ndarray, params: Params | None = None, name: str | None = N
     if veg_color is None:
         color, _ = vegetation_color(rgb, params)
     else:
-        color = tuple(int(c) for c in check_color(veg_color))
+        r, g, b = (int(c) for c in check_color(veg_color))
+        color = (r, g, b)
     k = params.veg_tol
     veg = remove_bushy(raw_mask(rgb, color, k, sky), sky, params)
     res = ImageResult(width=w, height=h, status="no_vp", sky=sky, veg_color=color, k=k, name=name)
