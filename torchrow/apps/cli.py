@@ -204,6 +204,8 @@ def cmd_detect(args: argparse.Namespace) -> int:
     params = _with_mode(_parse_params(args.param), args)
     device = _check_device(args.device)
     model = _check_model(args)
+    if model is not None:
+        _onnx_host_threads()
     _check_engine(args)
     others, bags = _split_bags(args.inputs, args.topic)
     paths = _collect_images(others) if others else []
@@ -314,14 +316,17 @@ def _check_model(args: argparse.Namespace) -> str | None:
     want = info["params"].image_width if kind == "detector" else info["params"].video_width
     if want != info["width"]:
         raise CLIError(f"model {model} takes {info['width']}x{info['height']} images but its working width is {want}")
+    return model
+
+
+def _onnx_host_threads() -> None:
+    """One torch thread for the host side of an onnxruntime run (colour clustering,
+    records): torch's OpenMP workers, spinning after each parallel region, would take the
+    cores from onnxruntime's own pool (measured: ``OnnxDetector`` 72 ms per CRBD image with
+    2 torch threads on 2 cores, 51 ms with 1; the host work itself is no slower on one)."""
     import torch
 
-    # the host side of an onnxruntime run (colour clustering, records) is small; torch's
-    # OpenMP workers, spinning after each parallel region, would take the cores from
-    # onnxruntime's own pool (measured: OnnxDetector 72 ms per CRBD image with 2 torch
-    # threads on 2 cores, 51 ms with 1; the host work itself is no slower on one)
     torch.set_num_threads(1)
-    return model
 
 
 def cmd_export(args: argparse.Namespace) -> int:
@@ -571,6 +576,8 @@ def cmd_video(args: argparse.Namespace) -> int:
 
     args.model_kind = "tracker"
     model = _check_model(args)
+    if model is not None:
+        _onnx_host_threads()
     params = _with_mode(_parse_params(args.param), args)
     if args.hough_every is not None:
         if model is not None:

@@ -58,23 +58,20 @@ def repeat(flow: str, steps: int, done: Callable, step: Callable, carry: tuple) 
     if flow == "loop" and torch.compiler.is_exporting():
         from torch._higher_order_ops import while_loop
 
-        bound = steps
-
         def cond_fn(i, *c):
-            return (i < bound) & ~done(*c)
+            return (i < steps) & ~done(*c)
 
         def body_fn(i, *c):
             return (i + 1,) + tuple(t.contiguous() for t in step(*c))
 
         i0 = torch.zeros((), dtype=torch.int64, device=carry[0].device)
         return tuple(while_loop(cond_fn, body_fn, (i0,) + tuple(carry)))[1:]
+    unrolled = flow == "cond" and torch.compiler.is_exporting()
     for _ in range(steps):
-        if flow in ("sync", "loop") or (flow == "cond" and not torch.compiler.is_exporting()):
-            if bool(done(*carry)):
-                break
-            carry = tuple(step(*carry))
-        elif flow == "cond":
+        if unrolled:
             carry = branch(flow, ~done(*carry), step, keep, carry)
-        else:
-            carry = tuple(step(*carry))
+            continue
+        if flow != "always" and bool(done(*carry)):
+            break
+        carry = tuple(step(*carry))
     return carry
