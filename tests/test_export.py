@@ -192,6 +192,31 @@ def test_parity_crbd_sample(runner: OnnxDetector, crbd_dir: Path):
     assert not _same(ref, got)
 
 
+def test_ort_optimized_copy_is_cached_reused_and_equal(model_path: Path, tmp_path: Path, monkeypatch):
+    """The session opens onnxruntime's pre-optimised copy: written once, reused after, the
+    same results as the original opened with basic optimisations; disabled by
+    TORCHROW_ORT_CACHE=0; an unwritable cache folder falls back to the original."""
+    from torchrow.engines import export
+
+    monkeypatch.setenv("TORCHROW_CACHE", str(tmp_path / "cache"))
+    x = _synthetic_batch()
+    plain = OnnxDetector(model_path, cache=False)(x).results()
+    first = OnnxDetector(model_path)
+    files = list((tmp_path / "cache" / "ort").glob("*.onnx"))
+    assert len(files) == 1, files
+    inode = files[0].stat().st_ino
+    again = OnnxDetector(model_path)
+    assert export.ort_optimized(model_path) == files[0] and files[0].stat().st_ino == inode  # reused
+    assert not _same(plain, first(x).results()) and not _same(plain, again(x).results())
+    monkeypatch.setenv("TORCHROW_ORT_CACHE", "0")
+    assert export.ort_optimized(model_path) is None
+    monkeypatch.setenv("TORCHROW_ORT_CACHE", "1")
+    (tmp_path / "file").write_text("not a folder")
+    monkeypatch.setenv("TORCHROW_CACHE", str(tmp_path / "file"))
+    assert export.ort_optimized(model_path) is None
+    assert not _same(plain, OnnxDetector(model_path)(x).results())
+
+
 def test_veg_color_override(runner: OnnxDetector):
     x = _synthetic_batch()[2:4]
     color = torch.tensor([40, 160, 40], dtype=torch.uint8)

@@ -75,21 +75,65 @@ def test_trig_free_validity_equals_atan2_rules() -> None:
     assert set(a.reason.flatten().tolist()) >= {0, 2, 3}  # valid, horizon and parallel all occur
 
 
-def test_static_detector_equals_crop_row_detector() -> None:
-    """StaticDetector + host finish == CropRowDetector on synthetic fields (reduced steps)."""
+@pytest.mark.parametrize("band_tier", ["default", "short", "whole"])
+def test_static_detector_equals_crop_row_detector(band_tier: str) -> None:
+    """StaticDetector + host finish == CropRowDetector on synthetic fields (reduced steps),
+    with the band points on the short list, on the whole list, and on the default choice."""
     small = Params(n_rows=3, max_outliers=2)
     fields = [FieldSpec.at_size(320, 240, n_rows=5, seed=s) for s in (1, 4)]
     x = torch.from_numpy(np.stack([sequence(f, 1)[0].image for f in fields])).permute(0, 3, 1, 2).contiguous()
     ref = torchrow.CropRowDetector(small)(x)
     lab = lab_table_torch("cpu")[torch.from_numpy(pack_rgb(ref.veg_color.numpy()))]
+    module = static.StaticDetector(240, 320, small)
+    seen = []
+    fit = module.band_points
+
+    def band_points(veg, *args, **kw):  # the vegetation the band points see, to check the tier
+        seen.append(int(veg.flatten(1).sum(1).max()))
+        return fit(veg, *args, **kw)
+
+    module.band_points = band_points
+    if band_tier == "short":  # the short form covers exactly the largest vegetation count
+        module(x, lab)
+        module.band_tier = seen[0]
+    elif band_tier == "whole":  # one entry short: the whole list
+        module(x, lab)
+        module.band_tier = seen[0] - 1
     with torch.no_grad():
-        o = dict(zip(static.GRAPH_OUTPUTS, static.StaticDetector(240, 320, small)(x, lab)))
+        o = dict(zip(static.GRAPH_OUTPUTS, module(x, lab)))
     rows = static.finish_rows(o, 240, 320, small)
     assert torch.equal(o["hough_theta"], ref.hough_theta) and torch.equal(o["hough_rho"], ref.hough_rho)
     assert torch.equal(rows.valid, ref.row_valid) and torch.equal(rows.reason, ref.row_reason)
     assert torch.allclose(rows.a, ref.row_a, rtol=0, atol=1e-12, equal_nan=True)
     assert torch.allclose(rows.b, ref.row_b, rtol=0, atol=1e-9, equal_nan=True)
     assert bool(ref.row_valid.any())
+
+
+@pytest.mark.parametrize("track", [False, True])
+def test_static_band_points_equal_eager(track: bool) -> None:
+    """The exported band points (static P, the short or the whole vegetation list) keep the
+    eager fit's pixels exactly, around Hough lines and around tracked rows, with and without
+    subsampling (step 7.2)."""
+    h, w = 120, 160
+    g = torch.Generator().manual_seed(3)
+    veg = torch.rand((3, h, w), generator=g) < torch.tensor([0.02, 0.1, 0.45]).view(3, 1, 1)
+    theta = torch.randint(0, P.n_theta, (3, 5), generator=g)
+    rho = torch.randint(-60, 150, (3, 5), generator=g)
+    band = torch.tensor([4, 10, 24])
+    tr = ((torch.rand((3, 5), generator=g, dtype=torch.float64) - 0.5) * 0.6,
+          torch.rand((3, 5), generator=g, dtype=torch.float64) * w) if track else None
+    ref = fransac._band_points(veg, theta, rho, band, P, tr)
+    assert bool((ref.n + ref.n // 2 > P.ransac_max_points).any()) and int((ref.n_keep > 0).sum()) >= 8
+    module = static.StaticDetector(h, w, P)
+    most = int(veg.flatten(1).sum(1).max())
+    for tier in (most, most - 1, h * w):  # the short list, the whole list, no choice
+        module.band_tier = tier
+        got = module.band_points(veg, theta, rho, band, tr)
+        for f in ("n", "n_keep", "v_keep"):
+            assert torch.equal(getattr(got, f), getattr(ref, f)), (tier, f)
+        kept = torch.arange(ref.px.shape[2]) < ref.n_keep.unsqueeze(2)
+        assert torch.equal(got.px[..., :ref.px.shape[2]][kept], ref.px[kept]), tier
+        assert torch.equal(got.py[..., :ref.py.shape[2]][kept], ref.py[kept]), tier
 
 
 def test_static_adaptive_k_equals_eager() -> None:
@@ -147,22 +191,30 @@ def ftrack_step(o: dict, active: torch.Tensor):
     return TrackStep(**{f: o[f] for f in static.TRACKER_STEP}, active=active)
 
 
-@pytest.mark.parametrize("scatter_free, flow", [(False, "always"), (True, "sync")])
-def test_static_voter_line_search_equals_eager(scatter_free: bool, flow: str) -> None:
+@pytest.mark.parametrize("scatter_free, flow, tier", [(False, "always", None), (False, "sync", 2000),
+                                                      (False, "sync", 100000), (True, "sync", None)])
+def test_static_voter_line_search_equals_eager(scatter_free: bool, flow: str, tier: int | None) -> None:
     """find_lines with the static voter (one vote, band-only updates in chunks, or the
     scatter-free re-vote) == the eager voter, on adversarial masks that exhaust lines, drop
-    outliers and restart; the static voter's chunks are small so several are skipped or run."""
+    outliers and restart; the static voter's chunks are small so several are skipped or run,
+    and a small erase tier makes batches take the short and the whole-list erase."""
     h, w = 240, 320
     masks = torch.from_numpy(np.stack([m[:h, :w] for m in _adversarial_masks()]))
-    ref = fvan.find_lines(masks, P)
-    voter = fhough.StaticVoter(h, w, P, flow=flow, scatter_free=scatter_free, chunk=1000)
-    got = fvan.find_lines(masks, P, voter, flow)
-    for f in ("theta", "rho", "weight", "out_theta", "out_rho", "out_weight"):
-        valid = ref.valid if not f.startswith("out") else ref.out_valid
-        assert torch.equal(torch.where(valid, getattr(got, f), 0), torch.where(valid, getattr(ref, f), 0)), f
-    for f in ("valid", "out_valid", "n_rows", "has_vp"):
-        assert torch.equal(getattr(got, f), getattr(ref, f)), f
-    assert torch.equal(got.vp, ref.vp)
+    counts = masks.flatten(1).sum(1)
+    batches = [masks]
+    if tier == 2000:  # a batch that fits the tier (the short erase) and one that does not
+        assert bool((counts <= tier).sum() >= 2) and bool((counts > tier).any()), counts.tolist()
+        batches.append(masks[counts <= tier])
+    voter = fhough.StaticVoter(h, w, P, flow=flow, scatter_free=scatter_free, chunk=1000, tier=tier)
+    for batch in batches:
+        ref = fvan.find_lines(batch, P)
+        got = fvan.find_lines(batch, P, voter, flow)
+        for f in ("theta", "rho", "weight", "out_theta", "out_rho", "out_weight"):
+            valid = ref.valid if not f.startswith("out") else ref.out_valid
+            assert torch.equal(torch.where(valid, getattr(got, f), 0), torch.where(valid, getattr(ref, f), 0)), f
+        for f in ("valid", "out_valid", "n_rows", "has_vp"):
+            assert torch.equal(getattr(got, f), getattr(ref, f)), f
+        assert torch.equal(got.vp, ref.vp)
     assert bool(ref.out_valid.any()) and bool((ref.n_rows < P.n_rows).any())
 
 

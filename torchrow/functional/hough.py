@@ -20,6 +20,7 @@ from torch import nn
 
 from torchrow.core.params import Params
 from torchrow.core.tables import hough_trig, rho_index_table, rho_offset
+from torchrow.functional import _exact
 from torchrow.functional._checks import check_masks
 from torchrow.functional._flow import branch, check_flow, keep
 
@@ -265,7 +266,7 @@ class EagerVoter:
 
     The voter interface (shared with :class:`StaticVoter`): ``start(hin) -> (state, init)``
     (``init``: what a restart needs), ``votes(state) -> acc`` over the angle indices
-    :attr:`angles` (``None``: all), ``erase(state, theta, rho, active) -> state``,
+    :attr:`angles` (``None``: all), ``erase(state, init, theta, rho, active) -> state``,
     ``reset(state, init, which) -> state``, and ``d`` (``D``, set by ``start``). ``state``
     is a tuple (of tensors, for a static voter: it passes through ``torch.cond``).
     """
@@ -283,7 +284,8 @@ class EagerVoter:
     def votes(self, state: tuple) -> torch.Tensor:
         return state[0].acc
 
-    def erase(self, state: tuple, theta: torch.Tensor, rho: torch.Tensor, active: torch.Tensor) -> tuple:
+    def erase(self, state: tuple, init: None, theta: torch.Tensor, rho: torch.Tensor,
+              active: torch.Tensor) -> tuple:
         if bool(active.any()):
             state[0].erase(theta, rho, active, self.params)
         return state
@@ -328,28 +330,31 @@ def erase_bound(height: int, width: int, params: Params) -> int:
 class StaticVoter(nn.Module):
     """Static-shape voter of the exportable graphs, with the :class:`EagerVoter` interface.
 
-    The state is ``(alive bool (B, H*W), acc int32 (B, A, 2D+1))`` over the pickable angles
-    (:func:`pickable_angles`); the untouched input and its votes are kept for restarts.
-
-    * ``scatter_free=False`` (onnxruntime): votes are added once (``ScatterElements`` with
-      ``reduction="add"``) for the Hough input's pixels, compacted to the front of a
-      ``(B, H*W)`` list and added in chunks of :attr:`chunk` pixels; each chunk sits in a
-      :func:`~torchrow.functional._flow.branch` that skips it when no image has pixels left
-      there. An erase subtracts the votes of the erased pixels only, compacted into
-      :func:`erase_bound` slots (about 4% of the image). The rho index is the spec's
-      expression ``rint((x*c_j) + (y*s_j)) + D`` in float64 (no fused multiply-add; equal to
-      the shared table, which a test checks), so no table of ``H*W x A`` entries is stored.
-    * ``scatter_free=True`` (runtimes without a scatter reduction, e.g. TensorRT): no
-      accumulator is kept; each peak re-votes the alive mask by prefix sums of constant
-      permutations (:func:`torchrow.functional.static.votes`).
+    * ``scatter_free=False`` (onnxruntime): as :class:`HoughState`, the state is the Hough
+      input's compact pixel list (:func:`pixel_list`, ``(B, H*W)``, kept in ``init``) with
+      ``alive`` bool ``(B, H*W)`` marking its entries not yet erased, and ``acc`` int32
+      ``(B, A, 2D+1)`` over the pickable angles (:func:`pickable_angles`). Votes are added
+      once (``ScatterElements`` with ``reduction="add"``) in chunks of :attr:`chunk` list
+      entries, each chunk in a :func:`~torchrow.functional._flow.branch` that skips it when
+      no image has pixels left there. An erase tests only the first :attr:`tier` list
+      entries when every image's list fits there (on CRBD and the Caterra video the Hough
+      input is about 9% of the image; :attr:`tier` is an eighth), the whole list otherwise,
+      and subtracts the votes of the erased pixels only, compacted into :func:`erase_bound`
+      slots. The rho index is the spec's expression ``rint((x*c_j) + (y*s_j)) + D`` in
+      float64 (no fused multiply-add; equal to the shared table, which a test checks), so no
+      table of ``H*W x A`` entries is stored.
+    * ``scatter_free=True`` (runtimes without a scatter reduction, e.g. TensorRT): the state
+      is the raster alive mask bool ``(B, H*W)``; no accumulator is kept; each peak re-votes
+      the alive mask by prefix sums of constant permutations
+      (:func:`torchrow.functional.static.votes`).
 
     Memory (``B`` images): the accumulator twice, ``B*A*(2D+1)*4`` bytes (0.4 MB per image
-    at 320x240), plus a chunk's ``(B, chunk, A)`` int64 cell indices (2.1 MB per image with
-    the default ``chunk`` of 2048).
+    at 320x240), the pixel list (``8*H*W`` bytes per image), plus a chunk's ``(B, chunk, A)``
+    int64 cell indices (2.1 MB per image with the default ``chunk`` of 2048).
     """
 
     def __init__(self, height: int, width: int, params: Params, flow: str = "loop", scatter_free: bool = False,
-                 chunk: int = 2048) -> None:
+                 chunk: int = 2048, tier: int | None = None) -> None:
         super().__init__()
         self.params = params
         self.height, self.width = int(height), int(width)
@@ -371,6 +376,8 @@ class StaticVoter(nn.Module):
         self.register_buffer("cell0", torch.arange(len(ang), dtype=torch.int64) * self.n_rho + self.d,
                              persistent=False)
         self.bound = min(self.height * self.width, erase_bound(self.height, self.width, params))
+        n = self.height * self.width
+        self.tier = max(1, min(n, int(tier) if tier is not None else max(self.bound, n // 8)))
         if self.scatter_free:
             from torchrow.functional.static import vote_tables
 
@@ -380,11 +387,16 @@ class StaticVoter(nn.Module):
             self.register_buffer("run_empty", t.empty, persistent=False)
 
     # -- voting -------------------------------------------------------------------------------
+    def _coords(self, pix: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """float64 ``(x, y)`` of raster indices ``pix`` int64: integer ``%`` and ``//`` (a
+        gather from the coordinate buffers exports as a several times slower ``GatherND``)."""
+        return (pix % self.width).to(torch.float64), (pix // self.width).to(torch.float64)
+
     def _add(self, acc: torch.Tensor, pix: torch.Tensor, wgt: torch.Tensor) -> torch.Tensor:
         """``acc`` plus ``wgt`` int32 ``(B, C)`` votes of the raster pixels ``pix`` int64 ``(B, C)``."""
         bsz, c = pix.shape
-        x = self.xs[pix].unsqueeze(2)
-        y = self.ys[pix].unsqueeze(2)
+        x, y = self._coords(pix)
+        x, y = x.unsqueeze(2), y.unsqueeze(2)
         cell = torch.round(x * self.cos_a + y * self.sin_a).to(torch.int64) + self.cell0  # (B, C, A)
         upd = wgt.unsqueeze(2).expand(bsz, c, self.cos_a.shape[0])
         return acc.reshape(bsz, -1).scatter_add(1, cell.reshape(bsz, -1), upd.reshape(bsz, -1)).view(acc.shape)
@@ -415,16 +427,18 @@ class StaticVoter(nn.Module):
         return acc
 
     def start(self, hin: torch.Tensor) -> tuple[tuple, tuple]:
-        """Votes of ``hin`` bool ``(B, H, W)``: the state ``(alive, acc)`` (``(alive,)``
-        scatter-free), and the same as ``init`` for restarts."""
+        """Votes of ``hin`` bool ``(B, H, W)``: the state ``(alive, acc)`` (scatter-free:
+        ``(alive,)`` over the raster) and ``init``, what an erase and a restart read: the
+        untouched state, then the pixel list and counts."""
         bsz = hin.shape[0]
-        alive = hin.reshape(bsz, -1)
         if self.scatter_free:
+            alive = hin.reshape(bsz, -1)
             return (alive,), (alive,)
         pix, count = pixel_list(hin)
+        alive = torch.arange(pix.shape[1], device=hin.device) < count.unsqueeze(1)
         acc = torch.zeros((bsz, self.angles.shape[0], self.n_rho), dtype=torch.int32, device=hin.device)
         acc = self._accumulate(acc, pix, count, 1)
-        return (alive, acc), (alive, acc)
+        return (alive, acc), (alive, acc, pix, count)
 
     def votes(self, state: tuple) -> torch.Tensor:
         if self.scatter_free:
@@ -434,24 +448,40 @@ class StaticVoter(nn.Module):
             return votes(state[0], t)
         return state[1]
 
-    def erase(self, state: tuple, theta: torch.Tensor, rho: torch.Tensor, active: torch.Tensor) -> tuple:
+    def erase(self, state: tuple, init: tuple, theta: torch.Tensor, rho: torch.Tensor,
+              active: torch.Tensor) -> tuple:
         """Step 5.3 (the spec's expression, as :meth:`HoughState.erase`) where ``active``."""
-        alive = state[0]
         band = self.params.hough_band_px(self.width)
-        dist = line_distance(self.xs.unsqueeze(0), self.ys.unsqueeze(0), self.cos[theta].unsqueeze(1),
-                             self.sin[theta].unsqueeze(1), rho.to(torch.float64).unsqueeze(1))
-        hit = alive & (dist <= band / 2) & active.unsqueeze(1)
-        alive = alive & ~hit
+        cos, sin, r = self.cos[theta].unsqueeze(1), self.sin[theta].unsqueeze(1), rho.to(torch.float64).unsqueeze(1)
         if self.scatter_free:
-            return (alive,)
-        # the erased pixels, compacted into erase_bound slots by a TopK of the 0/1 mask (the
-        # order among them does not change a sum; a permutation scatter would fold an
-        # H*W-sized constant into every step's graph)
-        pix = torch.topk(hit.to(torch.int32), self.bound, dim=1).indices
-        # smaller chunks than the first vote: on CRBD an erase removes 214 pixels (median; 569
-        # at most) of a bound of ~3900, and the first vote counts ~2200 (median; 5300 at most)
-        return (alive, self._accumulate(state[1], pix, hit.sum(1), -1, max(1, self.chunk // 8)))
+            alive = state[0]
+            hit = alive & (line_distance(self.xs.unsqueeze(0), self.ys.unsqueeze(0), cos, sin, r) <= band / 2)
+            return (alive & ~(hit & active.unsqueeze(1)),)
+        pix, count = init[2], init[3]
+        k = self.height * self.width  # static: a loop carry's own sizes are symbolic while exporting
+
+        def over(n: int):
+            """The erase over the first ``n`` list entries (exact when no image has more)."""
+            def run(alive, acc):
+                p = pix[:, :n]
+                here = alive[:, :n]
+                hit = here & (line_distance(*self._coords(p), cos, sin, r) <= band / 2) & active.unsqueeze(1)
+                alive = torch.cat([here & ~hit, alive[:, n:]], 1) if n < k else here & ~hit
+                # the erased entries, compacted into erase_bound slots by a TopK of the 0/1
+                # mask (their order does not change a sum; a permutation scatter would fold
+                # a list-sized constant into every step)
+                sel = torch.topk(hit.to(torch.int32), min(self.bound, n), dim=1).indices
+                # smaller chunks than the first vote: on CRBD an erase removes 214 pixels
+                # (median; 569 at most) and the first vote counts ~2200 (median; 5300 at most)
+                return alive, self._accumulate(acc, p.gather(1, sel), _exact.count(hit), -1, max(1, self.chunk // 8))
+            return run
+
+        if self.tier >= k or self.flow == "always":  # "always": no control flow, so no choice
+            return tuple(over(k)(*state))
+        # a choice between two exact forms (not a skip): the short one when every list fits
+        return branch(self.flow, count.max() <= self.tier, over(self.tier), over(k), tuple(state))
 
     def reset(self, state: tuple, init: tuple, which: torch.Tensor) -> tuple:
         """Restore the untouched input (and its votes) where ``which`` bool ``(B,)``."""
-        return tuple(torch.where(which.view((-1,) + (1,) * (s.dim() - 1)), s0, s) for s, s0 in zip(state, init))
+        return tuple(torch.where(which.view((-1,) + (1,) * (s.dim() - 1)), s0, s)
+                     for s, s0 in zip(state, init[:len(state)]))

@@ -21,7 +21,7 @@ from torchrow.functional import _exact
 from torchrow.functional.hough import active_width, cacheable, pixel_list, trig
 
 __all__ = ["RowFit", "RowMoments", "Rows", "fit_rows", "score_hypotheses", "exact_counts", "padded_points",
-           "validate_rows", "ransac_band", "image_status", "BandPoints", "kept_points", "band_member",
+           "validate_rows", "ransac_band", "image_status", "BandPoints", "kept_points", "list_band_points", "band_member",
            "subsample_plan", "max_kept", "principal_direction", "REASON_CODES", "SCORE_BUDGET"]
 
 #: Reason codes of :attr:`Rows.reason`, indices into :data:`torchrow.core.results.REASONS`.
@@ -132,25 +132,32 @@ def kept_points(member: torch.Tensor, lin: torch.Tensor, width: int, params: Par
     return BandPoints((chosen % width).to(torch.float64), (chosen // width).to(torch.float64), n_keep, v_keep, n)
 
 
+def list_band_points(idx: torch.Tensor, count: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor,
+                     band: torch.Tensor, width: int, params: Params, cos: torch.Tensor, sin: torch.Tensor,
+                     track: tuple[torch.Tensor, torch.Tensor] | None = None, size: int | None = None) -> BandPoints:
+    """Steps 7 (band) and 7.2 (subsample) on a compact pixel list: the kept pixels of every
+    row, row-major. The one band-point rule of the eager and the exported fits.
+
+    ``idx`` int64 ``(B, K)``: raster indices, each image's ``count`` int64 ``(B,)`` pixels
+    first in raster order (:func:`~torchrow.functional.hough.pixel_list`, possibly cut to
+    ``K`` columns when no image has more); ``cos``/``sin`` the shared float64 tables;
+    ``size`` as :func:`kept_points`. With ``track = (a, b)`` (float64 ``(B, S)``, video mode)
+    the band is around the row ``x = a*y + b`` instead of the Hough line (:func:`band_member`).
+    """
+    live = torch.arange(idx.shape[1], device=idx.device) < count.unsqueeze(1)  # (B, K)
+    xs, ys = (idx % width).to(torch.float64), (idx // width).to(torch.float64)
+    member = band_member(xs.unsqueeze(1), ys.unsqueeze(1), theta, rho, band, cos, sin, track) & live.unsqueeze(1)
+    return kept_points(member, idx.unsqueeze(1), width, params, size)
+
+
 def _band_points(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, band: torch.Tensor,
                  params: Params, track: tuple[torch.Tensor, torch.Tensor] | None = None) -> BandPoints:
-    """Steps 7 (band) and 7.2 (subsample) on the compacted vegetation pixels: the kept
-    pixels of every row, row-major.
-
-    With ``track = (a, b)`` (float64 ``(B, S)``, video mode) the band is around the row
-    ``x = a*y + b`` instead of the Hough line: ``((x - a*y) - b)**2 <= (band/2)**2 * (1 + a*a)``,
-    the expression of :func:`torchrow.reference.ransac.track_band_points`.
-    """
-    bsz, h, w = veg.shape
+    """:func:`list_band_points` on the compacted vegetation pixels ``veg`` bool ``(B, H, W)``
+    (the list cut to the largest count: a host sync)."""
     idx, count = pixel_list(veg)
-    k = active_width(count)
-    idx = idx[:, :k]
-    live = torch.arange(k, device=veg.device) < count.unsqueeze(1)  # (B, K)
-    xs, ys = idx % w, idx // w
     cos, sin = trig(params, veg.device)
-    member = band_member(xs.to(torch.float64).unsqueeze(1), ys.to(torch.float64).unsqueeze(1), theta, rho, band,
-                         cos, sin, track) & live.unsqueeze(1)  # (B, S, K)
-    return kept_points(member, idx.unsqueeze(1), w, params)
+    return list_band_points(idx[:, :active_width(count)], count, theta, rho, band, veg.shape[2], params, cos, sin,
+                            track)
 
 
 def band_member(xs: torch.Tensor, ys: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, band: torch.Tensor,

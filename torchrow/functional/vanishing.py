@@ -15,7 +15,7 @@ from torch import nn
 
 from torchrow.core.params import Params
 from torchrow.functional import _exact
-from torchrow.functional._flow import check_flow, repeat
+from torchrow.functional._flow import branch, check_flow, keep, repeat
 from torchrow.functional.hough import EagerVoter, excluded_angles, peak, trig
 
 __all__ = ["VPSolution", "vanishing_point", "LineSearch", "find_lines", "max_steps"]
@@ -180,8 +180,8 @@ def find_lines(hough_in: torch.Tensor, params: Params, voter=None, flow: str = "
         fill = ~done & (held < n)
         check = ~done & ~fill
 
-        # --- fill: extract one line (eagerly skipped when no image needs one) ----------------
-        if flow != "sync" or bool(fill.any()):
+        # --- fill: extract one line ------------------------------------------------------------
+        def extract(theta, rho, weight, held, n, *vs):
             th, r_idx, w = peak(voter.votes(vs), excluded_angles(theta, valid, params), voter.angles)
             got = fill & (w > 0)
             n = torch.where(fill & (w == 0), held, n)  # extraction ran dry: N becomes the count
@@ -191,21 +191,38 @@ def find_lines(hough_in: torch.Tensor, params: Params, voter=None, flow: str = "
             rho = torch.where(put, rho_new.unsqueeze(1), rho)
             weight = torch.where(put, w.unsqueeze(1), weight)
             held = held + got.to(torch.int64)
-            vs = voter.erase(vs, th, rho_new, got)
+            return (theta, rho, weight, held, n) + tuple(voter.erase(vs, init, th, rho_new, got))
 
-        # --- check: vanishing point and outlier --------------------------------------------
-        no_vp, finish, drop, i, xy = outlier_check(theta, rho, weight, valid, check, params, tables)
-        vp = torch.where(finish.unsqueeze(1), xy, vp)
-        has_vp = has_vp | finish
-        theta, rho, weight, out, n_out = drop_outlier(theta, rho, weight, i, drop, out, n_out)
-        held = held - drop.to(torch.int64)
-        dropped = dropped + drop.to(torch.int64)
-        restart = drop & (dropped == params.max_outliers)
-        n = n - restart.to(torch.int64)
-        held = torch.where(restart, torch.zeros_like(held), held)
-        dropped = torch.where(restart, torch.zeros_like(dropped), dropped)
+        # --- check: vanishing point and outlier ------------------------------------------------
+        def verify(theta, rho, weight, held, out, n_out, n, dropped, done, vp, has_vp):
+            no_vp, finish, drop, i, xy = outlier_check(theta, rho, weight, valid, check, params, tables)
+            vp = torch.where(finish.unsqueeze(1), xy, vp)
+            has_vp = has_vp | finish
+            theta, rho, weight, out, n_out = drop_outlier(theta, rho, weight, i, drop, out, n_out)
+            held = held - drop.to(torch.int64)
+            dropped = dropped + drop.to(torch.int64)
+            restart = drop & (dropped == params.max_outliers)
+            n = n - restart.to(torch.int64)
+            held = torch.where(restart, torch.zeros_like(held), held)
+            dropped = torch.where(restart, torch.zeros_like(dropped), dropped)
+            done = done | no_vp | finish | (restart & (n < 2))
+            return theta, rho, weight, held, out, n_out, n, dropped, done, vp, has_vp, restart
+
+        def unchecked(*c):
+            return keep(*c) + (torch.zeros_like(done),)
+
+        # each part runs only when some image needs it (at B = 1 a step is a fill or a check):
+        # eagerly a host check, in an exported graph an If (flow "always": both, masked)
+        if flow == "sync":  # the eager voter's state is not a tuple of tensors
+            if bool(fill.any()):
+                theta, rho, weight, held, n, *vs = extract(theta, rho, weight, held, n, *vs)
+        else:
+            theta, rho, weight, held, n, *vs = branch(flow, fill.any(), extract, keep,
+                                                      (theta, rho, weight, held, n, *vs))
+        checked = (theta, rho, weight, held, out, n_out, n, dropped, done, vp, has_vp)
+        theta, rho, weight, held, out, n_out, n, dropped, done, vp, has_vp, restart = branch(
+            flow, check.any(), verify, unchecked, checked)
         vs = voter.reset(vs, init, restart)
-        done = done | no_vp | finish | (restart & (n < 2))
         return (theta, rho, weight, held, out, n_out, n, dropped, done, vp, has_vp) + tuple(vs)
 
     # early exit once every image is done; the bound is what an exported graph keeps
