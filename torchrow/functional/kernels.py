@@ -699,8 +699,9 @@ def canny_binary(veg: torch.Tensor, sky: torch.Tensor, params: Params) -> torch.
     torch.gt(m, high // 255, out=tmp)
 
     def to_image(flat: torch.Tensor) -> torch.Tensor:
-        full = torch.zeros(total, dtype=torch.uint8, device=dev)
-        full[r + 1:r + 1 + n] = flat
+        # concatenation, not a slice assignment into zeros (an exported ScatterND, 3x slower)
+        zero = torch.zeros(r + 1, dtype=torch.uint8, device=dev)
+        full = torch.cat([zero, flat, zero])  # n = total - 2 * (r + 1)
         return full.view(b, h + 2, r)[:, 1:h + 1, 1:w + 1].contiguous().view(torch.bool)
 
     edges = to_image(tmp_u8 & keep)

@@ -463,8 +463,8 @@ def remove_bushy(raw: torch.Tensor, sky: torch.Tensor, params: Params) -> torch.
         for dx in range(ew):
             if dy or dx:
                 eroded.bitwise_and_(flat[dy * wp + dx:dy * wp + dx + n])
-    full = torch.ones(flat.numel(), dtype=torch.uint8, device=raw.device)
-    full[0:n] = eroded
+    # concatenation, not a slice assignment into ones (an exported ScatterND, 3x slower)
+    full = torch.cat([eroded, torch.ones(flat.numel() - n, dtype=torch.uint8, device=raw.device)])
     eroded = full.view(b, hp, wp)[:, 0:h, 0:w]
     veg = (eroded ^ 1).bitwise_and_(as_u8(raw)).bitwise_and_(below)
     return veg.view(torch.bool)
