@@ -350,7 +350,8 @@ class StaticVoter(nn.Module):
 
     Memory (``B`` images): the accumulator twice, ``B*A*(2D+1)*4`` bytes (0.4 MB per image
     at 320x240), the pixel list (``8*H*W`` bytes per image), plus a chunk's ``(B, chunk, A)``
-    int64 cell indices (2.1 MB per image with the default ``chunk`` of 2048).
+    int64 cell indices (2.1 MB per image with the default ``chunk`` of 2048; 8.6 MB past the
+    first :attr:`tier` entries, where chunks are 4x longer).
     """
 
     def __init__(self, height: int, width: int, params: Params, flow: str = "loop", scatter_free: bool = False,
@@ -402,29 +403,44 @@ class StaticVoter(nn.Module):
         return acc.reshape(bsz, -1).scatter_add(1, cell.reshape(bsz, -1), upd.reshape(bsz, -1)).view(acc.shape)
 
     def _accumulate(self, acc: torch.Tensor, pix: torch.Tensor, count: torch.Tensor, sign: int,
-                    chunk: int | None = None) -> torch.Tensor:
+                    chunk: int | None = None, fine: int | None = None) -> torch.Tensor:
         """Add ``sign`` votes of the first ``count`` (B,) entries of the list ``pix`` (B, K),
         chunk by chunk; chunks past every image's count are skipped (per :attr:`flow`), in
-        blocks of 8 chunks first so that a skip copies the accumulator once, not per chunk."""
+        blocks of 8 chunks first so that a skip copies the accumulator once, not per chunk
+        (the later blocks sit in the first one's branch).
+
+        ``fine``: entries up to this go in chunks of ``chunk``, later ones (which only images
+        with more pixels than that have) in chunks of 4 x ``chunk``: fewer branches to trace,
+        export and skip, where a chunk rarely runs.
+        """
         k = pix.shape[1]
         top = count.max()
         chunk = chunk or self.chunk
+        fine = k if fine is None else min(k, fine)
+        edges = list(range(0, fine, chunk)) + list(range(fine, k, 4 * chunk)) + [k]
+        spans = list(zip(edges[:-1], edges[1:]))
 
-        def chunks(acc, b0: int, b1: int):
-            for c0 in range(b0, b1, chunk):
-                c1 = min(c0 + chunk, k)
+        def chunks(acc, i0: int, i1: int):
+            for i in range(i0, i1):
+                c0, c1 = spans[i]
 
                 def add(acc, c0=c0, c1=c1):
                     wgt = (torch.arange(c0, c1, device=acc.device) < count.unsqueeze(1)).to(torch.int32) * sign
                     return (self._add(acc, pix[:, c0:c1], wgt),)
 
-                acc, = branch(self.flow, top > c0, add, keep, (acc,)) if c0 > b0 else add(acc)
+                acc, = branch(self.flow, top > c0, add, keep, (acc,)) if i > i0 else add(acc)
             return (acc,)
 
-        block = 8 * chunk
-        for b0 in range(0, k, block):
-            acc, = branch(self.flow, top > b0, lambda acc, b0=b0: chunks(acc, b0, min(b0 + block, k)), keep, (acc,))
-        return acc
+        def blocks(acc):
+            for i0 in range(8, len(spans), 8):
+                i1 = min(i0 + 8, len(spans))
+                acc, = branch(self.flow, top > spans[i0][0], lambda acc, i0=i0, i1=i1: chunks(acc, i0, i1), keep,
+                              (acc,))
+            return (acc,)
+
+        # the first block's own branch holds the later blocks' too: no pixels at all (a
+        # tracked frame's empty Hough input) is one skip, not one per block
+        return branch(self.flow, top > 0, lambda acc: blocks(*chunks(acc, 0, min(8, len(spans)))), keep, (acc,))[0]
 
     def start(self, hin: torch.Tensor) -> tuple[tuple, tuple]:
         """Votes of ``hin`` bool ``(B, H, W)``: the state ``(alive, acc)`` (scatter-free:
@@ -437,7 +453,7 @@ class StaticVoter(nn.Module):
         pix, count = pixel_list(hin)
         alive = torch.arange(pix.shape[1], device=hin.device) < count.unsqueeze(1)
         acc = torch.zeros((bsz, self.angles.shape[0], self.n_rho), dtype=torch.int32, device=hin.device)
-        acc = self._accumulate(acc, pix, count, 1)
+        acc = self._accumulate(acc, pix, count, 1, fine=self.tier)
         return (alive, acc), (alive, acc, pix, count)
 
     def votes(self, state: tuple) -> torch.Tensor:
@@ -473,7 +489,8 @@ class StaticVoter(nn.Module):
                 sel = torch.topk(hit.to(torch.int32), min(self.bound, n), dim=1).indices
                 # smaller chunks than the first vote: on CRBD an erase removes 214 pixels
                 # (median; 569 at most) and the first vote counts ~2200 (median; 5300 at most)
-                return alive, self._accumulate(acc, p.gather(1, sel), _exact.count(hit), -1, max(1, self.chunk // 8))
+                return alive, self._accumulate(acc, p.gather(1, sel), _exact.count(hit), -1, max(1, self.chunk // 8),
+                                               fine=self.chunk // 2)
             return run
 
         if self.tier >= k or self.flow == "always":  # "always": no control flow, so no choice
