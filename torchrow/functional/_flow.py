@@ -42,6 +42,17 @@ def branch(flow: str, pred: torch.Tensor, fn: Callable, skip: Callable, operands
     return tuple(fn(*operands)) if bool(pred) else tuple(skip(*operands))
 
 
+def choose(flow: str, pred: torch.Tensor, fn: Callable, other: Callable, operands: tuple) -> tuple:
+    """``fn(*operands)`` if ``pred`` else ``other(*operands)``, where both are exact forms of
+    the same result (e.g. a list cut short when no image has more entries, and the whole
+    list): unlike :func:`branch`, not a skip. ``"always"`` (no control flow) takes ``other``,
+    the form that holds without the predicate."""
+    check_flow(flow)
+    if flow == "always":
+        return tuple(other(*operands))
+    return branch(flow, pred, fn, other, operands)
+
+
 def keep(*operands: torch.Tensor) -> tuple:
     """The skip branch that changes nothing (copies: branches may not alias their inputs)."""
     return tuple(t.clone() for t in operands)

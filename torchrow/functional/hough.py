@@ -22,7 +22,7 @@ from torchrow.core.params import Params
 from torchrow.core.tables import hough_trig, rho_index_table, rho_offset
 from torchrow.functional import _exact
 from torchrow.functional._checks import check_masks
-from torchrow.functional._flow import branch, check_flow, keep
+from torchrow.functional._flow import branch, check_flow, choose, keep
 
 __all__ = ["HoughState", "EagerVoter", "StaticVoter", "pickable_angles", "erase_bound", "pixel_list", "compact",
            "trig", "rho_table", "line_distance", "accumulate", "votes", "excluded_angles", "peak"]
@@ -493,10 +493,9 @@ class StaticVoter(nn.Module):
                                                fine=self.chunk // 2)
             return run
 
-        if self.tier >= k or self.flow == "always":  # "always": no control flow, so no choice
+        if self.tier >= k:
             return tuple(over(k)(*state))
-        # a choice between two exact forms (not a skip): the short one when every list fits
-        return branch(self.flow, count.max() <= self.tier, over(self.tier), over(k), tuple(state))
+        return choose(self.flow, count.max() <= self.tier, over(self.tier), over(k), tuple(state))
 
     def reset(self, state: tuple, init: tuple, which: torch.Tensor) -> tuple:
         """Restore the untouched input (and its votes) where ``which`` bool ``(B,)``."""

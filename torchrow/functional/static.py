@@ -49,7 +49,7 @@ from torchrow.functional import ransac as fransac
 from torchrow.functional import sky as fsky
 from torchrow.functional import tracker as ftrack
 from torchrow.functional import vegetation as fveg
-from torchrow.functional._flow import branch, check_flow
+from torchrow.functional._flow import check_flow, choose
 from torchrow.functional.hough import StaticVoter, pixel_list
 from torchrow.functional.vanishing import LineSearch, find_lines
 
@@ -224,11 +224,9 @@ class StaticDetector(nn.Module):
         self.register_buffer("u", torch.from_numpy(hypothesis_table(self.params.seed, self.params.ransac_trials).copy()),
                              persistent=False)
 
-    # one copy of each constant: the pixel coordinates and the shared trig tables are the voter's
+    # one copy of each constant: the shared trig tables are the voter's
     cos = property(lambda self: self.voter.cos)
     sin = property(lambda self: self.voter.sin)
-    xs = property(lambda self: self.voter.xs)
-    ys = property(lambda self: self.voter.ys)
 
     # -- sections 5-6 ---------------------------------------------------------------------
     def find_lines(self, hin: torch.Tensor) -> LineSearch:
@@ -259,10 +257,9 @@ class StaticDetector(nn.Module):
             return run
 
         operands = (idx, count, theta, rho, band) + (tuple(track) if track is not None else ())
-        if self.band_tier >= hw or self.flow == "always":
+        if self.band_tier >= hw:
             return fransac.BandPoints(*over(hw)(*operands))
-        # a choice between two exact forms (not a skip): the short one when every list fits
-        return fransac.BandPoints(*branch(self.flow, count.max() <= self.band_tier, over(self.band_tier), over(hw),
+        return fransac.BandPoints(*choose(self.flow, count.max() <= self.band_tier, over(self.band_tier), over(hw),
                                           operands))
 
     def fit_rows(self, veg, theta, rho, present, vp, band, track=None) -> fransac.RowMoments:
