@@ -61,6 +61,7 @@ def _records_equal(a: ImageResult, b: ImageResult) -> None:
     ({"lattice_tolerance": 0.5}, "lattice_tolerance"), ({"lattice_window": 0.0}, "lattice_window"),
     ({"lattice_vp_fallback_y": 10}, "lattice_vp_fallback_y"), ({"lattice_iterations": -1}, "lattice_iterations"),
     ({"lattice_min_confidence": 1.5}, "lattice_min_confidence"),
+    ({"lattice_horizon": "horizon"}, "lattice_horizon"),
 ])
 def test_params_validate_improved_fields(change, field) -> None:
     with pytest.raises(ValueError, match=f"Params.{field}"):
@@ -191,6 +192,39 @@ def test_tensor_stages_equal_reference_stages() -> None:
         assert (int(sp[i]), int(ph[i]), bool(found[i])) == rlat.comb_search(got[i].numpy(), ref_vp, IMPROVED)
 
 
+def test_lattice_horizon_image_uses_rows_above_section_2_sky() -> None:
+    # section 2 may put its horizon inside a sky-less field; "image" (the default) ignores it
+    img = _field(curve=0.0003)
+    sky = 80
+    assert IMPROVED.lattice_horizon == "image" and rlat.horizon_row(sky, IMPROVED) == 0
+    old = IMPROVED.replace(lattice_horizon="sky")
+    assert rlat.horizon_row(sky, old) == sky
+    got = flat.horizon_row(torch.tensor([sky, -1, 0]), IMPROVED)
+    assert got.tolist() == [0, 0, 0] and got.dtype == torch.int64
+    assert flat.horizon_row(torch.tensor([sky, -1]), old).tolist() == [sky, -1]
+    rows, conf, fit = rlat.improved_rows(img, sky, (160.0, -60.0), IMPROVED)
+    rows_sky, conf_sky, fit_sky = rlat.improved_rows(img, sky, (160.0, -60.0), old)
+    assert fit.span == 240 and fit_sky.span == 240 - sky
+    assert min(fit.support) > 240 - sky  # rows above section 2's horizon support the rows
+    # the far rows keep their spacing: at the top row the fitted rows are as far apart as drawn
+    top = [r.x_at(0.0) for r in rows]
+    truth = [160 + k * 90.0 * 60 / 299 + 0.0003 * 239 ** 2 for k in (-1, 0, 1)]
+    np.testing.assert_allclose(top, truth, atol=2.0)
+    # both settings: tensor path = reference, stage by stage and end to end
+    for params in (IMPROVED, old):
+        x = _t([img])
+        skies = torch.tensor([sky])
+        want = rlat.green_mask(img, rlat.horizon_row(sky, params), params)
+        assert torch.equal(flat.green_mask(x, flat.horizon_row(skies, params), params)[0], torch.from_numpy(want))
+        assert bool(want[:sky].any()) == (params.lattice_horizon == "image")
+        got_rows = flat.improved_rows(x, skies, torch.tensor([[160.0, -60.0]], dtype=torch.float64),
+                                      torch.tensor([True]), params)
+        ref_rows = rows if params is IMPROVED else rows_sky
+        for i, r in enumerate(ref_rows):
+            assert float(got_rows.confidence[0, i]) == r.confidence
+            assert abs(float(got_rows.a[0, i]) - r.a) <= 1e-6 and abs(float(got_rows.b[0, i]) - r.b) <= 1e-6
+
+
 @pytest.fixture(scope="module")
 def crbd_subset(crbd_dir):
     from torchrow.evaluation.datasets import CRBD
@@ -200,12 +234,14 @@ def crbd_subset(crbd_dir):
     return crbd, idx, [crbd.image(i) for i in idx]
 
 
-def test_tensor_equals_reference_on_crbd_subset_mixed_batch(crbd_subset) -> None:
+@pytest.mark.parametrize("horizon", ["image", "sky"])
+def test_tensor_equals_reference_on_crbd_subset_mixed_batch(crbd_subset, horizon) -> None:
     _, _, images = crbd_subset
+    params = IMPROVED.replace(lattice_horizon=horizon)
     mixed = images + _adversarial()[:2]
-    out = CropRowDetector(IMPROVED, chunk=3)(_t(mixed)).results()
+    out = CropRowDetector(params, chunk=3)(_t(mixed)).results()
     for img, got in zip(mixed, out):
-        _records_equal(detect(img, IMPROVED), got)
+        _records_equal(detect(img, params), got)
 
 
 def test_improved_beats_faithful_on_crbd_subset(crbd_subset) -> None:

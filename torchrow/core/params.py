@@ -95,6 +95,7 @@ class Params:
 
     # --- section 11 (torchrow extension): improved mode, the row lattice ----------------
     mode: str = "faithful"  # "faithful" (sections 0-7) or "improved" (section 11 replaces 7)
+    lattice_horizon: str = "image"  # "image": the lattice sees every image row; "sky": only rows below section 2's
     green_floor: int = 0  # excess-green threshold is max(Otsu, this)
     lattice_vp_max_y: int = 0  # a section-6 VP below this image row is not trusted
     lattice_vp_fallback_y: int = -60  # y of the VP used instead, at x = W // 2
@@ -244,6 +245,7 @@ _RULES: dict[str, _Rule] = {
     "max_pixels": _Rule("int", 1, 1 << 22, why="peak memory is about 2.5 KB per working pixel"),
     # section 11 (torchrow extension): the improved mode's row lattice
     "mode": _Rule("choice", choices=("faithful", "improved")),
+    "lattice_horizon": _Rule("choice", choices=("image", "sky")),
     "green_floor": _Rule("int", -(2**31) + 1, 2**31 - 1),
     "lattice_vp_max_y": _Rule("int", -(2**31) + 1, 2**31 - 1),
     "lattice_vp_fallback_y": _Rule("int", -(2**31) + 1, -1, why="the fallback VP lies above the image"),

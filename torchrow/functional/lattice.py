@@ -17,7 +17,7 @@ import torch
 
 from torchrow.core.params import Params
 
-__all__ = ["LatticeRows", "excess_green", "otsu_threshold", "green_mask", "init_vp", "comb_search",
+__all__ = ["LatticeRows", "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "comb_search",
            "solve_normal", "normal_equations", "fit_lattice", "improved_rows"]
 
 N_COEF = 6
@@ -43,6 +43,11 @@ class LatticeRows:
     phase: torch.Tensor
     found: torch.Tensor
     vp: torch.Tensor
+
+
+def horizon_row(sky: torch.Tensor, params: Params) -> torch.Tensor:
+    """Section 11.1 per image: the first row the lattice uses, ``(B,)`` like ``sky`` (0 or ``sky``)."""
+    return torch.zeros_like(sky) if params.lattice_horizon == "image" else sky
 
 
 def excess_green(images: torch.Tensor) -> torch.Tensor:
@@ -257,12 +262,16 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor, has_vp:
 
 def improved_rows(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor, has_vp: torch.Tensor,
                   params: Params) -> LatticeRows:
-    """Section 11 on ``uint8 (B, 3, H, W)`` working images; ``vp (B, 2)`` float64 with ``has_vp``."""
+    """Section 11 on ``uint8 (B, 3, H, W)`` working images; ``vp (B, 2)`` float64 with ``has_vp``.
+
+    ``sky (B,)`` is section 2's row; the lattice starts at :func:`horizon_row`.
+    """
     h = images.shape[2]
-    mask = green_mask(images, sky, params)
-    coef, spacing, phase, found, v, cnt = fit_lattice(mask, sky, vp, has_vp, params)
+    top = horizon_row(sky, params)
+    mask = green_mask(images, top, params)
+    coef, spacing, phase, found, v, cnt = fit_lattice(mask, top, vp, has_vp, params)
     support = (cnt > 0).sum(dim=1).to(torch.float64)  # (B, R)
-    span = torch.clamp(h - torch.clamp(sky.to(torch.int64), min=0), min=1).to(torch.float64)
+    span = torch.clamp(h - torch.clamp(top.to(torch.int64), min=0), min=1).to(torch.float64)
     conf = support / span.unsqueeze(1)
     c0, c1, c2, d0, d1, d2 = (coef[:, i].unsqueeze(1) for i in range(N_COEF))
     kv = torch.arange(-params.lattice_half, params.lattice_half + 1, device=images.device,

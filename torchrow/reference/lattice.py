@@ -24,7 +24,7 @@ import numpy as np
 from torchrow.core.params import Params
 from torchrow.core.results import Row
 
-__all__ = ["LatticeFit", "excess_green", "otsu_threshold", "green_mask", "init_vp", "comb_search",
+__all__ = ["LatticeFit", "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "comb_search",
            "solve_normal", "row_cells", "normal_equations", "fit_lattice", "lattice_rows", "N_COEF"]
 
 #: Coefficients ``(c0, c1, c2, d0, d1, d2)`` of ``x = c(t) + k d(t)``, ``c(t) = c0 + c1 t + c2 t^2``,
@@ -54,6 +54,16 @@ class LatticeFit:
     support: tuple[int, ...]
     span: int
     found: bool
+
+
+def horizon_row(sky: int, params: Params) -> int:
+    """Section 11.1: the first image row the lattice uses, ``0`` or section 2's ``sky``.
+
+    ``Params.lattice_horizon`` ``"image"`` (default) uses every row: section 2 puts a horizon
+    60-85 rows down into sky-less field images, and the far rows above it are where the
+    quadratic rows need data most; sky pixels are not green, so the mask drops them anyway.
+    """
+    return 0 if params.lattice_horizon == "image" else sky
 
 
 def excess_green(rgb: np.ndarray) -> np.ndarray:
@@ -306,8 +316,12 @@ def lattice_rows(fit: LatticeFit, height: int, params: Params) -> list[Row]:
 
 def improved_rows(rgb: np.ndarray, sky: int, vp: tuple[float, float] | None,
                   params: Params) -> tuple[list[Row], float, LatticeFit]:
-    """Section 11 on one working image: rows, image confidence (mean of the rows') and the fit."""
-    fit = fit_lattice(green_mask(rgb, sky, params), sky, vp, params)
+    """Section 11 on one working image: rows, image confidence (mean of the rows') and the fit.
+
+    ``sky`` is section 2's row; the lattice starts at :func:`horizon_row`.
+    """
+    top = horizon_row(sky, params)
+    fit = fit_lattice(green_mask(rgb, top, params), top, vp, params)
     rows = lattice_rows(fit, rgb.shape[0], params)
     conf = sum(r.confidence for r in rows) / len(rows)  # in row order, as the tensor path
     return rows, conf, fit
