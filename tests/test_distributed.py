@@ -150,7 +150,9 @@ def test_eval_ray_equals_local(crbd_dir: Path, tmp_path: Path, capsys) -> None:
 
 def test_engine_arguments_are_checked(images: Path, tmp_path: Path, capsys) -> None:
     out = str(tmp_path / "r.jsonl")
-    for argv, msg in ((["detect", str(images), "--address", "auto"], "--address and --workers are only used"),
+    for argv, msg in ((["detect", str(images), "--address", "auto"], "--address is only used with --engine ray"),
+                      (["detect", str(images), "--workers", "2"], "--workers is only used with --engine ray or --impl onnx"),
+                      (["video", str(images), "--workers", "2"], "--workers is only used with --engine ray"),
                       (["detect", str(images), "--engine", "ray", "--annotate", str(tmp_path)], "--annotate needs"),
                       (["detect", str(images), "--engine", "ray", "--workers", "0"], "--workers must be >= 1")):
         capsys.readouterr()

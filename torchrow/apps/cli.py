@@ -143,11 +143,16 @@ def _check_device(device: str | None) -> str | None:
     return str(dev)
 
 
-def _check_engine(args: argparse.Namespace) -> None:
-    """``--engine ray`` needs Ray Data; ``--address``/``--workers`` only go with it."""
+def _check_engine(args: argparse.Namespace, onnx_workers: bool = False) -> None:
+    """``--engine ray`` needs Ray Data; ``--address`` only goes with it, ``--workers`` too unless
+    ``onnx_workers`` (``detect --impl onnx``: concurrent onnxruntime runs here)."""
+    if args.workers is not None and args.workers < 1:
+        raise CLIError(f"--workers must be >= 1, got {args.workers}")
     if args.engine != "ray":
-        if args.address or args.workers:
-            raise CLIError("--address and --workers are only used with --engine ray")
+        if args.address:
+            raise CLIError("--address is only used with --engine ray")
+        if args.workers and not (onnx_workers and getattr(args, "impl", None) == "onnx"):
+            raise CLIError("--workers is only used with --engine ray" + (" or --impl onnx" if onnx_workers else ""))
         return
     try:
         import ray.data  # noqa: F401
@@ -155,8 +160,6 @@ def _check_engine(args: argparse.Namespace) -> None:
         raise CLIError("--engine ray needs Ray Data: pip install 'torchrow[ray]'") from None
     if getattr(args, "annotate", None):
         raise CLIError("--annotate needs --engine local (the Ray engine returns records, not images)")
-    if args.workers is not None and args.workers < 1:
-        raise CLIError(f"--workers must be >= 1, got {args.workers}")
 
 
 def _open_sink(out: Path, key, resume: bool):
@@ -206,7 +209,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     model = _check_model(args)
     if model is not None:
         _onnx_host_threads()
-    _check_engine(args)
+    _check_engine(args, onnx_workers=True)
     others, bags = _split_bags(args.inputs, args.topic)
     paths = _collect_images(others) if others else []
     if model is not None and paths:
@@ -265,7 +268,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     else:
         from torchrow.engines.runner import run
 
-        stream = run(todo(), **common)
+        stream = run(todo(), workers=args.workers if args.impl == "onnx" else None, **common)
     counts: dict[str, int] = {}
     with sink:
         for i, rgb, res, _ in stream:
@@ -737,7 +740,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="--engine ray: cluster to join (auto, HOST:6379, ray://HOST:10001); default: "
                             "$RAY_ADDRESS, else a local cluster with this machine's CPUs")
         p.add_argument("--workers", type=int, default=None,
-                       help="--engine ray: detector actors (default: the cluster's CPUs)")
+                       help="--engine ray: detector actors (default: the cluster's CPUs); detect --impl onnx: "
+                            "concurrent onnxruntime runs, one thread each (default: this machine's cores, at most 4)")
         p.add_argument("--resume", action="store_true",
                        help="keep the records already in --out, skip their inputs, append the rest")
 

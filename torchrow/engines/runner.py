@@ -10,7 +10,8 @@ yields an ``error`` result and the run goes on.
 Ordering window (``impl="tensor"``/``"onnx"``): images wait in per-working-size groups until
 a group holds ``batch_size`` images; finished results wait until every earlier input's result
 is out. So that one image of an odd size (or a rare size) cannot hold the output back, at most
-``window`` inputs (default :func:`default_window`, ``2 * batch_size``) are read ahead of the
+``window`` inputs (default :func:`default_window`, ``2 * batch_size``; with ``workers``
+concurrent onnxruntime runs, ``(workers + 1) * batch_size`` if that is more) are read ahead of the
 oldest input without a result: when the window is full, the group holding that input runs at
 once, even if it is not full. Memory is bounded by ``window`` working images (about 230 kB
 each at 320x240), whatever the length of the run; results never depend on the window, since
@@ -29,7 +30,7 @@ from torchrow.core.params import Params
 from torchrow.core.results import ImageResult
 from torchrow.core.steering import FrameResult
 
-__all__ = ["IMPLS", "run", "default_window", "track", "track_batches", "source_size"]
+__all__ = ["IMPLS", "run", "default_window", "onnx_workers", "track", "track_batches", "source_size"]
 
 IMPLS = ("tensor", "reference", "onnx")
 
@@ -57,7 +58,8 @@ def default_window(batch_size: int) -> int:
 def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Params | None = None,
         batch_size: int = 64, device: str | None = None, progress: bool = True,
         desc: str = "detect", model: str | None = None, window: int | None = None,
-        total: int | None = None, detector=None) -> Iterator[tuple[int, np.ndarray | None, ImageResult, float]]:
+        total: int | None = None, detector=None, workers: int | None = None
+        ) -> Iterator[tuple[int, np.ndarray | None, ImageResult, float]]:
     """Detect every ``(name, loader)`` item; ``loader()`` returns the working RGB image.
 
     ``items`` may be a lazy iterable (read one item at a time; ``total`` sizes the progress
@@ -68,6 +70,13 @@ def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Param
     images of another working size than the model's get an ``error`` record. ``detector``: an
     already built :class:`~torchrow.engines.detector.CropRowDetector` (or ``OnnxDetector``) to use
     instead of a new one (the Ray engine's workers keep one each).
+
+    ``workers`` (``impl="onnx"`` only): batches run concurrently on this many threads, each
+    onnxruntime run on one intra-op thread (default :func:`onnx_workers` when the run opens
+    the model, 1 with a given ``detector``). onnxruntime gets little from a second intra-op
+    thread on this graph of small operations (a run waits on thread hand-offs between them),
+    while images are independent: two one-thread runs side by side use both cores. Results
+    and their order do not depend on it.
     """
     params = params or Params()
     if impl not in IMPLS:
@@ -79,11 +88,19 @@ def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Param
             raise ValueError("impl='onnx' needs model= (an ONNX file written by torchrow.engines.export.to_onnx)")
         from torchrow.engines.export import OnnxDetector
 
-        det = detector if detector is not None else OnnxDetector(model)
+        if workers is None:
+            workers = 1 if detector is not None else onnx_workers()
+        if workers < 1:
+            raise ValueError(f"workers must be >= 1, got {workers}")
+        det = detector if detector is not None else OnnxDetector(model, threads=1 if workers > 1 else None)
         batch_size = det.batch
     else:
+        if workers not in (None, 1):
+            raise ValueError(f"workers is only used with impl='onnx', got {workers} for impl={impl!r}")
         det = detector
-    window = default_window(batch_size) if window is None else window
+        workers = 1
+    if window is None:  # room for every worker's batch and the next one being gathered
+        window = max(default_window(batch_size), (workers + 1) * batch_size)
     if window < batch_size:
         raise ValueError(f"window must be >= batch_size ({batch_size}), got {window}")
     bar = _progress(total, desc, progress)
@@ -102,12 +119,24 @@ def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Param
                 bar.update(1)
                 yield i, rgb, err, time.perf_counter() - t0
             return
-        yield from _run_tensor(items, params, batch_size, window, device, bar, det)
+        yield from _run_tensor(items, params, batch_size, window, device, bar, det, workers)
     finally:
         bar.close()
 
 
-def _run_tensor(items, params, batch_size, window, device, bar, det=None):
+def onnx_workers() -> int:
+    """Default concurrent onnxruntime runs of :func:`run`: the cores this process may use, at most 4
+    (each run holds its own intermediate tensors, about 0.1 GB at 320x240)."""
+    import os
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(cores, 4))
+
+
+def _run_tensor(items, params, batch_size, window, device, bar, det=None, workers: int = 1):
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+
     import torch
 
     from torchrow.engines.detector import CropRowDetector
@@ -119,19 +148,47 @@ def _run_tensor(items, params, batch_size, window, device, bar, det=None):
     rgbs: dict[int, np.ndarray] = {}
     names: dict[int, str] = {}
     next_out = 0
+    pool = None
+    if workers > 1:
+        from torchrow.core.tables import lab_table_torch
 
-    def flush(key):
-        idx = groups.pop(key)
-        batch = torch.from_numpy(np.stack([rgbs[i] for i in idx])).permute(0, 3, 1, 2).contiguous()
+        lab_table_torch("cpu")  # the shared colour table exists before the workers read it
+        # one torch thread per worker (OpenMP's setting is per thread): the workers' host-side
+        # colour clustering must not spin up a second pool on the cores the other runs use
+        pool = ThreadPoolExecutor(workers, thread_name_prefix="torchrow-onnx",
+                                  initializer=torch.set_num_threads, initargs=(1,))
+    pending: deque = deque()  # (indices, future) of batches on the pool, in submission order
+
+    def detect(batch, idx, key):
         t0 = time.perf_counter()
         try:
             results = det(batch).results([names[i] for i in idx])
         except Exception as exc:  # keep the run alive; every image of the batch gets the error
             results = [ImageResult.failed(names[i], f"{type(exc).__name__}: {exc}", key[1], key[0]) for i in idx]
-        dt = (time.perf_counter() - t0) / len(idx)
+        return results, (time.perf_counter() - t0) / len(idx)
+
+    def store(idx, results, dt):
         for i, res in zip(idx, results):
             done[i] = (rgbs.pop(i), res, dt)
         bar.update(len(idx))
+
+    def collect(wait: bool = False):
+        """Store finished batches in submission order; ``wait``: the oldest one at least."""
+        while pending and (wait or pending[0][1].done()):
+            idx, fut = pending.popleft()
+            store(idx, *fut.result())
+            wait = False
+
+    def flush(key):
+        idx = groups.pop(key)
+        batch = torch.from_numpy(np.stack([rgbs[i] for i in idx])).permute(0, 3, 1, 2).contiguous()
+        if pool is None:
+            store(idx, *detect(batch, idx, key))
+            return
+        while len(pending) >= workers:
+            collect(wait=True)
+        pending.append((idx, pool.submit(detect, batch, idx, key)))
+        collect()
 
     def ready():
         nonlocal next_out
@@ -141,25 +198,36 @@ def _run_tensor(items, params, batch_size, window, device, bar, det=None):
             next_out += 1
 
     n = 0
-    for i, (name, loader) in enumerate(items):
-        n = i + 1
-        names[i] = name
-        rgb, err = _load(name, loader)
-        if err is not None:
-            done[i] = (None, err, 0.0)
-            bar.update(1)
-        else:
-            rgbs[i] = rgb
-            groups.setdefault(rgb.shape, []).append(i)
-            if len(groups[rgb.shape]) >= batch_size:
-                flush(rgb.shape)
-        yield from ready()
-        if n - next_out >= window:  # the window is full: run the group of the oldest waiting input
-            flush(rgbs[next_out].shape)
+    try:
+        for i, (name, loader) in enumerate(items):
+            n = i + 1
+            names[i] = name
+            rgb, err = _load(name, loader)
+            if err is not None:
+                done[i] = (None, err, 0.0)
+                bar.update(1)
+            else:
+                rgbs[i] = rgb
+                groups.setdefault(rgb.shape, []).append(i)
+                if len(groups[rgb.shape]) >= batch_size:
+                    flush(rgb.shape)
+            collect()
             yield from ready()
-    for key in sorted(groups, key=lambda k: groups[k][0]):
-        flush(key)
-        yield from ready()
+            while n - next_out >= window:  # the window is full: the oldest waiting input's result first
+                if any(next_out in idx for idx, _ in pending):
+                    collect(wait=True)
+                else:
+                    flush(rgbs[next_out].shape)
+                yield from ready()
+        for key in sorted(groups, key=lambda k: groups[k][0]):
+            flush(key)
+            yield from ready()
+        while pending:
+            collect(wait=True)
+            yield from ready()
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
     assert next_out == n and not done
 
 
