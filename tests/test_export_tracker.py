@@ -189,6 +189,19 @@ def test_records_and_errors(onnx_tracker: OnnxTracker, model_path: Path, tmp_pat
     assert isinstance(TrackerState.empty(BATCH, SMALL), TrackerState)
 
 
+def test_track_iter_reads_frames_as_the_eager_tracker(onnx_tracker: OnnxTracker):
+    """Frames load by the same rule on both paths: a frame whose working size exceeds
+    ``max_pixels`` is an unreadable frame (never resized first), with the same message."""
+    seq = [f.image for f in sequence(FieldSpec.at_size(320, 180, n_rows=5, seed=4), 3)]
+    tall = np.zeros((4000, 10, 3), np.uint8)  # 160 x 64000 at the working width
+    items = [seq[0], ("tall", tall), seq[1], None, seq[2]]
+    eager = [r.to_record() for _, r, _ in torchrow.Tracker(SMALL, workers=1).track_iter([items])]
+    got = [r.to_record() for _, r, _ in onnx_tracker.track_iter([items])]
+    assert [r["status"] for r in got] == [r["status"] for r in eager]
+    assert got[1]["status"] == "error" and "max_pixels" in got[1]["error"] and got[1]["error"] == eager[1]["error"]
+    assert got[3]["error"] == eager[3]["error"]
+
+
 def test_cli_export_and_detect_refuse_mismatches(model_path: Path, tmp_path: Path, capsys):
     out = str(tmp_path / "t.onnx")
     assert main(["export", "onnx", "--tracker", "--out", out]) == 2

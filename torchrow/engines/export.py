@@ -870,7 +870,7 @@ class OnnxTracker:
                 except StopIteration:
                     alive[b] = False
                     continue
-                fr = load_item(item, self.params.video_width)
+                fr = load_item(item, self.params.video_width, self.params.max_pixels)
                 if fr.rgb is not None and fr.rgb.shape[:2] != (h, w):
                     fr.error = (f"frame of working size {fr.rgb.shape[1]}x{fr.rgb.shape[0]}; the model "
                                 f"{self.path.name} takes {w}x{h}")
