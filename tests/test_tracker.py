@@ -19,7 +19,7 @@ from test_tensor_pipeline import assert_same
 import torchrow
 from torchrow import Params
 from torchrow.apps.cli import main
-from torchrow.apps.video import open_source
+from torchrow.apps.video import load_item, load_items, open_source
 from torchrow.core.results import ImageResult, Row
 from torchrow.core.steering import FrameResult, Steering, focal_from_fov, steering
 from torchrow.evaluation.synthetic import FieldSpec, sequence
@@ -304,3 +304,51 @@ def test_single_pass_adaptive_k_equals_a_box_test_per_k() -> None:
             k2[i] = kk
         r2 = fveg.raw_mask(x, color, k2, sky)
         assert torch.equal(k1, k2) and torch.equal(r1, r2), info
+
+
+# --- frames read ahead (torchrow.apps.video.load_items) ------------------------------------
+
+def test_load_items_reads_ahead_in_order_with_errors_in_place() -> None:
+    import threading
+    import time
+
+    from torchrow.core.io import ImageError
+
+    frames = [np.full((20, 40, 3), i, np.uint8) for i in range(12)]
+
+    def broken():
+        raise ImageError("truncated file")
+
+    items = [frames[0], ("b", broken), None, *frames[1:], ("odd", np.zeros((5, 5), np.uint8))]
+    want = [load_item(it, 16) for it in items]
+    for ahead in (0, 1, 3, 64):
+        got = list(load_items(items, 16, ahead=ahead))
+        assert [(g.name, g.error) for g in got] == [(w.name, w.error) for w in want], ahead
+        assert all((g.rgb is None and w.rgb is None) or np.array_equal(g.rgb, w.rgb) for g, w in zip(got, want))
+    assert got[1].error == "truncated file" and got[2].error == "unreadable frame"
+
+    pulled = []
+
+    def live():  # a camera: count what the reader pulls
+        for i in range(1000):
+            pulled.append(i)
+            yield frames[i % 12]
+
+    it = load_items(live(), 16, ahead=3)
+    assert next(it).rgb.shape == (8, 16, 3)
+    deadline = time.monotonic() + 5
+    while len(pulled) < 5 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(0.2)  # room for a reader that would not stop
+    assert len(pulled) == 5  # one consumed, three queued, one waiting to be queued
+    it.close()  # stops the reader thread
+    assert not any(t.name == "torchrow-read-ahead" and t.is_alive() for t in threading.enumerate())
+
+    def bug():
+        yield frames[0]
+        raise RuntimeError("a bug in the source")
+
+    it = load_items(bug(), 16, ahead=4)
+    assert next(it).error is None
+    with pytest.raises(RuntimeError, match="a bug in the source"):
+        next(it)

@@ -8,15 +8,18 @@ callable returning one (it may raise :class:`~torchrow.core.io.ImageError` or ``
 
 from __future__ import annotations
 
+import queue
+import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterable, Iterator
 
 import numpy as np
 
 from torchrow.core.io import IMAGE_EXTENSIONS, ImageError, header_size, load_image, resize_to_width, to_rgb8, working_size
 
-__all__ = ["LoadedFrame", "load_item", "VIDEO_EXTENSIONS", "FrameSource", "open_source", "VideoWriter"]
+__all__ = ["LoadedFrame", "load_item", "load_items", "READ_AHEAD", "VIDEO_EXTENSIONS", "FrameSource", "open_source",
+           "VideoWriter"]
 
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
 
@@ -47,6 +50,65 @@ def load_item(item: object, width: int, max_pixels: int | None = None) -> Loaded
         return LoadedFrame(name, resize_to_width(to_rgb8(frame), width, max_pixels))
     except (ImageError, OSError) as exc:
         return LoadedFrame(name, None, str(exc))
+
+
+#: Items :func:`load_items` decodes ahead of the tracker by default (about 0.4 MB each at 500 px).
+READ_AHEAD = 8
+
+_END = object()
+
+
+def load_items(items: Iterable[object], width: int, max_pixels: int | None = None,
+               ahead: int = READ_AHEAD) -> Iterator[LoadedFrame]:
+    """:func:`load_item` of every item, in order, decoded up to ``ahead`` items in advance.
+
+    Decoding and resizing a 1280x720 JPEG takes about 11 ms here (8.6 decode, 2.9 resize), a
+    quarter of a tracked frame; OpenCV, Pillow and PyAV release the GIL while they decode,
+    so a reader thread does it while the tracker works on the frames before. ``ahead=0``
+    reads in the calling thread. Only the reader thread pulls from ``items``, one item at a
+    time and in order (a live generator is read ahead by at most ``ahead + 1`` items). An
+    exception other than the unreadable-frame ones :func:`load_item` turns into records is
+    raised here, at its item's place. Closing the iterator (or dropping it) stops the reader.
+    """
+    if ahead <= 0:
+        for item in items:
+            yield load_item(item, width, max_pixels)
+        return
+    out: queue.Queue = queue.Queue(ahead)
+    stop = threading.Event()
+
+    def put(x: object) -> bool:
+        while not stop.is_set():
+            try:
+                out.put(x, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def read() -> None:
+        try:
+            for item in items:
+                if not put(load_item(item, width, max_pixels)):
+                    return
+        except BaseException as exc:  # handed to the consumer, raised at this item's place
+            put(exc)
+            return
+        put(_END)
+
+    reader = threading.Thread(target=read, name="torchrow-read-ahead", daemon=True)
+    reader.start()
+    try:
+        while True:
+            got = out.get()
+            if got is _END:
+                return
+            if isinstance(got, BaseException):
+                raise got
+            yield got
+    finally:
+        stop.set()
+        reader.join()
 
 
 @dataclass

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from torchrow.apps.video import load_item
+from torchrow.apps.video import load_items
 from torchrow.core.io import check_working_size, load_image, resize_to_width, to_rgb8
 from torchrow.core.params import Params
 from torchrow.core.results import concat_batches
@@ -268,7 +268,7 @@ class Tracker(nn.Module):
         """
         p = self.params
         bsz = len(sequences)
-        iters = [iter(s) for s in sequences]
+        iters = [load_items(s, p.video_width, p.max_pixels) for s in sequences]
         alive = [True] * bsz
         next_index = [0] * bsz
         state = TrackerState.empty(bsz, p, self.device)
@@ -279,12 +279,10 @@ class Tracker(nn.Module):
             got: list[list] = [[] for _ in range(bsz)]
             for b in range(bsz):
                 while alive[b] and len(got[b]) < self.chunk:
-                    try:
-                        item = next(iters[b])
-                    except StopIteration:
+                    fr = next(iters[b], None)
+                    if fr is None:
                         alive[b] = False
                         break
-                    fr = load_item(item, p.video_width, p.max_pixels)
                     if fr.rgb is not None:
                         if size is None:
                             size = fr.rgb.shape[:2]

@@ -34,7 +34,7 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
-from torchrow.apps.video import load_item
+from torchrow.apps.video import load_items
 from torchrow.core.io import resize_to_width, to_rgb8
 from torchrow.core.params import Params
 from torchrow.core.results import ImageResult
@@ -224,8 +224,7 @@ class Tracker:
         default, that of the first readable frame; frame 0 is the first readable frame of it.
         """
         state: TrackerState | None = None
-        for i, item in enumerate(items):
-            got = load_item(item, self.params.video_width, self.params.max_pixels)
+        for i, got in enumerate(load_items(items, self.params.video_width, self.params.max_pixels)):
             if got.rgb is not None and size is None:
                 size = got.rgb.shape[:2]
             if got.rgb is not None and got.rgb.shape[:2] != size:
