@@ -30,6 +30,8 @@ def test_legend_names_every_mark_shown():
     texts = [e[2] for e in outside]
     assert not any("horizon" in t or "invalid" in t for t in texts)
     assert any("outside the picture" in t for t in texts)
+    improved = [e[2] for e in legend_entries(_result(image_confidence=0.8))]
+    assert "horizon of section 2" in improved and not any("rows above ignored" in t for t in improved)
 
 
 def test_picture_has_legend_strip_and_rows_start_below_vp():

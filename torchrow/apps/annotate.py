@@ -82,7 +82,10 @@ def legend_entries(result: ImageResult, ground_truth: bool = False) -> list[tupl
     if ground_truth:
         entries.append(("thin", GT_COLOR, "ground truth"))
     if result.sky > 0:
-        entries.append(("line", HORIZON, "horizon (rows above ignored)"))
+        # the improved mode's lattice may use the rows above section 2's horizon
+        # (Params.lattice_horizon), which a result does not record
+        improved = math.isfinite(result.image_confidence)
+        entries.append(("line", HORIZON, "horizon of section 2" if improved else "horizon (rows above ignored)"))
     if result.vp is not None and all(math.isfinite(v) for v in result.vp):
         inside = 0 <= result.vp[0] < result.width and 0 <= result.vp[1] < result.height
         entries.append(("cross", VP_COLOR, "vanishing point") if inside else
