@@ -259,3 +259,25 @@ def test_cli_video_onnx_equals_tensor(model_path: Path, tmp_path: Path, capsys):
     cv2.imwrite(str(big / "a.png"), np.zeros((200, 160, 3), np.uint8))
     assert main(["video", str(big), "--quiet", "--out", str(got), "--impl", "onnx", "--model", str(model_path)]) == 2
     assert "the model" in capsys.readouterr().err
+
+
+def test_a_tracker_model_of_an_older_torchrow_is_refused_in_one_line(model_path: Path, tmp_path: Path):
+    """Models exported before the k table took the vegetation colour's LAB (``veg_lab``)."""
+    import onnx
+
+    model = onnx.load(str(model_path))
+    old = model.graph.input[1].name
+    model.graph.input[1].name = "veg_lab"
+
+    def rename(graph):
+        for node in graph.node:
+            node.input[:] = ["veg_lab" if i == old else i for i in node.input]
+            for attr in node.attribute:
+                for g in ([attr.g] if attr.HasField("g") else []) + list(attr.graphs):
+                    rename(g)
+
+    rename(model.graph)
+    path = tmp_path / "old.onnx"
+    onnx.save(model, str(path))
+    with pytest.raises(ValueError, match=r"older torchrow .* export it again with `torchrow export onnx --tracker`"):
+        OnnxTracker(path)

@@ -24,6 +24,7 @@ from torchrow.engines.export import step_differences
 from torchrow.evaluation.synthetic import FieldSpec, sequence
 from torchrow.functional import hough as fhough
 from torchrow.functional import ransac as fransac
+from torchrow.functional import sky as fsky
 from torchrow.functional import static
 from torchrow.functional import vanishing as fvan
 from torchrow.functional import vegetation as fveg
@@ -147,14 +148,15 @@ def test_static_adaptive_k_equals_eager() -> None:
     st0 = ftrack.init_state(x[:1].expand(3, -1, -1, -1).contiguous(), pv)
     info0 = st0.info0 * torch.tensor([1.0, 0.3, 3.0], dtype=torch.float64)  # grow, shrink and stay
     k_e, raw_e = fveg.adapt_k(x, st0.veg_color, st0.sky, info0, pv)
-    lab = lab_table_torch("cpu")[torch.from_numpy(pack_rgb(st0.veg_color.numpy()))]
-    step = static.StaticTrackerStep(90, 160, pv)
+    table = fveg.min_k_table(st0.veg_color, pv)
     start = torch.tensor([True, False, False])
-    veg, k_s, bushy, info_s = step.segment(x, lab, st0.sky, info0, start)
-    assert torch.equal(k_s, k_e) and len(set(k_e.tolist())) > 1
-    assert torch.equal(info_s[0], st0.info0[0]) and torch.equal(info_s[1:], info0[1:])
     veg_e, bushy_e = ftrack.finish_segment(raw_e, st0.sky, pv)
-    assert torch.equal(veg, veg_e) and torch.equal(bushy, bushy_e)
+    for scatter_free in (False, True):  # the histogram and the comparison counts
+        step = static.StaticTrackerStep(90, 160, pv, scatter_free=scatter_free)
+        veg, k_s, bushy, info_s = step.segment(x, table, st0.sky, info0, start)
+        assert torch.equal(k_s, k_e) and len(set(k_e.tolist())) > 1
+        assert torch.equal(info_s[0], st0.info0[0]) and torch.equal(info_s[1:], info0[1:])
+        assert torch.equal(veg, veg_e) and torch.equal(bushy, bushy_e)
 
 
 @pytest.mark.slow
@@ -175,9 +177,10 @@ def test_static_tracker_step_equals_tracker(control_flow: bool) -> None:
         x = torch.from_numpy(np.stack([resize_to_width(s[t].image, 160) for s in seqs])).permute(0, 3, 1, 2)
         x = x.contiguous()
         step_e, st_e = eager(x, st_e)
-        lab = lab_table_torch("cpu")[torch.from_numpy(pack_rgb(st_e.veg_color.numpy()))]
+        table = fveg.min_k_table(st_e.veg_color, pv)
+        st_g.sky = torch.where(st_g.ready, st_g.sky, fsky.sky_row(x, pv))  # the host's part of frame 0
         with torch.no_grad():
-            out = module(x, lab, torch.ones(2, dtype=torch.bool), *[getattr(st_g, f) for f in static.TRACKER_STATE])
+            out = module(x, table, torch.ones(2, dtype=torch.bool), *[getattr(st_g, f) for f in static.TRACKER_STATE])
         o = dict(zip(static.TRACKER_OUTPUTS, out))
         step_g = ftrack_step(o, step_e.active)
         st_g = TrackerState(veg_color=st_e.veg_color, **{f: o["next_" + f] for f in static.TRACKER_STATE})

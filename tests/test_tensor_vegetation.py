@@ -593,3 +593,40 @@ def test_static_min_k_equals_searchsorted_at_every_bound(k_min: int, k_max: int)
     assert torch.equal(eager, static)
     assert torch.equal(lab, before)
     assert {int(eager.min()), int(eager.max())} == {k_min, k_max + 1}
+
+
+@pytest.mark.parametrize("rgb", [(80, 120, 60), (0, 0, 0), (255, 255, 255), (128, 128, 128)])
+def test_min_k_table_equals_min_k_of_every_colour(rgb):
+    """The pruned table (only blocks whose LAB bounds meet the largest box are evaluated) ==
+    _min_k of all 2**24 colours of the shared table, for a crop green, the two ends of the
+    cube and a grey (boxes touching L = 0, L = 100 and a = b = 0)."""
+    from torchrow.core.tables import lab_table_torch, pack_rgb
+
+    p = Params()
+    color = torch.tensor([rgb], dtype=torch.uint8)
+    got = tv.min_k_table(color, p)
+    assert got.shape == (1, 1 << 24) and got.dtype == torch.uint8
+    table = lab_table_torch("cpu")
+    c = table[int(pack_rgb(color.numpy())[0])].view(1, 3)
+    n_k = p.video_k_max - p.video_k_min + 1
+    full = torch.empty(1 << 24, dtype=torch.uint8)
+    step = 1 << 21
+    for i in range(0, 1 << 24, step):
+        full[i:i + step] = (tv._min_k(table[i:i + step].t().unsqueeze(0), c, p.video_k_min, p.video_k_max)[0]
+                            - p.video_k_min).to(torch.uint8)
+    assert torch.equal(got[0], full)
+    assert 0 < int((full < n_k).sum()) < (1 << 24) // 4  # the pruning had both kinds of block
+
+
+def test_min_k_table_batch_empty_and_errors():
+    p = Params()
+    two = tv.min_k_table(torch.tensor([[80, 120, 60], [40, 90, 30]], dtype=torch.uint8), p)
+    one = tv.min_k_table(torch.tensor([[40, 90, 30]], dtype=torch.uint8), p)
+    assert torch.equal(two[1], one[0]) and not torch.equal(two[0], two[1])
+    assert tv.min_k_table(torch.zeros((0, 3), dtype=torch.uint8), p).shape == (0, 1 << 24)
+    with pytest.raises(ValueError, match=r"color: expected a uint8 tensor of shape \(S, 3\), got torch.uint8 \(3,\)"):
+        tv.min_k_table(torch.zeros(3, dtype=torch.uint8), p)
+    with pytest.raises(ValueError, match="uint8"):
+        tv.min_k_table(torch.zeros((1, 3), dtype=torch.int64), p)
+    with pytest.raises(ValueError, match="video_k_max - video_k_min must be < 255"):
+        tv.min_k_table(torch.zeros((1, 3), dtype=torch.uint8), Params(video_k_min=0, video_k_start=0, video_k_max=255))

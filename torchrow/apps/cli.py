@@ -372,7 +372,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         raise CLIError(str(exc)) from None
     info = model_info(out)
     ops = ", ".join(f"{k} {v}" for k, v in sorted(info["ops"].items()))
-    what = "tracker step: frames + veg_lab + active + state" if args.tracker else "images + veg_lab"
+    what = "tracker step: frames + k_table + active + state" if args.tracker else "images + veg_lab"
     print(f"torchrow: exported {out} in {time.perf_counter() - t0:.0f} s: {info['size'] / 2**20:.1f} MiB, "
           f"{what}, uint8 frames ({args.batch}, 3, {height}, {width}), "
           f"opset {info['opset']}, {sum(info['ops'].values())} nodes")

@@ -320,7 +320,8 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         module = static.StaticTrackerStep(height, width, params, control_flow=control_flow,
                                           scatter_free=scatter_free).eval()
         empty = TrackerState.empty(batch, params)
-        args = (images, veg_lab, torch.ones(batch, dtype=torch.bool)) + tuple(
+        k_table = torch.zeros((batch, 1 << 24), dtype=torch.uint8)
+        args = (images, k_table, torch.ones(batch, dtype=torch.bool)) + tuple(
             getattr(empty, f) for f in static.TRACKER_STATE)
         names, outputs = list(static.TRACKER_INPUTS), list(static.TRACKER_OUTPUTS)
     else:
@@ -780,8 +781,10 @@ class OnnxTracker:
     Same interface and results as :class:`torchrow.Tracker` for ``B`` sequences in
     lock-step, ``B`` the model's static batch: :meth:`forward` (tensors) and :meth:`step`
     (arrays in, :class:`~torchrow.core.steering.FrameResult` records out). The host computes only
-    the vegetation colour of each sequence's frame 0 (section 2) and its LAB; everything
-    else, frame 0's sky and ``info0`` included, runs in the graph.
+    what a sequence needs once, on its frame 0: the vegetation colour (section 2), its ``k``
+    table (:func:`~torchrow.functional.vegetation.min_k_table`, about 30 ms, rebuilt only when
+    a slot's colour changes) and the sky (section 1); everything else, frame 0's ``info0``
+    included, runs in the graph.
 
     Parameters
     ----------
@@ -799,13 +802,31 @@ class OnnxTracker:
         from torchrow.engines.tracker import Tracker
 
         _open(self, model_path, "tracker", threads, cache)
+        if self.session.get_inputs()[1].name != "k_table":
+            raise ValueError(f"{self.path.name} is a tracker model of an older torchrow (it takes veg_lab, not "
+                             "k_table); export it again with `torchrow export onnx --tracker`")
         self._records = Tracker(self.params, hfov_deg=hfov_deg)  # records and frame loading only
+        n_k = self.params.video_k_max - self.params.video_k_min + 1
+        self._table = np.full((self.batch, 1 << 24), n_k, dtype=np.uint8)  # the graph's k_table feed
+        self._table_color: list = [None] * self.batch  # the colour each slot's table row holds
+
+    def _k_tables(self, color: torch.Tensor) -> np.ndarray:
+        """The ``k_table`` feed for the sequences' colours ``uint8 (B, 3)``: each slot's row is
+        rebuilt (:func:`~torchrow.functional.vegetation.min_k_table`) only when its colour
+        changes, i.e. when a sequence starts on that slot with another colour."""
+        from torchrow.functional.vegetation import min_k_table
+
+        for b, c in enumerate(color.tolist()):
+            if self._table_color[b] != c:
+                self._table[b] = min_k_table(color[b:b + 1], self.params)[0].numpy()
+                self._table_color[b] = c
+        return self._table
 
     def forward(self, frames: torch.Tensor, state=None, active: torch.Tensor | None = None):
         """One lock-step frame: ``uint8 (B, 3, H, W)`` frames at working size ->
         ``(TrackStep, TrackerState)``, as :meth:`torchrow.Tracker.forward`."""
-        from torchrow.core.tables import lab_table_torch, pack_rgb
         from torchrow.functional import color as fcolor
+        from torchrow.functional import sky as fsky
         from torchrow.functional._checks import check_images
         from torchrow.functional.static import TRACKER_STATE, TRACKER_STEP
         from torchrow.functional.tracker import TrackerState, TrackStep
@@ -819,13 +840,16 @@ class OnnxTracker:
         state = state if state is not None else TrackerState.empty(b, self.params)
         act = torch.ones(b, dtype=torch.bool) if active is None else active.to("cpu", torch.bool)
         color = state.veg_color.clone()
+        sky = state.sky.clone()
         start = act & ~state.ready
         if bool(start.any()):
             idx = torch.nonzero(start).view(-1)  # host side: which sequences begin now
-            color[idx] = fcolor.vegetation_color(x.index_select(0, idx), self.params)
-        veg_lab = lab_table_torch("cpu")[torch.from_numpy(pack_rgb(color.numpy()))].clone()
-        feed = {"images": x.numpy(), "veg_lab": veg_lab.numpy(), "active": act.numpy()}
+            first = x.index_select(0, idx)
+            color[idx] = fcolor.vegetation_color(first, self.params)
+            sky[idx] = fsky.sky_row(first, self.params).to(torch.int64)
+        feed = {"images": x.numpy(), "k_table": self._k_tables(color), "active": act.numpy()}
         feed.update({"state_" + f: getattr(state, f).cpu().numpy() for f in TRACKER_STATE})
+        feed["state_sky"] = sky.numpy()
         outs = [torch.from_numpy(o) for o in self.session.run(None, feed)]
         step = TrackStep(**dict(zip(TRACKER_STEP, outs)), active=act)
         new = TrackerState(veg_color=color, **{f: o for f, o in zip(TRACKER_STATE, outs[len(TRACKER_STEP):])})

@@ -317,12 +317,12 @@ def finish_rows(outputs: dict, height: int, width: int, params: Params) -> frans
 # ------------------------------------------------------------------------------------------
 
 #: Tracker-state fields that travel through the graph (``veg_color`` stays on the host; the
-#: graph takes its LAB, ``veg_lab``).
+#: graph takes its :func:`~torchrow.functional.vegetation.min_k_table`, ``k_table``).
 TRACKER_STATE = ("sky", "info0", "ready", "frames", "age", "prev_valid", "vp", "has_vp", "row_a", "row_b",
                  "row_present")
 #: Inputs of the exported tracker step, in order (see :class:`StaticTrackerStep`): the frames,
-#: the vegetation colour's LAB, the active mask, then ``state_<field>`` of the state.
-TRACKER_INPUTS = ("images", "veg_lab", "active") + tuple("state_" + f for f in TRACKER_STATE)
+#: each sequence's ``k`` table, the active mask, then ``state_<field>`` of the state.
+TRACKER_INPUTS = ("images", "k_table", "active") + tuple("state_" + f for f in TRACKER_STATE)
 #: Fields of :class:`~torchrow.functional.tracker.TrackStep` the graph returns (all but ``active``).
 TRACKER_STEP = tuple(f for f in ftrack.TrackStep.__dataclass_fields__ if f != "active")
 #: Outputs of the exported tracker step: the step's fields, then ``next_<field>`` of the new state.
@@ -340,10 +340,20 @@ class StaticTrackerStep(nn.Module):
     lets masks choose (no ``If``; for runtimes without control flow).
     Differences from the eager :class:`torchrow.Tracker`, all outside its results:
 
-    * **Frame 0 in the graph.** A sequence with ``active & ~ready`` takes this frame as frame 0:
-      its sky (section 1) and ``info0`` (the raw fraction at ``video_k_start``) are computed
-      here. Only the vegetation colour (section 2: colour clustering has data-dependent
-      shapes) comes from the host, as its LAB ``veg_lab`` (the shared table's bits).
+    * **Frame 0 on the host and in the graph.** A sequence with ``active & ~ready`` takes
+      this frame as frame 0. The host computes its vegetation colour (section 2: colour
+      clustering has data-dependent shapes) and its sky (section 1, passed as ``state_sky``:
+      it is needed once per sequence, and in the graph it cost every frame about 5 ms, since
+      a graph cannot skip it without an ``If`` whose branch, the sky's median filters,
+      takes torch's exporter tens of minutes to trace); the graph computes ``info0`` (the
+      raw fraction at ``video_k_start``).
+    * **Segmentation by lookup.** The colour is fixed for the whole sequence, so the host
+      turns it once into the smallest admitting ``k`` of every 24-bit colour
+      (:func:`~torchrow.functional.vegetation.min_k_table`, from the shared LAB table: the
+      eager tracker's values by construction), the graph input ``k_table`` uint8
+      ``(B, 2**24)``. A frame's section 3 is then one ``Gather`` per pixel: computing LAB in
+      the graph (three float64 ``Pow`` per pixel) was half of onnxruntime's time per frame
+      (34 of 70 ms at 500x281).
     * **Adaptive k** counts, for every ``k``, the pixels whose smallest admitting ``k`` is
       at most ``k`` with comparisons instead of a histogram (no scatter).
     * **Step 7.5-7.6 in the graph without** ``atan2`` (ONNX has none):
@@ -352,14 +362,15 @@ class StaticTrackerStep(nn.Module):
       with the eager tracker to a few ulps; a decision could differ only for a value within
       rounding of a threshold.
 
-    ``forward(images uint8 (B, 3, H, W), veg_lab float64 (B, 3), active bool (B,), *state)``
+    ``forward(images uint8 (B, 3, H, W), k_table uint8 (B, 2**24), active bool (B,), *state)``
     with the state fields :data:`TRACKER_STATE` (dtypes and shapes of
     :class:`~torchrow.functional.tracker.TrackerState`) returns the tuple
     :data:`TRACKER_OUTPUTS`. Inactive sequences keep their state.
 
     Memory: the detector's (the vote gathers ``(B, A, H*W)`` int32, band temporaries
-    ``(B, n_rows, H*W)``) plus ``(B, video_k_max - video_k_min + 1, H*W)`` comparisons for
-    adaptive k: an estimated 250 MB per frame at 500x281 (three int32 copies of the vote gather).
+    ``(B, n_rows, H*W)``), the input ``k_table`` (16 MiB per sequence) and, in the scatter-free
+    form, ``(B, video_k_max - video_k_min + 1, H*W)`` comparisons for adaptive k: an estimated
+    250 MB per frame at 500x281 (three int32 copies of the vote gather).
 
     Parameters
     ----------
@@ -370,7 +381,8 @@ class StaticTrackerStep(nn.Module):
         RANSAC scoring chunks (bounds memory).
     control_flow : bool
         Skip unneeded branches with ``torch.cond`` (ONNX ``If``) instead of masking them
-        (the Hough stage, the tracked fit, and the line search's finished steps).
+        (the Hough stage with its Canny input, the tracked fit, and the line search's finished
+        steps).
     scatter_free : bool
         The detector's scatter-free vote (:class:`StaticDetector`).
     """
@@ -381,34 +393,47 @@ class StaticTrackerStep(nn.Module):
         self.control_flow = bool(control_flow)
         self.det = StaticDetector(height, width, params, score_chunks, "loop" if self.control_flow else "always",
                                   scatter_free)
+        self.scatter_free = bool(scatter_free)
         self.params = self.det.params
         self.height, self.width = self.det.height, self.det.width
 
     def _fit_rows(self, veg, theta, rho, present, vp, band, track=None) -> fransac.RowFit:
         return self.det.fit_rows(veg, theta, rho, present, vp, band, track).direction(trig_free=True)
 
-    def segment(self, images: torch.Tensor, veg_lab: torch.Tensor, sky: torch.Tensor, info0: torch.Tensor,
+    def segment(self, images: torch.Tensor, k_table: torch.Tensor, sky: torch.Tensor, info0: torch.Tensor,
                 start: torch.Tensor):
         """Section 3 with adaptive ``k`` (and frame 0's ``info0`` where ``start``):
-        ``veg`` bool ``(B, H, W)``, ``k`` int64, ``bushy`` bool, ``info0`` float64 ``(B,)``."""
+        ``veg`` bool ``(B, H, W)``, ``k`` int64, ``bushy`` bool, ``info0`` float64 ``(B,)``.
+
+        ``k_table`` uint8 ``(B, 2**24)``: each sequence's
+        :func:`~torchrow.functional.vegetation.min_k_table`, so a pixel's smallest admitting
+        ``k`` is one lookup of its colour code (no LAB in the graph)."""
         p = self.params
         bsz, _, h, w = images.shape
-        k_min, k_max = p.video_k_min, p.video_k_max
+        n_k = p.video_k_max - p.video_k_min + 1
         skyc = sky.clamp(0, h)
         below = (torch.arange(h, device=images.device).view(1, h, 1) >= skyc.view(-1, 1, 1)).expand(bsz, h, w)
         below = below.reshape(bsz, 1, h * w)
-        kstar = fveg._min_k(lab(images, self.det.lut).reshape(bsz, 3, h * w), veg_lab, k_min, k_max, static=True)
-        ks = torch.arange(k_min, k_max + 1, device=images.device).view(1, -1, 1)
-        # (B, n_k) without a histogram scatter; int32 sums (at most H*W) halve the traffic
-        counts = ((kstar.unsqueeze(1) <= ks) & below).sum(2, dtype=torch.int32)
+        x = images.to(torch.int32)
+        code = ((x[:, 0] * 65536 + x[:, 1] * 256) + x[:, 2]).reshape(bsz, h * w).to(torch.int64)
+        code = code + (torch.arange(bsz, device=images.device) * (1 << 24)).view(-1, 1)
+        # a flat index_select exports as one Gather; uint8 k indices (k - video_k_min, n_k: none)
+        kstar = torch.index_select(k_table.reshape(-1), 0, code.reshape(-1)).view(bsz, 1, h * w)
+        ks = torch.arange(n_k, device=images.device, dtype=torch.uint8).view(1, -1, 1)
+        if self.scatter_free:  # (B, n_k) by comparisons; int32 sums (at most H*W) halve the traffic
+            counts = ((kstar <= ks) & below).sum(2, dtype=torch.int32)
+        else:  # a histogram (one ScatterElements add) and its prefix sum: a tenth of the comparisons' time
+            hist = torch.zeros((bsz, n_k + 1), dtype=torch.int32, device=images.device).scatter_add(
+                1, kstar.view(bsz, h * w).to(torch.int64), below.view(bsz, h * w).to(torch.int32))
+            counts = torch.cumsum(hist[:, :n_k], dim=1, dtype=torch.int32)
         frac = fveg.k_fractions(counts, skyc, h, w)
-        info0 = torch.where(start, frac[:, p.video_k_start - k_min], info0)
+        info0 = torch.where(start, frac[:, p.video_k_start - p.video_k_min], info0)
         k = fveg.choose_k(frac, info0, p)
-        raw = ((kstar.unsqueeze(1) <= k.view(-1, 1, 1)) & below).view(bsz, h, w)
+        raw = ((kstar <= (k - p.video_k_min).to(torch.uint8).view(-1, 1, 1)) & below).view(bsz, h, w)
         veg, bushy = ftrack.finish_segment(raw, sky, p)
         return veg, k, bushy, info0
 
-    def forward(self, images: torch.Tensor, veg_lab: torch.Tensor, active: torch.Tensor, sky: torch.Tensor,
+    def forward(self, images: torch.Tensor, k_table: torch.Tensor, active: torch.Tensor, sky: torch.Tensor,
                 info0: torch.Tensor, ready: torch.Tensor, frames: torch.Tensor, age: torch.Tensor,
                 prev_valid: torch.Tensor, vp: torch.Tensor, has_vp: torch.Tensor, row_a: torch.Tensor,
                 row_b: torch.Tensor, row_present: torch.Tensor):
@@ -417,13 +442,13 @@ class StaticTrackerStep(nn.Module):
         if (h, w) != (self.height, self.width):
             raise ValueError(f"StaticTrackerStep built for {self.width}x{self.height}, got frames {w}x{h}")
         start = active & ~ready
-        sky = torch.where(start, fsky.sky_row(images, p).to(torch.int64), sky)
-        veg, k, bushy, info0 = self.segment(images, veg_lab.to(torch.float64), sky, info0, start)
+        flow = "cond" if self.control_flow else "always"
+        veg, k, bushy, info0 = self.segment(images, k_table, sky, info0, start)
         state = ftrack.TrackerState(
             sky=sky, veg_color=torch.zeros((bsz, 3), dtype=torch.uint8, device=images.device), info0=info0,
             ready=ready | start, frames=frames, age=age, prev_valid=prev_valid, vp=vp, has_vp=has_vp, row_a=row_a,
             row_b=row_b, row_present=row_present)
         stages = ftrack.Stages(find_lines=self.det.find_lines, fit_rows=self._fit_rows, trig_free=True,
-                               branches="cond" if self.control_flow else "always")
+                               branches=flow)
         step, new = ftrack.advance(veg, k, bushy, active, state, p, stages)
         return tuple(getattr(step, f) for f in TRACKER_STEP) + tuple(getattr(new, f) for f in TRACKER_STATE)

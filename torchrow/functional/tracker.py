@@ -344,7 +344,6 @@ def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: tor
 
     # --- Hough frames: sections 4-7 as in image mode ------------------------------------
     veg_h = veg & use_h.view(-1, 1, 1)
-    hin, _ = fveg.hough_input(veg_h, sky, p)
     band = fransac.ransac_band(bushy, w, p)
 
     def no_lines():
@@ -357,10 +356,13 @@ def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: tor
 
     # The line search runs outside any branch: where no sequence needs it, its input is empty
     # and it finishes in two steps (an exported search skips the rest itself; eagerly it is
-    # skipped at once). Only the fit, the cost, sits in a branch.
+    # skipped at once). Its input (section 4: Canny on every pixel, about 4 ms per frame in
+    # onnxruntime) and the fit sit in branches.
     if st.branches == "sync" and not bool(use_h.any()):
         ls = no_lines()
     else:
+        hin = st.run(use_h.any(), lambda v, sk: (fveg.hough_input(v, sk, p)[0],), lambda v, sk: (torch.zeros_like(v),),
+                     (veg_h, sky))[0]
         ls = st.find_lines(hin)
     present_h = ls.valid & ls.has_vp.unsqueeze(1) & use_h.unsqueeze(1)
 

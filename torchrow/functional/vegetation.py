@@ -70,6 +70,7 @@ __all__ = [
     "raw_mask",
     "raw_fraction",
     "adapt_k",
+    "min_k_table",
     "remove_bushy",
     "canny_binary",
     "density",
@@ -289,6 +290,98 @@ def _min_k(lab: torch.Tensor, c: torch.Tensor, k_min: int, k_max: int, static: b
         j_lo = torch.searchsorted(neg_lo, -v, side="left")  # first k with -(c - k) >= -v
         out = torch.maximum(out, torch.maximum(j_hi, j_lo))
     return out + k_min
+
+
+_TABLE_BLOCK = 8  # colours per channel in one block of :func:`min_k_table`'s pruning (8**3 = 512)
+_TABLE_MARGIN = 1e-6  # LAB units; the blocks' bounds are widened by this (values are ~1e-13 off the formula)
+
+
+def _block_lab_bounds(device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bounds of section 3.2's LAB over each block of ``_TABLE_BLOCK**3`` colours: float64
+    ``(n, n, n, 3)`` low and high, ``n = 256 // _TABLE_BLOCK``, indexed by the blocks' R, G, B.
+
+    LAB is kornia's formula (the shared table's): X, Y and Z grow with each linearised
+    channel (all matrix coefficients are positive) and the cube-root branch ``f`` is
+    increasing and continuous, so over a block ``f(X), f(Y), f(Z)`` lie between their values
+    at the block's lowest and highest corner, and ``L = 116 f(Y) - 16``,
+    ``a = 500 (f(X) - f(Y))``, ``b = 200 (f(Y) - f(Z))`` between the combinations of those.
+    """
+    from torchrow.functional.static import _LAB_EPS, _WHITE, _XYZ, LINEAR_RGB
+
+    lin = torch.from_numpy(LINEAR_RGB()).to(device)
+    n, s = 256 // _TABLE_BLOCK, _TABLE_BLOCK
+    ends = []
+    for first in (0, s - 1):
+        v = lin[first::s]  # (n,) the blocks' lowest (or highest) byte per channel
+        r, g, b = v.view(n, 1, 1), v.view(1, n, 1), v.view(1, 1, n)
+        f = []
+        for row, white in zip(_XYZ, _WHITE):
+            t = ((row[0] * r + row[1] * g) + row[2] * b) / white
+            f.append(torch.where(t > _LAB_EPS, torch.pow(t.clamp(min=_LAB_EPS), 1 / 3.0), 7.787 * t + 4.0 / 29.0))
+        ends.append(f)
+    (xl, yl, zl), (xh, yh, zh) = ends
+    lo = torch.stack([116.0 * yl - 16.0, 500.0 * (xl - yh), 200.0 * (yl - zh)], dim=-1) - _TABLE_MARGIN
+    hi = torch.stack([116.0 * yh - 16.0, 500.0 * (xh - yl), 200.0 * (yh - zl)], dim=-1) + _TABLE_MARGIN
+    return lo, hi
+
+
+def min_k_table(color: torch.Tensor, params: Params) -> torch.Tensor:
+    """Section 3.2's smallest admitting ``k`` of every 24-bit colour, for each vegetation colour.
+
+    A video fixes its vegetation colour on frame 0 (section 8), so each pixel's smallest
+    admitting ``k`` (:func:`_min_k`, the quantity adaptive ``k`` counts) is a function of its
+    colour alone: ``table[s, (R<<16)|(G<<8)|B] = min_k - video_k_min``, ``n_k =
+    video_k_max - video_k_min + 1`` where no ``k`` admits the colour. A frame's segmentation
+    is then one lookup per pixel (the exported tracker step takes this table instead of
+    computing LAB in the graph). Only colours of blocks whose LAB bounds
+    (:func:`_block_lab_bounds`) meet the largest box are evaluated (:func:`_min_k` on the
+    shared table's LAB, so the values are the eager path's by construction); every other
+    colour lies outside every box.
+
+    Parameters
+    ----------
+    color : torch.Tensor
+        ``uint8 (S, 3)`` vegetation colours (section 2).
+    params : Params
+        Uses ``video_k_min`` and ``video_k_max`` (``n_k`` must fit in uint8).
+
+    Returns
+    -------
+    torch.Tensor
+        ``uint8 (S, 2**24)`` on ``color``'s device: 16 MiB per colour (about 30 ms each on
+        this 2-core CPU for a green crop colour).
+    """
+    check_params(params)
+    if not (isinstance(color, torch.Tensor) and color.dim() == 2):
+        got = f"{color.dtype} {tuple(color.shape)}" if isinstance(color, torch.Tensor) else type(color).__name__
+        raise ValueError(f"color: expected a uint8 tensor of shape (S, 3), got {got}")
+    _check_color(color, color.shape[0])
+    k_min, k_max = params.video_k_min, params.video_k_max
+    n_k = k_max - k_min + 1
+    if n_k > 255:
+        raise ValueError(f"min_k_table stores k - video_k_min in uint8: video_k_max - video_k_min must be < 255, "
+                         f"got {n_k - 1}")
+    dev = color.device
+    table = lab_table_torch(dev)
+    s = color.shape[0]
+    out = torch.full((s, 1 << 24), n_k, dtype=torch.uint8, device=dev)
+    if s == 0:
+        return out
+    lo, hi = _block_lab_bounds(dev)
+    c = table.index_select(0, _pack(color.reshape(-1, 3, 1, 1))).view(s, 3)
+    step = torch.arange(_TABLE_BLOCK, device=dev)
+    offs = ((step.view(-1, 1, 1) << 16) | (step.view(1, -1, 1) << 8) | step.view(1, 1, -1)).reshape(-1)
+    for i in range(s):
+        # blocks whose LAB range meets the box at k_max in every channel
+        meet = ((hi >= c[i] - k_max) & (lo <= c[i] + k_max)).all(dim=-1)
+        blocks = torch.nonzero(meet) * _TABLE_BLOCK  # (m, 3) lowest bytes
+        if blocks.shape[0] == 0:
+            continue
+        base = (blocks[:, 0] << 16) | (blocks[:, 1] << 8) | blocks[:, 2]
+        codes = (base.view(-1, 1) + offs.view(1, -1)).reshape(-1)
+        lab = table.index_select(0, codes).t().unsqueeze(0)  # (1, 3, m * 512)
+        out[i, codes] = (_min_k(lab, c[i:i + 1], k_min, k_max)[0] - k_min).to(torch.uint8)
+    return out
 
 
 def _first_admitting(lab: torch.Tensor, c: torch.Tensor, k_min: int, k_max: int) -> torch.Tensor:
