@@ -53,7 +53,7 @@ from torchrow.functional._flow import check_flow, choose
 from torchrow.functional.hough import StaticVoter, pixel_list
 from torchrow.functional.vanishing import LineSearch, find_lines
 
-__all__ = ["lab", "LINEAR_RGB", "VoteTables", "vote_tables", "votes", "StaticDetector", "finish_rows",
+__all__ = ["lab", "lab_f", "LINEAR_RGB", "VoteTables", "vote_tables", "votes", "StaticDetector", "finish_rows",
            "GRAPH_OUTPUTS", "StaticTrackerStep", "TRACKER_INPUTS", "TRACKER_OUTPUTS"]
 
 # kornia.color.rgb_to_lab constants (sRGB D65), in the order kornia applies them.
@@ -74,6 +74,19 @@ def _linear_lut() -> np.ndarray:
 LINEAR_RGB = _linear_lut
 
 
+def lab_f(r: torch.Tensor, g: torch.Tensor, b: torch.Tensor) -> list[torch.Tensor]:
+    """``f(X/Xn), f(Y/Yn), f(Z/Zn)`` of linear RGB (float64, broadcastable), kornia's order:
+    the XYZ matrix as ``(k0*r + k1*g) + k2*b``, the white-point division, then the cube root
+    above ``_LAB_EPS`` and ``7.787*t + 4/29`` below (increasing and continuous, as X, Y and Z
+    are in each channel: :func:`torchrow.functional.vegetation.min_k_table` relies on it)."""
+    f = []
+    for row, white in zip(_XYZ, _WHITE):
+        t = (row[0] * r + row[1] * g) + row[2] * b
+        t = t / white
+        f.append(torch.where(t > _LAB_EPS, torch.pow(t.clamp(min=_LAB_EPS), 1 / 3.0), 7.787 * t + 4.0 / 29.0))
+    return f
+
+
 def lab(images: torch.Tensor, lut: torch.Tensor | None = None) -> torch.Tensor:
     """CIE LAB (D65) of ``uint8 (B, 3, H, W)`` RGB as float64 ``(B, 3, H, W)``, in the graph.
 
@@ -88,12 +101,7 @@ def lab(images: torch.Tensor, lut: torch.Tensor | None = None) -> torch.Tensor:
     # a flat index_select exports as one Gather (advanced indexing gave a slower GatherND)
     lin = torch.index_select(lut, 0, images.reshape(-1).to(torch.int64)).view(images.shape)  # (B, 3, H, W)
     r, g, b = lin[:, 0], lin[:, 1], lin[:, 2]
-    f = []
-    for row, white in zip(_XYZ, _WHITE):
-        t = (row[0] * r + row[1] * g) + row[2] * b
-        t = t / white
-        f.append(torch.where(t > _LAB_EPS, torch.pow(t.clamp(min=_LAB_EPS), 1 / 3.0), 7.787 * t + 4.0 / 29.0))
-    x, y, z = f
+    x, y, z = lab_f(r, g, b)
     return torch.stack([(116.0 * y) - 16.0, 500.0 * (x - y), 200.0 * (y - z)], dim=1)
 
 
@@ -419,8 +427,8 @@ class StaticTrackerStep(nn.Module):
         code = code + (torch.arange(bsz, device=images.device) * (1 << 24)).view(-1, 1)
         # a flat index_select exports as one Gather; uint8 k indices (k - video_k_min, n_k: none)
         kstar = torch.index_select(k_table.reshape(-1), 0, code.reshape(-1)).view(bsz, 1, h * w)
-        ks = torch.arange(n_k, device=images.device, dtype=torch.uint8).view(1, -1, 1)
         if self.scatter_free:  # (B, n_k) by comparisons; int32 sums (at most H*W) halve the traffic
+            ks = torch.arange(n_k, device=images.device, dtype=torch.uint8).view(1, -1, 1)
             counts = ((kstar <= ks) & below).sum(2, dtype=torch.int32)
         else:  # a histogram (one ScatterElements add) and its prefix sum: a tenth of the comparisons' time
             hist = torch.zeros((bsz, n_k + 1), dtype=torch.int32, device=images.device).scatter_add(

@@ -306,19 +306,14 @@ def _block_lab_bounds(device: torch.device) -> tuple[torch.Tensor, torch.Tensor]
     at the block's lowest and highest corner, and ``L = 116 f(Y) - 16``,
     ``a = 500 (f(X) - f(Y))``, ``b = 200 (f(Y) - f(Z))`` between the combinations of those.
     """
-    from torchrow.functional.static import _LAB_EPS, _WHITE, _XYZ, LINEAR_RGB
+    from torchrow.functional.static import LINEAR_RGB, lab_f
 
     lin = torch.from_numpy(LINEAR_RGB()).to(device)
     n, s = 256 // _TABLE_BLOCK, _TABLE_BLOCK
     ends = []
     for first in (0, s - 1):
         v = lin[first::s]  # (n,) the blocks' lowest (or highest) byte per channel
-        r, g, b = v.view(n, 1, 1), v.view(1, n, 1), v.view(1, 1, n)
-        f = []
-        for row, white in zip(_XYZ, _WHITE):
-            t = ((row[0] * r + row[1] * g) + row[2] * b) / white
-            f.append(torch.where(t > _LAB_EPS, torch.pow(t.clamp(min=_LAB_EPS), 1 / 3.0), 7.787 * t + 4.0 / 29.0))
-        ends.append(f)
+        ends.append(lab_f(v.view(n, 1, 1), v.view(1, n, 1), v.view(1, 1, n)))
     (xl, yl, zl), (xh, yh, zh) = ends
     lo = torch.stack([116.0 * yl - 16.0, 500.0 * (xl - yh), 200.0 * (yl - zh)], dim=-1) - _TABLE_MARGIN
     hi = torch.stack([116.0 * yh - 16.0, 500.0 * (xh - yl), 200.0 * (yh - zl)], dim=-1) + _TABLE_MARGIN
