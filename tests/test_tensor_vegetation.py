@@ -569,10 +569,10 @@ def test_errors_on_wrong_shapes_and_dtypes():
 
 
 @pytest.mark.parametrize("k_min, k_max", [(3, 13), (1, 20), (0, 5)])
-def test_static_min_k_equals_searchsorted_at_every_bound(k_min: int, k_max: int):
-    """The export's closed-form smallest admitting k (a ceil guess and one correction each
-    way) equals the eager binary search, on random LAB values and on values exactly at,
-    and one ulp either side of, every bound ``fl(c +- k)``, and at the colour itself."""
+def test_min_k_equals_the_box_test_at_every_bound(k_min: int, k_max: int):
+    """The binary search's smallest admitting k equals section 3.2's box test
+    ``fl(c - k) <= v <= fl(c + k)`` tried at every k, on random LAB values and on values
+    exactly at, and one ulp either side of, every bound ``fl(c +- k)``, and at the colour itself."""
     gen = torch.Generator().manual_seed(0)
     n, p = 3, 4000
     c = torch.rand((n, 3), generator=gen, dtype=torch.float64) * 200 - 100
@@ -589,8 +589,11 @@ def test_static_min_k_equals_searchsorted_at_every_bound(k_min: int, k_max: int)
             lab[i, ch, span] = at
     before = lab.clone()
     eager = tv._min_k(lab, c, k_min, k_max)
-    static = tv._min_k(lab, c, k_min, k_max, static=True)
-    assert torch.equal(eager, static)
+    boxes = torch.stack([((c.unsqueeze(2) - k <= lab) & (lab <= c.unsqueeze(2) + k)).all(dim=1)
+                         for k in range(k_min, k_max + 1)], dim=2)  # (n, P, n_k)
+    none = torch.full(boxes.shape[:2] + (1,), True)
+    expected = torch.cat([boxes, none], dim=2).to(torch.int8).argmax(dim=2) + k_min  # first admitting k
+    assert torch.equal(eager, expected)
     assert torch.equal(lab, before)
     assert {int(eager.min()), int(eager.max())} == {k_min, k_max + 1}
 

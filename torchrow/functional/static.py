@@ -362,8 +362,9 @@ class StaticTrackerStep(nn.Module):
       ``(B, 2**24)``. A frame's section 3 is then one ``Gather`` per pixel: computing LAB in
       the graph (three float64 ``Pow`` per pixel) was half of onnxruntime's time per frame
       (34 of 70 ms at 500x281).
-    * **Adaptive k** counts, for every ``k``, the pixels whose smallest admitting ``k`` is
-      at most ``k`` with comparisons instead of a histogram (no scatter).
+    * **Adaptive k** counts the pixels of every ``k`` with one histogram
+      (``ScatterElements`` add) and its prefix sum; the scatter-free form counts with
+      comparisons.
     * **Step 7.5-7.6 in the graph without** ``atan2`` (ONNX has none):
       :func:`~torchrow.functional.ransac.principal_direction` and
       :func:`~torchrow.functional.ransac.validate_rows` with ``trig_free=True``. Rows agree
@@ -422,6 +423,7 @@ class StaticTrackerStep(nn.Module):
         skyc = sky.clamp(0, h)
         below = (torch.arange(h, device=images.device).view(1, h, 1) >= skyc.view(-1, 1, 1)).expand(bsz, h, w)
         below = below.reshape(bsz, 1, h * w)
+        # fveg._pack's codes (R<<16)|(G<<8)|B as products: ONNX's BitShift takes unsigned types only
         x = images.to(torch.int32)
         code = ((x[:, 0] * 65536 + x[:, 1] * 256) + x[:, 2]).reshape(bsz, h * w).to(torch.int64)
         code = code + (torch.arange(bsz, device=images.device) * (1 << 24)).view(-1, 1)

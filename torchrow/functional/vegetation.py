@@ -261,7 +261,7 @@ def raw_fraction(raw: torch.Tensor, sky: torch.Tensor) -> torch.Tensor:
     return _fraction(raw, clamp_sky(sky, raw.shape[1], raw.device))
 
 
-def _min_k(lab: torch.Tensor, c: torch.Tensor, k_min: int, k_max: int, static: bool = False) -> torch.Tensor:
+def _min_k(lab: torch.Tensor, c: torch.Tensor, k_min: int, k_max: int) -> torch.Tensor:
     """Smallest integer ``k`` in ``[k_min, k_max]`` whose box holds each pixel (``k_max + 1``: none).
 
     ``lab`` float64 (n, 3, P) (channel-major), ``c`` float64 (n, 3) -> int64 (n, P).
@@ -270,14 +270,9 @@ def _min_k(lab: torch.Tensor, c: torch.Tensor, k_min: int, k_max: int, static: b
     admitting ``k`` is a binary search of ``lab`` in the exact bounds ``fl(c + k)``
     (ascending) and ``-fl(c - k)`` (ascending; negation is exact) of every ``k``: the same
     float64 comparisons as :func:`raw_mask`, without a pass per
-    ``k``. The raw mask at any ``k`` is then ``min_k <= k``.
-
-    ``static=True`` (ONNX export, which has no batched ``searchsorted``) finds the same index
-    from a guess, :func:`_first_admitting`; elementwise ``(n, P)`` work, no ``(n, K, P)``
-    intermediate.
+    ``k``. The raw mask at any ``k`` is then ``min_k <= k``. (The exported tracker step
+    looks these values up in :func:`min_k_table` instead of searching.)
     """
-    if static:
-        return _first_admitting(lab, c, k_min, k_max) + k_min
     n, _, p = lab.shape
     ks = torch.arange(k_min, k_max + 1, device=lab.device, dtype=torch.float64)
     out = torch.zeros((n, p), dtype=torch.int64, device=lab.device)
@@ -377,33 +372,6 @@ def min_k_table(color: torch.Tensor, params: Params) -> torch.Tensor:
         lab = table.index_select(0, codes).t().unsqueeze(0)  # (1, 3, m * 512)
         out[i, codes] = (_min_k(lab, c[i:i + 1], k_min, k_max)[0] - k_min).to(torch.uint8)
     return out
-
-
-def _first_admitting(lab: torch.Tensor, c: torch.Tensor, k_min: int, k_max: int) -> torch.Tensor:
-    """:func:`_min_k`'s index (``k - k_min``, ``K = k_max - k_min + 1`` where no ``k``
-    admits) without a search: int64 ``(n, P)`` from ``lab`` float64 ``(n, 3, P)`` and
-    ``c`` float64 ``(n, 3)``.
-
-    "Every bound of the box ``k`` admits the pixel" is monotone in ``k``, so its first index
-    is the largest of the six per-bound first indices. The guess ``ceil(max_ch |v - c|) -
-    k_min`` (clamped to ``[0, K]``) is off from it only where some ``|v - c|`` lies within a
-    few ulps (about 1e-13 for LAB values) of an integer, and then by one: one step down
-    where the box one ``k`` smaller already admits the pixel, and one step up where the box
-    at the guess does not, give the exact index. Each box test is section 3.2's own
-    ``fl(c - k) <= v <= fl(c + k)``; a test compares this with the search on values at and
-    one ulp either side of every bound.
-    """
-    n_k = k_max - k_min + 1
-    cc = c.unsqueeze(2)  # (n, 3, 1)
-    gap = (lab - cc).abs().amax(dim=1)  # (n, P); fl(c - v) = -fl(v - c) exactly
-    t = (-torch.floor(-gap) - k_min).clamp(0, n_k).to(torch.int32)  # ceil, from ops every runtime has
-
-    def admits(j: torch.Tensor) -> torch.Tensor:  # the box of index j holds the pixel
-        kk = (j + k_min).to(torch.float64).unsqueeze(1)  # (n, 1, P)
-        return ((cc - kk <= lab) & (lab <= cc + kk)).all(dim=1)
-
-    t = torch.where((t > 0) & admits(t - 1), t - 1, t)
-    return torch.where((t < n_k) & ~admits(t), t + 1, t).to(torch.int64)
 
 
 def k_fractions(counts: torch.Tensor, sky: torch.Tensor, height: int, width: int) -> torch.Tensor:
