@@ -62,6 +62,7 @@ def _records_equal(a: ImageResult, b: ImageResult) -> None:
     ({"lattice_vp_fallback_y": 10}, "lattice_vp_fallback_y"), ({"lattice_iterations": -1}, "lattice_iterations"),
     ({"lattice_min_confidence": 1.5}, "lattice_min_confidence"),
     ({"lattice_horizon": "horizon"}, "lattice_horizon"),
+    ({"lattice_green": "exg"}, "lattice_green"), ({"lattice_comb": "fft"}, "lattice_comb"),
 ])
 def test_params_validate_improved_fields(change, field) -> None:
     with pytest.raises(ValueError, match=f"Params.{field}"):
@@ -173,23 +174,66 @@ def test_tensor_equals_reference_on_adversarial_and_shuffled_batches() -> None:
         assert shuffled[j].to_record() == out[i].to_record()
 
 
-def test_tensor_stages_equal_reference_stages() -> None:
+@pytest.mark.parametrize("green, comb", [("row_mean", "contrast"), ("otsu", "uniform"), ("otsu", "contrast")])
+def test_tensor_stages_equal_reference_stages(green: str, comb: str) -> None:
+    params = IMPROVED.replace(lattice_green=green, lattice_comb=comb)
     images = _adversarial()
     x = _t(images)
     sky = torch.tensor([0, 0, 0, 120, 30])
-    got = flat.green_mask(x, sky, IMPROVED)
+    got = flat.green_mask(x, sky, params)
     for i, img in enumerate(images):
-        want = rlat.green_mask(img, int(sky[i]), IMPROVED)
+        want = rlat.green_mask(img, int(sky[i]), params)
         assert torch.equal(got[i], torch.from_numpy(want))
     vp = torch.tensor([[160.0, -60.0], [150.4, -20.5], [0.0, 0.0], [170.0, 5.0], [float("nan"), -50.0]],
                       dtype=torch.float64)
     has = torch.tensor([True, True, False, True, True])
-    v = flat.init_vp(vp, has, 320, IMPROVED)
-    sp, ph, found = flat.comb_search(got, v, IMPROVED)
+    v = flat.init_vp(vp, has, 320, params)
+    sp, ph, found = flat.comb_search(got, v, params)
     for i in range(len(images)):
-        ref_vp = rlat.init_vp(tuple(vp[i].tolist()) if bool(has[i]) else None, 320, IMPROVED)
+        ref_vp = rlat.init_vp(tuple(vp[i].tolist()) if bool(has[i]) else None, 320, params)
         assert tuple(v[i].tolist()) == ref_vp
-        assert (int(sp[i]), int(ph[i]), bool(found[i])) == rlat.comb_search(got[i].numpy(), ref_vp, IMPROVED)
+        assert (int(sp[i]), int(ph[i]), bool(found[i])) == rlat.comb_search(got[i].numpy(), ref_vp, params)
+
+
+def _stripes(widths: list[int], spacing: int = 60, h: int = 60, w: int = 320) -> np.ndarray:
+    """Vertical green stripes centred at 10, 10 + spacing, ... with the given widths, cycled."""
+    m = np.zeros((h, w), bool)
+    for j, c in enumerate(range(10, w, spacing)):
+        half = widths[j % len(widths)] // 2
+        m[:, max(c - half, 0):c + half] = True
+    return m
+
+
+@pytest.mark.parametrize("widths", [[40, 10], [30, 12], [20]])
+def test_contrast_comb_rejects_the_double_spacing(widths: list[int]) -> None:
+    # rows alternating strong and weak: the uniform-excess score prefers twice the spacing
+    # (the weak rows fall between its wide teeth), the contrast score puts its anti-teeth on them
+    mask = _stripes(widths)
+    vp = (160, -10**6)  # projection through a far VP: nearly the identity
+    d, phase, found = rlat.comb_search(mask, vp, IMPROVED)
+    assert found and d == 60 and abs((phase - 10 + 30) % 60 - 30) <= 6  # on a stripe (they are flat-topped)
+    if len(widths) > 1:
+        assert rlat.comb_search(mask, vp, IMPROVED.replace(lattice_comb="uniform"))[0] >= 120
+    sp, _, _ = flat.comb_search(torch.from_numpy(mask)[None], torch.tensor([vp]), IMPROVED)
+    assert int(sp[0]) == d
+
+
+def test_row_mean_green_keeps_merged_far_rows_apart() -> None:
+    # far field: every pixel of the top rows is green (leaves of adjacent rows merge), the row
+    # centres greener; near field: green rows on soil. One global Otsu keeps the whole top band,
+    # the row mean keeps only the centres
+    img = np.empty((80, 320, 3), np.uint8)
+    img[...] = (120, 90, 60)
+    img[:40] = (80, 140, 60)
+    for c in range(20, 320, 40):
+        img[:40, c - 4:c + 4] = (40, 200, 40)
+        img[40:, c - 6:c + 6] = (40, 170, 40)
+    otsu = rlat.green_mask(img, 0, IMPROVED.replace(lattice_green="otsu"))
+    row = rlat.green_mask(img, 0, IMPROVED)
+    assert otsu[:40].all()
+    assert row[:40].sum(axis=1).tolist() == [8 * 8] * 40 and row[:40, 20 - 4:20 + 4].all()
+    assert np.array_equal(row[40:], otsu[40:])
+    assert torch.equal(flat.green_mask(_t([img]), torch.tensor([0]), IMPROVED)[0], torch.from_numpy(row))
 
 
 def test_lattice_horizon_image_uses_rows_above_section_2_sky() -> None:

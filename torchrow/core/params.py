@@ -97,6 +97,8 @@ class Params:
     mode: str = "faithful"  # "faithful" (sections 0-7) or "improved" (section 11 replaces 7)
     lattice_horizon: str = "image"  # "image": the lattice sees every image row; "sky": only rows below section 2's
     green_floor: int = 0  # excess-green threshold is max(Otsu, this)
+    lattice_green: str = "row_mean"  # "row_mean": green also above its image row's mean excess green; "otsu": Otsu only
+    lattice_comb: str = "contrast"  # comb score: "contrast" (teeth minus the anti-teeth between them) or "uniform"
     lattice_vp_max_y: int = 0  # a section-6 VP below this image row is not trusted
     lattice_vp_fallback_y: int = -60  # y of the VP used instead, at x = W // 2
     lattice_vp_margin: int = 10  # px: only pixels this far below the VP are projected
@@ -246,6 +248,8 @@ _RULES: dict[str, _Rule] = {
     # section 11 (torchrow extension): the improved mode's row lattice
     "mode": _Rule("choice", choices=("faithful", "improved")),
     "lattice_horizon": _Rule("choice", choices=("image", "sky")),
+    "lattice_green": _Rule("choice", choices=("row_mean", "otsu")),
+    "lattice_comb": _Rule("choice", choices=("contrast", "uniform")),
     "green_floor": _Rule("int", -(2**31) + 1, 2**31 - 1),
     "lattice_vp_max_y": _Rule("int", -(2**31) + 1, 2**31 - 1),
     "lattice_vp_fallback_y": _Rule("int", -(2**31) + 1, -1, why="the fallback VP lies above the image"),

@@ -81,10 +81,14 @@ def otsu_threshold(exg: torch.Tensor, sky: torch.Tensor, params: Params) -> torc
 
 
 def green_mask(images: torch.Tensor, sky: torch.Tensor, params: Params) -> torch.Tensor:
-    """Section 11.1: ``exg > otsu`` below the horizon, ``(B, H, W)`` bool."""
+    """Section 11.1: ``exg > otsu`` below the horizon (and, with ``lattice_green ==
+    "row_mean"``, ``W * exg > `` its image row's sum), ``(B, H, W)`` bool."""
     exg = excess_green(images)
     thr = otsu_threshold(exg, sky, params)
-    return (exg > thr.view(-1, 1, 1)) & _below(sky, exg.shape[1], exg.shape[2])
+    mask = (exg > thr.view(-1, 1, 1)) & _below(sky, exg.shape[1], exg.shape[2])
+    if params.lattice_green == "row_mean":
+        mask = mask & (exg.shape[2] * exg > exg.sum(dim=2, keepdim=True))
+    return mask
 
 
 def init_vp(vp: torch.Tensor, has_vp: torch.Tensor, width: int, params: Params) -> torch.Tensor:
@@ -101,7 +105,8 @@ def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params):
 
     The candidates are scored spacing by spacing (a static loop over
     ``lattice_min_spacing .. lattice_max_spacing``): every phase's teeth are one strided sum
-    of the windowed histogram.
+    of the windowed histogram, its anti-teeth (``lattice_comb == "contrast"``) the same sum of
+    the windowed histogram shifted by ``d // 2`` bins.
     """
     bsz, h, w = mask.shape
     dev = mask.device
@@ -135,8 +140,13 @@ def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params):
         teeth = -(-nb // d)
         padded = torch.cat([win, torch.zeros((bsz, teeth * d - nb), dtype=torch.int64, device=dev)], dim=1)
         cap = padded.view(bsz, teeth, d).sum(dim=1)  # (B, d): phase p sums bins p, p+d, ...
-        expect = (n * (2 * hw + 1)).to(torch.float64) / float(d)
-        scores.append(cap.to(torch.float64) - expect.unsqueeze(1))
+        if params.lattice_comb == "contrast":
+            # anti-tooth centres p + d//2 + j d < 3W: the same strided sum, d//2 bins on
+            shifted = torch.cat([padded[:, d // 2:], torch.zeros((bsz, d // 2), dtype=torch.int64, device=dev)], dim=1)
+            scores.append((cap - shifted.view(bsz, teeth, d).sum(dim=1)).to(torch.float64))
+        else:
+            expect = (n * (2 * hw + 1)).to(torch.float64) / float(d)
+            scores.append(cap.to(torch.float64) - expect.unsqueeze(1))
         ds.append(torch.full((d,), d, dtype=torch.int64, device=dev))
         ps.append(torch.arange(d, dtype=torch.int64, device=dev))
     q = torch.argmax(torch.cat(scores, dim=1), dim=1)  # first maximum: spacing, then phase order

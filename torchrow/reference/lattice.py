@@ -95,9 +95,16 @@ def otsu_threshold(exg: np.ndarray, sky: int, params: Params) -> int:
 
 
 def green_mask(rgb: np.ndarray, sky: int, params: Params) -> np.ndarray:
-    """Section 11.1: ``exg > otsu_threshold`` below the horizon, ``(H, W)`` bool."""
+    """Section 11.1: ``exg > otsu_threshold`` below the horizon, ``(H, W)`` bool.
+
+    With ``lattice_green == "row_mean"`` (default) a pixel must also lie above the mean excess
+    green of its image row, ``W * e > sum_x e`` (int64): far rows, where the leaves of adjacent
+    crop rows merge above a global threshold, keep their row structure.
+    """
     exg = excess_green(rgb)
     mask = exg > otsu_threshold(exg, sky, params)
+    if params.lattice_green == "row_mean":
+        mask &= np.int64(exg.shape[1]) * exg > exg.sum(axis=1, keepdims=True)
     mask[:sky] = False
     return mask
 
@@ -114,29 +121,34 @@ def init_vp(vp: tuple[float, float] | None, width: int, params: Params) -> tuple
     return int(np.rint(np.float64(vp[0]))), int(np.rint(np.float64(vp[1])))
 
 
-def _comb_tables(width: int, params: Params) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _comb_tables(width: int, params: Params) -> tuple[np.ndarray, ...]:
     """All ``(spacing, phase)`` candidates in search order and their tooth windows.
 
     Bottom-row x is binned on ``[-W, 2W)`` (bin ``floor(X) + W``, ``3W`` bins). Candidate
     spacing ``d`` (``lattice_min_spacing .. lattice_max_spacing``), phase ``p = 0 .. d-1``:
     teeth at bins ``p + j d < 3W``, each covering bins ``[p + j d - h, p + j d + h]`` with
-    ``h = floor(d * lattice_window)``, clipped to the bins. Returns ``d, p, h`` ``(Q,)`` and
-    ``lo, hi`` ``(Q, J)`` cumulative-sum indices (``lo == hi`` for absent teeth), int64.
+    ``h = floor(d * lattice_window)``, clipped to the bins; anti-teeth likewise at bins
+    ``p + j d + d // 2 < 3W``. Returns ``d, p, h`` ``(Q,)`` and the cumulative-sum indices
+    ``lo, hi, alo, ahi`` ``(Q, J)`` of the teeth and anti-teeth (``lo == hi`` for absent ones), int64.
     """
     nb = 3 * width
-    ds, ps, hs, los, his = [], [], [], [], []
+    ds, ps, hs, wins = [], [], [], []
     jmax = nb // params.lattice_min_spacing + 1
+
+    def windows(centres: np.ndarray, h: int) -> np.ndarray:
+        out = np.zeros((2, jmax), np.int64)
+        out[0, :centres.size] = np.clip(centres - h, 0, nb)
+        out[1, :centres.size] = np.clip(centres + h + 1, 0, nb)
+        return out
+
     for d in range(params.lattice_min_spacing, params.lattice_max_spacing + 1):
         h = int(math.floor(d * params.lattice_window))
         for p in range(d):
-            centres = np.arange(p, nb, d)
-            lo = np.clip(centres - h, 0, nb)
-            hi = np.clip(centres + h + 1, 0, nb)
-            row_lo = np.zeros(jmax, np.int64)
-            row_hi = np.zeros(jmax, np.int64)
-            row_lo[:lo.size], row_hi[:hi.size] = lo, hi
-            ds.append(d), ps.append(p), hs.append(h), los.append(row_lo), his.append(row_hi)
-    return np.array(ds), np.array(ps), np.array(hs), np.stack(los), np.stack(his)
+            anti = np.arange(p + d // 2, nb, d)
+            wins.append(np.concatenate([windows(np.arange(p, nb, d), h), windows(anti, h)]))
+            ds.append(d), ps.append(p), hs.append(h)
+    w = np.stack(wins)
+    return np.array(ds), np.array(ps), np.array(hs), w[:, 0], w[:, 1], w[:, 2], w[:, 3]
 
 
 def bottom_bins(xs: np.ndarray, ys: np.ndarray, vp: tuple[int, int], height: int,
@@ -160,8 +172,11 @@ def comb_search(mask: np.ndarray, vp: tuple[int, int], params: Params) -> tuple[
     """Section 11.2: bottom-row spacing and central phase of the rows through ``vp``.
 
     Histogram the bins of :func:`bottom_bins`; candidate ``q`` captures ``cap_q`` pixels in
-    its teeth and scores ``cap_q - (n (2h+1)) / d`` (float64; ``n`` = binned pixels): the
-    excess over a uniform spread. The best (first on ties) gives ``d`` and ``p``; the central
+    its teeth and ``anti_q`` in its anti-teeth. With ``lattice_comb == "contrast"`` (default) it
+    scores ``cap_q - anti_q`` (an integer): a comb at twice the true spacing puts its anti-teeth
+    on the rows it skips, so harmonics lose. With ``"uniform"`` it scores ``cap_q - (n (2h+1)) / d``
+    (float64; ``n`` = binned pixels): the excess over a uniform spread. The best (first on ties)
+    gives ``d`` and ``p``; the central
     row is the tooth nearest ``W/2``: ``phase = p - W + d * round_half_even((W/2 - (p - W)) / d)``.
     Returns ``(d, phase, found)``; without pixels ``(lattice_min_spacing, W // 2, False)``.
     """
@@ -172,9 +187,12 @@ def comb_search(mask: np.ndarray, vp: tuple[int, int], params: Params) -> tuple[
         return params.lattice_min_spacing, w // 2, False
     hist = np.bincount(bins, minlength=3 * w).astype(np.int64)
     cs = np.concatenate([[0], np.cumsum(hist)])
-    d, p, hw, lo, hi = _comb_tables(w, params)
+    d, p, hw, lo, hi, alo, ahi = _comb_tables(w, params)
     cap = (cs[hi] - cs[lo]).sum(axis=1)
-    score = cap.astype(np.float64) - (bins.size * (2 * hw + 1)).astype(np.float64) / d.astype(np.float64)
+    if params.lattice_comb == "contrast":
+        score = (cap - (cs[ahi] - cs[alo]).sum(axis=1)).astype(np.float64)
+    else:
+        score = cap.astype(np.float64) - (bins.size * (2 * hw + 1)).astype(np.float64) / d.astype(np.float64)
     q = int(np.argmax(score))
     d_q, p_q = int(d[q]), int(p[q]) - w
     k0 = int(np.rint((np.float64(w) / 2 - np.float64(p_q)) / np.float64(d_q)))
