@@ -219,11 +219,16 @@ from torchrow.apps.annotate import draw_result
 from torchrow.apps.notebook_helpers import gt_polylines
 from torchrow.core.results import ImageResult
 
+def drawn(rep, k):
+    \"\"\"Image k with rep's detection and the ground-truth rows drawn over it.\"\"\"
+    res = ImageResult.from_record(rep.records[k])
+    return draw_result(crbd.image(k), res, scale=1, ground_truth=gt_polylines(crbd.ground_truth(k), 320))
+
+
 worst = np.argsort(crda01, kind="stable")[:6]
 pics, titles = [], []
 for k in worst:
-    res = ImageResult.from_record(report.records[k])
-    pics.append(draw_result(crbd.image(k), res, scale=1, ground_truth=gt_polylines(crbd.ground_truth(k), 320)))
+    pics.append(drawn(report, k))
     titles.append(f"{rows[k].name}: {crda01[k]:.2f} ({rows[k].status})")
 show_grid(pics, titles, ncols=3, size=2.2)
 plt.show()"""),
@@ -257,8 +262,7 @@ print(f"test images ({test.sum()}): improved {imp01[test].mean():.3f}, faithful 
 pics, titles = [], []
 for rep, sc, label in ((report, crda01, "faithful"), (improved, imp01, "improved")):
     for k in worst:
-        res = ImageResult.from_record(rep.records[k])
-        pics.append(draw_result(crbd.image(k), res, scale=1, ground_truth=gt_polylines(crbd.ground_truth(k), 320)))
+        pics.append(drawn(rep, k))
         titles.append(f"{label} {rows[k].name}: {sc[k]:.2f}")
 show_grid(pics, titles, ncols=6, size=1.8)
 plt.show()"""),
@@ -268,12 +272,8 @@ vanishing point of section 6 is often missing or inside the image (the lattice t
 `(W/2, -60)`), or the comb locks onto a wrong spacing."""),
     new_code_cell("""\
 imp_worst = np.argsort(imp01, kind="stable")[:6]
-pics, titles = [], []
-for k in imp_worst:
-    res = ImageResult.from_record(improved.records[k])
-    pics.append(draw_result(crbd.image(k), res, scale=1, ground_truth=gt_polylines(crbd.ground_truth(k), 320)))
-    titles.append(f"{rows[k].name}: {imp01[k]:.2f} (TMGEM {tm01[k]:.2f})")
-show_grid(pics, titles, ncols=6, size=1.8)
+show_grid([drawn(improved, k) for k in imp_worst],
+          [f"{rows[k].name}: {imp01[k]:.2f} (TMGEM {tm01[k]:.2f})" for k in imp_worst], ncols=6, size=1.8)
 plt.show()"""),
 ]
 
