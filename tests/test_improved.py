@@ -63,6 +63,9 @@ def _records_equal(a: ImageResult, b: ImageResult) -> None:
     ({"lattice_min_confidence": 1.5}, "lattice_min_confidence"),
     ({"lattice_horizon": "horizon"}, "lattice_horizon"),
     ({"lattice_green": "exg"}, "lattice_green"), ({"lattice_comb": "fft"}, "lattice_comb"),
+    ({"lattice_vp": "hough"}, "lattice_vp"), ({"lattice_vp_step": 0}, "lattice_vp_step"),
+    ({"lattice_vp_cell": 0}, "lattice_vp_cell"), ({"lattice_vp_spacing_step": 0}, "lattice_vp_spacing_step"),
+    ({"lattice_vp_heights": ()}, "lattice_vp_heights"), ({"lattice_vp_heights": (-20, 0)}, "lattice_vp_heights"),
 ])
 def test_params_validate_improved_fields(change, field) -> None:
     with pytest.raises(ValueError, match=f"Params.{field}"):
@@ -193,6 +196,53 @@ def test_tensor_stages_equal_reference_stages(green: str, comb: str) -> None:
         ref_vp = rlat.init_vp(tuple(vp[i].tolist()) if bool(has[i]) else None, 320, params)
         assert tuple(v[i].tolist()) == ref_vp
         assert (int(sp[i]), int(ph[i]), bool(found[i])) == rlat.comb_search(got[i].numpy(), ref_vp, params)
+
+
+def _search_masks() -> list[np.ndarray]:
+    rng = np.random.default_rng(5)
+    masks = [rlat.green_mask(img, 0, IMPROVED) for img in _adversarial()]
+    masks += [rng.random((240, 320)) < q for q in (0.002, 0.5)]
+    edge = np.zeros((240, 320), bool)
+    edge[:, -1] = True  # one column at the border: most VPs project it off the bins
+    return masks + [edge]
+
+
+@pytest.mark.parametrize("change", [{}, {"lattice_vp_cell": 3, "lattice_vp_step": 37, "lattice_vp_spacing_step": 5},
+                                    {"lattice_vp_cell": 1, "lattice_vp_heights": (-1, -500), "lattice_window": 0.3}])
+def test_vp_search_tensor_equals_reference_batched_and_alone(change: dict) -> None:
+    params = IMPROVED.replace(**change)
+    masks = _search_masks()
+    got = flat.vp_search(torch.from_numpy(np.stack(masks)), params)
+    assert got.dtype == torch.int64 and got.shape == (len(masks), 2)
+    for i, m in enumerate(masks):
+        assert tuple(got[i].tolist()) == rlat.vp_search(m, params)
+        assert torch.equal(flat.vp_search(torch.from_numpy(m)[None], params)[0], got[i])
+    empty = flat.vp_search(torch.zeros((0, 240, 320), dtype=torch.bool), params)
+    assert empty.shape == (0, 2)
+
+
+def test_vp_search_odd_sizes_and_no_green_fall_back() -> None:
+    rng = np.random.default_rng(9)
+    for m in (rng.random((37, 53)) < 0.3, np.zeros((5, 7), bool), np.ones((3, 3), bool)):
+        want = rlat.vp_search(m, IMPROVED)
+        assert tuple(flat.vp_search(torch.from_numpy(m)[None], IMPROVED)[0].tolist()) == want
+    assert rlat.vp_search(np.zeros((5, 7), bool), IMPROVED) == (3, IMPROVED.lattice_vp_fallback_y)
+
+
+@pytest.mark.parametrize("shift", [0.0, 40.0, -100.0])
+def test_vp_search_finds_the_vanishing_point_of_a_clean_field(shift: float) -> None:
+    # _field's rows meet at (160 + shift, -60), a grid point: the folded comb peaks there
+    mask = rlat.green_mask(_field(spacing=70.0, shift=shift), 0, IMPROVED)
+    assert rlat.vp_search(mask, IMPROVED) == (int(160 + shift), -60)
+
+
+def test_searched_vp_replaces_a_wrong_section_6_vp() -> None:
+    img = _field(spacing=70.0, shift=40.0)
+    good, _, fit_good = rlat.improved_rows(img, 0, (200.0, -60.0), IMPROVED)
+    rows, _, fit = rlat.improved_rows(img, 0, (40.0, -20.0), IMPROVED)  # section 6 far off
+    assert fit.vp == fit_good.vp == (200, -60) and rows == good
+    old = IMPROVED.replace(lattice_vp="section6")
+    assert rlat.improved_rows(img, 0, (40.0, -20.0), old)[2].vp == (40, -20)
 
 
 def _stripes(widths: list[int], spacing: int = 60, h: int = 60, w: int = 320) -> np.ndarray:

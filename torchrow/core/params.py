@@ -99,6 +99,11 @@ class Params:
     green_floor: int = 0  # excess-green threshold is max(Otsu, this)
     lattice_green: str = "row_mean"  # "row_mean": green also above its image row's mean excess green; "otsu": Otsu only
     lattice_comb: str = "contrast"  # comb score: "contrast" (teeth minus the anti-teeth between them) or "uniform"
+    lattice_vp: str = "search"  # VP of the comb: "search" (the grid search of 11.2) or "section6" (section 6's)
+    lattice_vp_step: int = 20  # px between the search grid's VPs in x, from 0 to W
+    lattice_vp_heights: tuple[int, ...] = (-20, -40, -60, -90, -130, -180, -250)  # the grid's VP rows (y < 0)
+    lattice_vp_cell: int = 2  # px, side of the square cells whose counts the search projects
+    lattice_vp_spacing_step: int = 2  # the search tries every this-th spacing of the comb's range
     lattice_vp_max_y: int = 0  # a section-6 VP below this image row is not trusted
     lattice_vp_fallback_y: int = -60  # y of the VP used instead, at x = W // 2
     lattice_vp_margin: int = 10  # px: only pixels this far below the VP are projected
@@ -147,8 +152,8 @@ class Params:
 @dataclass(frozen=True)
 class _Rule:
     """How one field is checked: ``kind`` (``int``, ``int?`` = int or None, ``float``, ``pair``
-    = ``(width, height)`` of ints), inclusive bounds ``lo``/``hi`` (``None``: unbounded; for a
-    pair they bound each entry) and an optional extra condition with its wording.
+    = ``(width, height)`` of ints, ``ints`` = 1 to 64 ints), inclusive bounds ``lo``/``hi``
+    (``None``: unbounded; for a pair or ``ints`` they bound each entry) and an optional extra condition with its wording.
 
     A value of the wrong kind raises ``TypeError``; a value of the right kind outside the
     rule raises ``ValueError``; both name the field. Integral numbers (``numpy.int64``) become
@@ -191,6 +196,12 @@ class _Rule:
             if v not in self.choices:
                 raise ValueError(f"Params.{field} must be one of {', '.join(map(repr, self.choices))}; got {v!r}")
             return v
+        if self.kind == "ints":
+            if not isinstance(v, (tuple, list)):
+                raise TypeError(f"Params.{field} must be a tuple of integers, not {type(v).__name__}; got {v!r}")
+            if not 1 <= len(v) <= 64:
+                raise ValueError(f"Params.{field} must hold 1 to 64 integers (the search runs one comb per VP); got {len(v)}")
+            return tuple(self._number(f"{field}[{i}]", e, True) for i, e in enumerate(v))
         if self.kind == "pair":
             if not isinstance(v, (tuple, list)):
                 raise TypeError(f"Params.{field} must be a (width, height) tuple of integers, "
@@ -250,6 +261,10 @@ _RULES: dict[str, _Rule] = {
     "lattice_horizon": _Rule("choice", choices=("image", "sky")),
     "lattice_green": _Rule("choice", choices=("row_mean", "otsu")),
     "lattice_comb": _Rule("choice", choices=("contrast", "uniform")),
+    "lattice_vp": _Rule("choice", choices=("search", "section6")),
+    "lattice_vp_step": _Rule("int", 1, 4096), "lattice_vp_cell": _Rule("int", 1, 64),
+    "lattice_vp_spacing_step": _Rule("int", 1, 4096),
+    "lattice_vp_heights": _Rule("ints", -(2**20), -1, why="the grid's VPs lie above the image"),
     "green_floor": _Rule("int", -(2**31) + 1, 2**31 - 1),
     "lattice_vp_max_y": _Rule("int", -(2**31) + 1, 2**31 - 1),
     "lattice_vp_fallback_y": _Rule("int", -(2**31) + 1, -1, why="the fallback VP lies above the image"),

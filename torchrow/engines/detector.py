@@ -205,6 +205,8 @@ class CropRowDetector(nn.Module):
         fhough.rho_table(height, width, self.params, self.device)
         fransac._table(self.params, self.device)
         lab_table_torch(self.device)
+        if self.params.mode == "improved" and self.params.lattice_vp == "search":
+            flattice.vp_table(height, width, self.params, self.device)
 
     def _worker(self, images: torch.Tensor, veg_color: torch.Tensor | None) -> BatchResult:
         # Thread count (OpenMP's is per thread) and grad mode are thread-local settings.

@@ -17,8 +17,8 @@ import torch
 
 from torchrow.core.params import Params
 
-__all__ = ["LatticeRows", "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "comb_search",
-           "solve_normal", "normal_equations", "fit_lattice", "improved_rows"]
+__all__ = ["LatticeRows", "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_table",
+           "vp_search", "comb_search", "solve_normal", "normal_equations", "fit_lattice", "improved_rows"]
 
 N_COEF = 6
 EXG_OFFSET = 510
@@ -98,6 +98,78 @@ def init_vp(vp: torch.Tensor, has_vp: torch.Tensor, width: int, params: Params) 
     rounded = torch.round(safe).to(torch.int64)
     fallback = torch.tensor([width // 2, params.lattice_vp_fallback_y], dtype=torch.int64, device=vp.device)
     return torch.where(trusted.unsqueeze(1), rounded, fallback.expand_as(rounded))
+
+
+_VP_TABLES: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
+
+
+def vp_table(height: int, width: int, params: Params, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """The search's grid ``(V, 2)`` int64 (:func:`torchrow.reference.lattice.vp_grid`'s order) and
+    the bin of every cell under every grid VP, ``(V, C)`` int64, ``3W`` where a cell is not
+    binned (a spill bin). It depends on the sizes and the grid only, so it is built once
+    (float64, the reference's expression) and cached: ``8 V C`` bytes, 18 MB at 320x240."""
+    key = (height, width, params.lattice_vp_step, params.lattice_vp_heights, params.lattice_vp_cell,
+           params.lattice_vp_margin, str(device))
+    table = _VP_TABLES.get(key)
+    if table is None:
+        s = params.lattice_vp_cell
+        hc, wc = -(-height // s), -(-width // s)
+        yc = (torch.arange(hc, dtype=torch.float64, device=device) * s + (s - 1) / 2).repeat_interleave(wc)
+        xc = (torch.arange(wc, dtype=torch.float64, device=device) * s + (s - 1) / 2).repeat(hc)
+        xs = torch.arange(0, width + 1, params.lattice_vp_step, dtype=torch.int64, device=device)
+        hs = torch.tensor(params.lattice_vp_heights, dtype=torch.int64, device=device)
+        grid = torch.stack([xs.repeat(hs.numel()), hs.repeat_interleave(xs.numel())], dim=1)
+        xv = grid[:, :1].to(torch.float64)
+        yv = grid[:, 1:].to(torch.float64)
+        b = torch.floor(xv + ((xc - xv) * (float(height - 1) - yv)) / (yc - yv))
+        keep = ((yc - yv) > params.lattice_vp_margin) & (b >= -width) & (b < 2 * width)
+        idx = torch.where(keep, b + width, torch.full_like(b, 3 * width)).to(torch.int64)
+        table = _VP_TABLES[key] = (grid, idx)
+    return table
+
+
+def vp_search(mask: torch.Tensor, params: Params) -> torch.Tensor:
+    """Section 11.2 (``lattice_vp == "search"``): per image the grid VP whose folded contrast
+    comb is strongest, ``(B, 2)`` int64; see :func:`torchrow.reference.lattice.vp_search`.
+
+    The cell counts are scattered once per grid VP (a static loop of ``V`` scatters) into
+    ``(B, V, 3W)`` int32 histograms, then folded spacing by spacing (a static loop); every sum
+    is an integer below ``2**31``, so the scores are the reference's. Peak memory: the
+    histograms, ``4 V (3W + d_max)`` bytes per image (0.5 MB at 320x240), plus the table.
+    """
+    bsz, h, w = mask.shape
+    dev = mask.device
+    grid, idx = vp_table(h, w, params, dev)
+    nv, ncell = idx.shape
+    s = params.lattice_vp_cell
+    hc, wc = -(-h // s), -(-w // s)
+    padded = torch.zeros((bsz, hc * s, wc * s), dtype=torch.int32, device=dev)
+    padded[:, :h, :w] = mask
+    cnt = padded.view(bsz, hc, s, wc, s).sum(dim=(2, 4), dtype=torch.int32).view(bsz, ncell)
+    nb = 3 * w
+    hist = torch.zeros((bsz, nv, nb + 1 + params.lattice_max_spacing), dtype=torch.int32, device=dev)
+    for v in range(nv):
+        hist[:, v].scatter_add_(1, idx[v].expand(bsz, ncell), cnt)
+    hist[:, :, nb] = 0  # the spill bin
+    total = hist.sum(dim=2, dtype=torch.int64)
+    best = torch.full((bsz, nv), -(2**31) + 1, dtype=torch.int32, device=dev)
+    for d in range(params.lattice_min_spacing, params.lattice_max_spacing + 1, params.lattice_vp_spacing_step):
+        teeth = -(-nb // d)
+        fold = hist[:, :, :teeth * d].view(bsz, nv, teeth, d).sum(dim=2, dtype=torch.int32)
+        hw = int(math.floor(d * params.lattice_window))
+        a = d // 2
+        # teeth of phase p and of p + d//2 as differences of one cumulative sum of the circular fold
+        ext = torch.cat([fold[..., d - hw:], fold, fold[..., :a + hw + 1]], dim=2)
+        cs = torch.nn.functional.pad(torch.cumsum(ext, dim=2, dtype=torch.int32), (1, 0))
+        tooth = cs[..., 2 * hw + 1:2 * hw + 1 + d] - cs[..., :d]
+        anti = cs[..., a + 2 * hw + 1:a + 2 * hw + 1 + d] - cs[..., a:a + d]
+        best = torch.maximum(best, (tooth - anti).amax(dim=2))
+    seen = total > 0
+    value = torch.where(seen, best.to(torch.float64) / torch.clamp(total, min=1).to(torch.float64),
+                        torch.full_like(total, -math.inf, dtype=torch.float64))
+    pick = grid[torch.argmax(value, dim=1)]  # first maximum: the grid's order
+    fallback = torch.tensor([w // 2, params.lattice_vp_fallback_y], dtype=torch.int64, device=dev)
+    return torch.where(seen.any(dim=1, keepdim=True), pick, fallback.expand_as(pick))
 
 
 def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params):
@@ -246,7 +318,7 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor, has_vp:
     """
     bsz, h, w = mask.shape
     dev = mask.device
-    v = init_vp(vp, has_vp, w, params)
+    v = vp_search(mask, params) if params.lattice_vp == "search" else init_vp(vp, has_vp, w, params)
     spacing, phase, found = comb_search(mask, v, params)
     den = ((h - 1) - v[:, 1]).to(torch.float64)
     ph = phase.to(torch.float64)

@@ -24,7 +24,8 @@ import numpy as np
 from torchrow.core.params import Params
 from torchrow.core.results import Row
 
-__all__ = ["LatticeFit", "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "comb_search",
+__all__ = ["LatticeFit", "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_grid",
+           "vp_cells", "vp_search", "comb_search",
            "solve_normal", "row_cells", "normal_equations", "fit_lattice", "lattice_rows", "N_COEF"]
 
 #: Coefficients ``(c0, c1, c2, d0, d1, d2)`` of ``x = c(t) + k d(t)``, ``c(t) = c0 + c1 t + c2 t^2``,
@@ -119,6 +120,78 @@ def init_vp(vp: tuple[float, float] | None, width: int, params: Params) -> tuple
     if vp is None or not (vp[1] <= params.lattice_vp_max_y) or not math.isfinite(vp[0]):
         return width // 2, params.lattice_vp_fallback_y
     return int(np.rint(np.float64(vp[0]))), int(np.rint(np.float64(vp[1])))
+
+
+def vp_grid(width: int, params: Params) -> np.ndarray:
+    """Section 11.2: the search's candidate VPs in search order, ``(V, 2)`` int64 ``(xv, yv)``.
+
+    Heights ``lattice_vp_heights`` in their order (outer), and at each height
+    ``xv = 0, s, 2s, ... <= W`` with ``s = lattice_vp_step`` (inner).
+    """
+    xs = np.arange(0, width + 1, params.lattice_vp_step, dtype=np.int64)
+    ys = np.array(params.lattice_vp_heights, dtype=np.int64)
+    return np.stack([np.tile(xs, ys.size), np.repeat(ys, xs.size)], axis=1)
+
+
+def vp_cells(height: int, width: int, params: Params) -> tuple[np.ndarray, np.ndarray]:
+    """Centres ``(yc, xc)`` (float64, ``(C,)``, row-major) of the search's square cells of side
+    ``s = lattice_vp_cell``: cell ``(i, j)`` covers rows ``s i .. s i + s - 1`` and columns
+    ``s j .. s j + s - 1`` (clipped to the image), centre ``(s i + (s-1)/2, s j + (s-1)/2)``."""
+    s = params.lattice_vp_cell
+    hc, wc = -(-height // s), -(-width // s)
+    yc = np.repeat(np.arange(hc, dtype=np.float64) * s + (s - 1) / 2, wc)
+    xc = np.tile(np.arange(wc, dtype=np.float64) * s + (s - 1) / 2, hc)
+    return yc, xc
+
+
+def vp_search(mask: np.ndarray, params: Params) -> tuple[int, int]:
+    """Section 11.2: the grid VP whose folded contrast comb is strongest (``lattice_vp == "search"``).
+
+    The green pixels are counted in cells (:func:`vp_cells`). For each VP of :func:`vp_grid`,
+    every cell with ``yc - yv > lattice_vp_margin`` projects its count through the VP onto the
+    bottom row, ``X = xv + ((xc - xv) * ((H-1) - yv)) / (yc - yv)`` (float64, this order),
+    into bin ``floor(X) + W`` when ``-W <= floor(X) < 2W`` (``3W`` bins, ``n`` counts binned).
+    For the spacings ``d = lattice_min_spacing, + lattice_vp_spacing_step, ... <=
+    lattice_max_spacing``, the histogram is folded modulo ``d`` (``F[r]`` = sum of bins ``b``
+    with ``b mod d = r``); with ``h = floor(d * lattice_window)`` the tooth of phase ``p``
+    holds ``F[(p-h) mod d] + ... + F[(p+h) mod d]`` and its anti-tooth is the tooth of phase
+    ``(p + d // 2) mod d``. The VP scores ``max_{d,p} (tooth - anti-tooth) / n`` (integer
+    numerator and denominator, one float64 division); the highest wins, the first on ties.
+    Without a binned count at any VP: ``(W // 2, lattice_vp_fallback_y)``.
+    """
+    h, w = mask.shape
+    s = params.lattice_vp_cell
+    hc, wc = -(-h // s), -(-w // s)
+    padded = np.zeros((hc * s, wc * s), np.int64)
+    padded[:h, :w] = mask
+    cnt = padded.reshape(hc, s, wc, s).sum(axis=(1, 3)).ravel()
+    yc, xc = vp_cells(h, w, params)
+    grid = vp_grid(w, params)
+    nb = 3 * w
+    xv = grid[:, :1].astype(np.float64)
+    yv = grid[:, 1:].astype(np.float64)
+    proj = xv + ((xc - xv) * (np.float64(h - 1) - yv)) / (yc - yv)
+    b = np.floor(proj)
+    keep = ((yc - yv) > params.lattice_vp_margin) & (b >= -w) & (b < 2 * w) & (cnt > 0)
+    hist = np.zeros(grid.shape[0] * nb, np.int64)
+    np.add.at(hist, np.nonzero(keep)[0] * nb + b[keep].astype(np.int64) + w, np.broadcast_to(cnt, keep.shape)[keep])
+    hist = hist.reshape(grid.shape[0], nb)
+    total = hist.sum(axis=1)
+    if not (total > 0).any():
+        return w // 2, params.lattice_vp_fallback_y
+    best = np.full(grid.shape[0], np.iinfo(np.int64).min, np.int64)
+    for d in range(params.lattice_min_spacing, params.lattice_max_spacing + 1, params.lattice_vp_spacing_step):
+        teeth = -(-nb // d)
+        fold = np.concatenate([hist, np.zeros((grid.shape[0], teeth * d - nb), np.int64)], axis=1)
+        fold = fold.reshape(grid.shape[0], teeth, d).sum(axis=1)
+        hw = int(math.floor(d * params.lattice_window))
+        ext = np.concatenate([fold[:, d - hw:], fold, fold[:, :hw + 1]], axis=1)  # F[p - hw .. p + hw] circularly
+        cs = np.concatenate([np.zeros((grid.shape[0], 1), np.int64), np.cumsum(ext, axis=1)], axis=1)
+        tooth = cs[:, 2 * hw + 1:2 * hw + 1 + d] - cs[:, :d]
+        best = np.maximum(best, (tooth - np.roll(tooth, -(d // 2), axis=1)).max(axis=1))
+    value = np.where(total > 0, best.astype(np.float64) / np.maximum(total, 1).astype(np.float64), -np.inf)
+    q = int(np.argmax(value))
+    return int(grid[q, 0]), int(grid[q, 1])
 
 
 def _comb_tables(width: int, params: Params) -> tuple[np.ndarray, ...]:
@@ -283,7 +356,7 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
     iterations stop).
     """
     h, w = mask.shape
-    v = init_vp(vp, w, params)
+    v = vp_search(mask, params) if params.lattice_vp == "search" else init_vp(vp, w, params)
     d, phase, found = comb_search(mask, v, params)
     xv, yv = v
     den = np.float64(h - 1 - yv)
