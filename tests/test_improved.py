@@ -47,7 +47,7 @@ def _records_equal(a: ImageResult, b: ImageResult) -> None:
     assert len(ra["rows"]) == len(rb["rows"])
     for x, y in zip(ra["rows"], rb["rows"]):
         assert (x["valid"], x["reason"], x["confidence"]) == (y["valid"], y["reason"], y["confidence"])
-        for key in ("a", "b", "c"):
+        for key in ("a", "b", "c", "e"):
             assert (x[key] is None) == (y[key] is None)
             if x[key] is not None:
                 assert abs(x[key] - y[key]) <= 1e-6, key
@@ -66,6 +66,7 @@ def _records_equal(a: ImageResult, b: ImageResult) -> None:
     ({"lattice_vp": "hough"}, "lattice_vp"), ({"lattice_vp_step": 0}, "lattice_vp_step"),
     ({"lattice_vp_cell": 0}, "lattice_vp_cell"), ({"lattice_vp_spacing_step": 0}, "lattice_vp_spacing_step"),
     ({"lattice_vp_heights": ()}, "lattice_vp_heights"), ({"lattice_vp_heights": (-20, 0)}, "lattice_vp_heights"),
+    ({"lattice_center_degree": 4}, "lattice_center_degree"), ({"lattice_center_degree": 1}, "lattice_center_degree"),
 ])
 def test_params_validate_improved_fields(change, field) -> None:
     with pytest.raises(ValueError, match=f"Params.{field}"):
@@ -89,6 +90,73 @@ def test_solve_normal_matches_numpy_and_flags_singular() -> None:
     assert not bool(singular[0]) and torch.equal(zt[0], torch.from_numpy(z))
     a[:, 5] = a[:, 4]  # two equal columns: singular
     assert rlat.solve_normal(a.T @ a, a.T @ rng.normal(size=40), IMPROVED) is None
+
+
+def test_solve_normal_pivots_are_relative_to_their_own_diagonal() -> None:
+    # the cubic basis of a 240-row image: diagonal entries from 720 to ~1e16; a pivot test
+    # against the largest of them would call this well-posed system singular
+    t = np.repeat(np.arange(240.0) - 239, 3)
+    k = np.tile([-1.0, 0.0, 1.0], 240)
+    phi = np.stack([t**0, t, t**2, t**3, k, k * t, k * t**2], axis=1)
+    truth = np.array([160.0, 0.1, 1e-3, 2e-6, 90.0, 0.3, 1e-4])
+    m, r = phi.T @ phi, phi.T @ (phi @ truth)
+    z = rlat.solve_normal(m, r, IMPROVED)
+    assert z is not None
+    np.testing.assert_allclose(phi @ z, phi @ truth, atol=1e-6)
+    zt, singular = flat.solve_normal(torch.from_numpy(m)[None], torch.from_numpy(r)[None], IMPROVED)
+    assert not bool(singular[0]) and torch.equal(zt[0], torch.from_numpy(z))
+
+
+def _cells_by_pixel(mask: np.ndarray, coef: np.ndarray, params: Params) -> tuple[np.ndarray, np.ndarray]:
+    """Section 11.3's cells, the rule applied pixel by pixel (the spec's words, not prefix sums)."""
+    h, w = mask.shape
+    cnt = np.zeros((2 * params.lattice_half + 1, h), np.int64)
+    sx = np.zeros_like(cnt)
+    cc, dd = rlat.centre_spacing(np.arange(h, dtype=np.float64) - (h - 1), coef)
+    for y, x in zip(*np.nonzero(mask)):
+        if not dd[y] > params.lattice_min_spacing_px:
+            continue
+        for i, k in enumerate(range(-params.lattice_half, params.lattice_half + 1)):
+            centre = cc[y] + np.float64(k) * dd[y]
+            half = np.float64(params.lattice_tolerance) * dd[y]
+            if centre - half < x < centre + half:
+                cnt[i, y] += 1
+                sx[i, y] += x
+    return cnt, sx
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_row_cells_are_the_per_pixel_rule_on_both_paths(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    h, w = 37, 53
+    params = IMPROVED.replace(lattice_half=int(rng.integers(1, 3)))
+    mask = rng.random((h, w)) < 0.3
+    coefs = [np.array([26.0, 0.05, 1e-3, 2e-5, 12.5, 0.1, 1e-3]),  # ends on exact halves and integers
+             np.array([rng.uniform(-20, 70), rng.normal(), rng.normal() * 1e-2, rng.normal() * 1e-4,
+                       rng.uniform(1, 30), rng.normal() * 0.2, rng.normal() * 1e-3]),
+             np.array([26.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0]),  # d(t) <= lattice_min_spacing_px: no cells
+             np.array([np.nan, 0.0, 0.0, 0.0, 10.0, 0.0, 0.0]), np.array([1e300, 1e300, 0, 0, 1e300, 0, 0])]
+    pre = flat.prefix_sums(torch.from_numpy(mask)[None])
+    for coef in coefs:
+        want = _cells_by_pixel(mask, coef, params)
+        got = rlat.row_cells(mask, coef, params)
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+        cnt, sx = flat.row_cells(pre, torch.from_numpy(coef)[None], params)
+        assert np.array_equal(cnt[0].T.numpy(), want[0]) and np.array_equal(sx[0].T.numpy(), want[1])
+
+
+def test_lattice_refuses_working_sizes_whose_sums_could_overflow() -> None:
+    from torchrow.core.io import ImageError, check_lattice_size
+
+    check_lattice_size(320, 240, IMPROVED)
+    check_lattice_size(4096, 4096, IMPROVED.replace(lattice_center_degree=2))
+    with pytest.raises(ImageError, match="lattice_center_degree=2"):
+        check_lattice_size(800, 600, IMPROVED)
+    mask = np.zeros((600, 8), bool)
+    with pytest.raises(ImageError, match="8x600"):
+        rlat.fit_lattice(mask, 0, None, IMPROVED)
+    with pytest.raises(ImageError, match="8x600"):
+        flat.fit_lattice(torch.from_numpy(mask)[None], torch.zeros(1, dtype=torch.int64), None, None, IMPROVED)
 
 
 def test_otsu_separates_two_populations() -> None:
@@ -124,10 +192,39 @@ def test_curved_lattice_gets_its_curvature() -> None:
     assert np.abs(rows[1].x_at(y) - truth).max() < 3
 
 
+def _s_field(bend: float = 1e-5, spacing: float = 90.0) -> np.ndarray:
+    """Rows with an S-bend: ``x += bend * t (t + 120) (t + 239)`` (t = y - 239), 6.6 px to the
+    left in the near half and to the right in the far half, as many curved CRBD rows bend."""
+    img = np.empty((240, 320, 3), np.uint8)
+    img[...] = (120, 90, 60)
+    ys, xs = np.mgrid[0:240, 0:320]
+    t = ys - 239.0
+    scale = (ys + 60.0) / 299.0
+    for k in range(-3, 4):
+        xc = 160 + (k * spacing) * scale + bend * t * (t + 120) * (t + 239)
+        img[np.abs(xs - xc) < 4 * scale + 1] = (40, 170, 40)
+    return img
+
+
+def test_cubic_lattice_follows_an_s_bend_that_a_quadratic_cannot() -> None:
+    img = _s_field()
+    y = np.arange(240.0)
+    truth = 160 + 1e-5 * (y - 239) * (y - 119) * y
+    rows, _, fit = rlat.improved_rows(img, 0, None, IMPROVED)
+    assert all(r.valid for r in rows) and fit.coef[3] != 0.0
+    assert abs(rows[1].e - 1e-5) < 1e-6
+    assert np.abs(rows[1].x_at(y) - truth).max() < 2
+    quad, _, qfit = rlat.improved_rows(img, 0, None, IMPROVED.replace(lattice_center_degree=2))
+    assert qfit.coef[3] == 0.0 and all(r.e == 0.0 for r in quad)
+    assert np.abs(quad[1].x_at(y) - truth).max() > 4
+    got = CropRowDetector(IMPROVED)(_t([img])).results()[0]
+    _records_equal(detect(img, IMPROVED), got)
+
+
 def test_faithful_rows_carry_zero_curvature() -> None:
     res = detect(_field(), Params())
     rec = res.to_record()
-    assert all(r["c"] == 0.0 and r["confidence"] is None for r in rec["rows"])
+    assert all(r["c"] == 0.0 and r["e"] == 0.0 and r["confidence"] is None for r in rec["rows"])
     assert rec["image_confidence"] is None
 
 
@@ -149,6 +246,23 @@ def test_metrics_score_curves() -> None:
     assert crda_official(straight, GT) < 0.5
     u = rows_to_U(rows, 240)
     np.testing.assert_allclose(u[:, 1], 160 + GT.c, atol=1e-9)
+
+
+def test_metrics_score_cubic_rows() -> None:
+    e3, yb = 2e-6, 239.0
+
+    class GT:
+        height = 240
+        c = e3 * (np.arange(240.0) - yb) ** 3
+        d = np.full(240, 80.0)
+
+    # x = e (y - Y)^3 + 160 + 80 k, expanded in y
+    rows = [Row(3 * e3 * yb * yb, 160 + 80 * k - e3 * yb**3, True, c=-3 * e3 * yb, e=e3) for k in (-1, 0, 1)]
+    res = ImageResult(width=320, height=240, status="ok", rows=rows)
+    assert crda_official(res, GT) == pytest.approx(1.0)
+    np.testing.assert_allclose(rows_to_U(rows, 240)[:, 1], 160 + GT.c, atol=1e-9)
+    flat_rows = [Row(r.a, r.b, True, c=r.c) for r in rows]  # the cubic term dropped
+    assert crda_official(ImageResult(width=320, height=240, status="ok", rows=flat_rows), GT) < 0.6
 
 
 # --- tensor path = reference ---------------------------------------------------------------
@@ -372,4 +486,5 @@ def test_improved_record_round_trip() -> None:
     assert ImageResult.from_record(rec).to_record() == rec
     back = ImageResult.from_record(rec)
     assert [r.c for r in back.rows] == [r.c for r in res.rows]
+    assert [r.e for r in back.rows] == [r.e for r in res.rows] and any(r.e != 0.0 for r in res.rows)
     assert back.image_confidence == res.image_confidence

@@ -144,7 +144,7 @@ def draw_result(rgb: np.ndarray, result: ImageResult, scale: int = 2,
             continue
         (x0, y0), (x1, y1) = seg
         color = VALID if row.valid else INVALID
-        if row.c != 0.0 and math.isfinite(row.c):  # a curve (improved mode): a polyline
+        if (row.c != 0.0 or row.e != 0.0) and math.isfinite(row.c) and math.isfinite(row.e):  # a curve: a polyline
             ys = np.linspace(y_top, h - 1, 48)
             pts = np.stack([np.asarray(row.x_at(ys)) * s, ys * s], 1).round().astype(np.int32)
             cv2.polylines(img, [pts], False, color, th, cv2.LINE_AA)

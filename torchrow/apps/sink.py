@@ -188,7 +188,7 @@ def _arrow_types():
     import pyarrow as pa
 
     f64, i32, i64, s = pa.float64(), pa.int32(), pa.int64(), pa.string()
-    row = pa.struct([("a", f64), ("b", f64), ("c", f64), ("valid", pa.bool_()), ("reason", s),
+    row = pa.struct([("a", f64), ("b", f64), ("c", f64), ("e", f64), ("valid", pa.bool_()), ("reason", s),
                      ("confidence", f64)])
     return {
         "source": s, "frame": i64, "stamp_ns": i64, "name": s, "status": s, "width": i32, "height": i32,

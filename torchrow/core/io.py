@@ -10,14 +10,16 @@ Conversion rule for images that are not 8-bit RGB (documented in the README):
 
 from __future__ import annotations
 
+import functools
 import io
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
 __all__ = ["ImageError", "IMAGE_EXTENSIONS", "MAX_DECODE_PIXELS", "to_rgb8", "resize_to_width", "load_image",
-           "decode_image", "working_size", "check_working_size", "check_color", "header_size"]
+           "decode_image", "working_size", "check_working_size", "check_lattice_size", "check_color", "header_size"]
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 
@@ -45,6 +47,35 @@ def check_working_size(width: int, height: int, max_pixels: int | None) -> None:
         raise ImageError(f"working size {width}x{height} ({width * height} px) exceeds Params.max_pixels = "
                          f"{max_pixels} (ALGORITHM.md section 0: at width {width}, at most "
                          f"{max_pixels // max(width, 1)} rows)")
+
+
+@functools.lru_cache(maxsize=64)
+def _lattice_sums_fit(height: int, width: int, basis: tuple[tuple[int, int], ...], half: int, grid: int) -> bool:
+    # largest |entry| of M = sum phi phi^T and r = sum q phi over the (2K+1) x H cells, |q| <= G (W-1)
+    rows = 2 * half + 1
+    top_m = top_r = 0
+    for t in range(height):
+        mags = [t**p * half**k for p, k in basis]
+        top_m += max(mags) ** 2
+        top_r += max(mags)
+    return rows * top_m < 2**63 and rows * grid * max(width - 1, 1) * top_r < 2**63
+
+
+def check_lattice_size(width: int, height: int, params: Any) -> None:
+    """The improved mode's refit sums in int64 (ALGORITHM.md 11.3): one rule for both paths.
+
+    Raises
+    ------
+    ImageError
+        If the normal equations of a ``width x height`` image could overflow int64 for
+        ``params.lattice_center_degree``, ``lattice_half`` and ``lattice_cell_grid`` (a cubic
+        central row allows 578 rows at ``lattice_half`` 1 and ``lattice_cell_grid`` 64, a quadratic one more than 4096).
+    """
+    if not _lattice_sums_fit(int(height), int(width), params.lattice_basis(), params.lattice_half,
+                             params.lattice_cell_grid):
+        raise ImageError(f"working size {width}x{height} is too large for the improved mode's exact refit "
+                         f"(ALGORITHM.md 11.3: int64 sums of t**{2 * max(p for p, _ in params.lattice_basis())} "
+                         f"over {height} rows); use a smaller Params.image_width or lattice_center_degree=2")
 
 
 def to_rgb8(image: np.ndarray) -> np.ndarray:

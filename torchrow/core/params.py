@@ -110,13 +110,14 @@ class Params:
     lattice_min_spacing: int = 40  # px, smallest bottom-row spacing the comb tries
     lattice_max_spacing: int = 180  # px, largest
     lattice_window: float = 0.1  # comb tooth half-width, fraction of the spacing
-    lattice_iterations: int = 6  # least-squares refits
-    lattice_tolerance: float = 0.15  # inlier: |f - k| < this (fraction of the spacing)
+    lattice_iterations: int = 20  # least-squares refits at most (a refit whose cells repeat stops early)
+    lattice_center_degree: int = 3  # degree of the central row c(t): 3 (S-bends) or 2 (sessions 4-10)
+    lattice_tolerance: float = 0.15  # inlier: within this fraction of the spacing of its row
     lattice_half: int = 1  # rows k = -K..K around the central row are fitted and reported
     lattice_min_points: int = 20  # fewer inliers: the refit stops
     lattice_cell_grid: int = 64  # a cell's mean x is rounded to 1/this px (keeps the sums integer)
     lattice_min_spacing_px: float = 2.0  # pixels where d(t) <= this are not assigned
-    lattice_pivot_tol: float = 1e-12  # pivot <= this * max(diag, 1): singular normal equations
+    lattice_pivot_tol: float = 1e-12  # pivot <= this * max(its diagonal entry, 1): singular normal equations
     lattice_min_confidence: float = 0.0  # rows below this confidence are invalid
 
     def __post_init__(self) -> None:
@@ -132,6 +133,14 @@ class Params:
     def n_theta(self) -> int:
         """Number of Hough angles, ``180 / theta_step``."""
         return 180 // self.theta_step
+
+    def lattice_basis(self) -> tuple[tuple[int, int], ...]:
+        """Section 11.3: the refit's basis as ``(power of t, power of k)`` pairs, in order.
+
+        ``1, t, t^2 (, t^3)`` for the central row ``c(t)`` (degree ``lattice_center_degree``),
+        then ``k, k t, k t^2`` for the spacing ``d(t)``.
+        """
+        return tuple((j, 0) for j in range(self.lattice_center_degree + 1)) + ((0, 1), (1, 1), (2, 1))
 
     def hough_band_px(self, width: int) -> int:
         """Band (px) erased around each picked Hough line: ``int(W / 30)`` unless set."""
@@ -272,6 +281,7 @@ _RULES: dict[str, _Rule] = {
     "lattice_min_spacing": _Rule("int", 1, 4096, why=_COST), "lattice_max_spacing": _Rule("int", 1, 4096, why=_COST),
     "lattice_half": _Rule("int", 1, 64, why=_COST), "lattice_min_points": _INT1,
     "lattice_iterations": _Rule("int", 0, 1000, why=_COST),
+    "lattice_center_degree": _Rule("int", 2, 3, why="the refit's int64 sums; the records hold x up to y**3"),
     "lattice_cell_grid": _Rule("int", 1, 2**16, why="the int64 sums stay exact"),
     "lattice_window": _Rule("float", 0, 0.5, (lambda v: 0 < v < 0.5, "must lie in (0, 0.5)")),  # type: ignore[operator]
     "lattice_tolerance": _Rule("float", 0, 0.5, (lambda v: 0 < v < 0.5, "must lie in (0, 0.5)")),  # type: ignore[operator]

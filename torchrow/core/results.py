@@ -40,12 +40,12 @@ class HoughLine:
 
 @dataclass(frozen=True)
 class Row:
-    """A fitted crop row ``x = c*y**2 + a*y + b`` in working-image pixels.
+    """A fitted crop row ``x = e*y**3 + c*y**2 + a*y + b`` in working-image pixels.
 
     ``a``/``b`` are NaN when the row had no support. ``hypothesis`` is the index of the
-    winning RANSAC hypothesis (-1 when none was scored). ``c`` is 0 in faithful mode (straight
-    rows); ``confidence`` in ``[0, 1]`` is set by the improved mode (ALGORITHM.md 11.4) and NaN
-    in faithful mode.
+    winning RANSAC hypothesis (-1 when none was scored). ``c`` and ``e`` are 0 in faithful mode
+    (straight rows); ``confidence`` in ``[0, 1]`` is set by the improved mode (ALGORITHM.md
+    11.4) and NaN in faithful mode.
     """
 
     a: float
@@ -55,9 +55,11 @@ class Row:
     hypothesis: int = -1
     c: float = 0.0
     confidence: float = float("nan")
+    e: float = 0.0
 
     def x_at(self, y: np.ndarray | float) -> np.ndarray | float:
-        return (self.c * y) * y + self.a * y + self.b
+        x = (self.c * y) * y + self.a * y + self.b
+        return x if self.e == 0.0 else x + ((self.e * y) * y) * y
 
 
 @dataclass
@@ -108,7 +110,7 @@ class ImageResult:
             "hough": [h.to_list() for h in self.hough],
             "outliers": [h.to_list() for h in self.outliers],
             "vp": None if self.vp is None else [num(self.vp[0]), num(self.vp[1])],
-            "rows": [{"a": num(r.a), "b": num(r.b), "c": num(r.c), "valid": bool(r.valid), "reason": r.reason,
+            "rows": [{"a": num(r.a), "b": num(r.b), "c": num(r.c), "e": num(r.e), "valid": bool(r.valid), "reason": r.reason,
                       "confidence": num(r.confidence)} for r in self.rows],
             "image_confidence": num(self.image_confidence),
         }
@@ -137,7 +139,7 @@ class ImageResult:
             outliers=[line(v) for v in rec.get("outliers", [])],
             vp=None if rec.get("vp") is None else (f(rec["vp"][0]), f(rec["vp"][1])),
             rows=[Row(f(r["a"]), f(r["b"]), bool(r["valid"]), r.get("reason", ""), -1, f(r.get("c", 0.0)),
-                      f(r.get("confidence"))) for r in rec.get("rows", [])],
+                      f(r.get("confidence")), f(r.get("e", 0.0))) for r in rec.get("rows", [])],
             name=rec.get("name"), error=rec.get("error"), image_confidence=f(rec.get("image_confidence")),
         )
 

@@ -73,9 +73,10 @@ class BatchResult:
     row_present: torch.Tensor
     theta_step: int = 1
     timings: dict[str, float] = field(default_factory=dict)
-    #: Improved mode only (None in faithful mode): ``row_c``/``row_confidence`` ``(B, R)``
-    #: float64 (``x = c*y**2 + a*y + b``) and ``image_confidence`` ``(B,)`` float64.
+    #: Improved mode only (None in faithful mode): ``row_c``/``row_e``/``row_confidence`` ``(B, R)``
+    #: float64 (``x = e*y**3 + c*y**2 + a*y + b``) and ``image_confidence`` ``(B,)`` float64.
     row_c: torch.Tensor | None = None
+    row_e: torch.Tensor | None = None
     row_confidence: torch.Tensor | None = None
     image_confidence: torch.Tensor | None = None
 
@@ -99,7 +100,8 @@ class BatchResult:
             curved = cpu["row_c"] is not None
             rows = [Row(float(cpu["row_a"][b, j]), float(cpu["row_b"][b, j]), bool(cpu["row_valid"][b, j]),
                         REASONS[int(cpu["row_reason"][b, j])], int(cpu["row_hypothesis"][b, j]),
-                        *((float(cpu["row_c"][b, j]), float(cpu["row_confidence"][b, j])) if curved else ()))
+                        *((float(cpu["row_c"][b, j]), float(cpu["row_confidence"][b, j]),
+                           float(cpu["row_e"][b, j])) if curved else ()))
                     for j in range(cpu["row_a"].shape[1]) if bool(cpu["row_present"][b, j])]
             vp = (float(cpu["vp"][b, 0]), float(cpu["vp"][b, 1])) if bool(cpu["has_vp"][b]) else None
             out.append(ImageResult(

@@ -10,7 +10,7 @@ Two scores:
   image row to the nearest of 13 ground-truth rows, normalised by the number of rows asked).
 
 Conventions: ``u``/``x`` is the 0-based column of the working image (px), ``v``/``y`` the
-0-based image row; a detected row is ``x = c*y**2 + a*y + b`` (``c`` = 0: a line). Ground truth gives, for image
+0-based image row; a detected row is ``x = e*y**3 + c*y**2 + a*y + b`` (``c`` = ``e`` = 0: a line). Ground truth gives, for image
 rows ``v0 .. h-1`` (``v0 = h - len(c)``), the offset ``c_v`` of the central crop row from the
 image centre ``W/2`` and the spacing ``d_v`` between rows, so ground-truth row ``k`` lies
 at ``u*_k(v) = c_v + k*d_v + W/2``.
@@ -35,6 +35,7 @@ class _RowLike(Protocol):
     b: float
     valid: bool
     c: float
+    e: float
 
 
 def match_score(u_gt: np.ndarray, u: np.ndarray, d: np.ndarray, sigma: float) -> np.ndarray:
@@ -130,21 +131,22 @@ def crda(U: Any, c: Any, d: Any, m: int = 3, sigma: float = 0.1, adjacent: int =
     return float(max(per_shift.max(), 0.0))
 
 
-def _finite_valid(rows: Iterable[_RowLike]) -> list[tuple[float, float, float]]:
-    """``(a, b, c)`` of the valid rows with finite coefficients (``c`` = 0 when absent)."""
+def _finite_valid(rows: Iterable[_RowLike]) -> list[tuple[float, float, float, float]]:
+    """``(a, b, c, e)`` of the valid rows with finite coefficients (``c``, ``e`` = 0 when absent)."""
     out = []
     for r in rows:
-        c = float(getattr(r, "c", 0.0))
-        if r.valid and math.isfinite(r.a) and math.isfinite(r.b) and math.isfinite(c):
-            out.append((float(r.a), float(r.b), c))
+        c, e = float(getattr(r, "c", 0.0)), float(getattr(r, "e", 0.0))
+        if r.valid and all(math.isfinite(v) for v in (r.a, r.b, c, e)):
+            out.append((float(r.a), float(r.b), c, e))
     return out
 
 
-def _x_of(a: float, b: float, c: float, y: np.ndarray) -> np.ndarray:
-    """``x = c*y**2 + a*y + b``; exactly ``a*y + b`` for a straight row (``c == 0``)."""
-    if c == 0.0:
+def _x_of(a: float, b: float, c: float, e: float, y: np.ndarray) -> np.ndarray:
+    """``x = e*y**3 + c*y**2 + a*y + b``; exactly ``a*y + b`` for a straight row (``c == e == 0``)."""
+    if c == 0.0 and e == 0.0:
         return a * y + b
-    return (c * y) * y + a * y + b
+    x = (c * y) * y + a * y + b
+    return x if e == 0.0 else x + ((e * y) * y) * y
 
 
 def rows_to_U(rows: Iterable[_RowLike], height: int, m: int = 3, width: float = 320) -> np.ndarray:
@@ -171,7 +173,7 @@ def rows_to_U(rows: Iterable[_RowLike], height: int, m: int = 3, width: float = 
     Returns
     -------
     numpy.ndarray, shape (height, m), float64
-        ``U[y, k] = c_k * y**2 + a_k * y + b_k`` for ``y = 0 .. height-1``; NaN columns for empty slots.
+        ``U[y, k] = e_k * y**3 + c_k * y**2 + a_k * y + b_k`` for ``y = 0 .. height-1``; NaN columns for empty slots.
     """
     if m < 1 or m % 2 == 0:
         raise ValueError(f"m must be a positive odd number, got {m}")
@@ -182,7 +184,7 @@ def rows_to_U(rows: Iterable[_RowLike], height: int, m: int = 3, width: float = 
     n, half = len(lines), (m - 1) // 2
     y = np.arange(int(height), dtype=np.float64)
     yb = np.float64(height - 1)
-    bottom = np.array([_x_of(a, b, c, yb) for a, b, c in lines], dtype=np.float64)
+    bottom = np.array([_x_of(a, b, c, e, yb) for a, b, c, e in lines], dtype=np.float64)
     order = np.argsort(bottom, kind="stable")
     dist = np.abs(bottom[order] - width / 2)
     lo, hi = (half, n - 1 - half) if n >= m else (0, n - 1)
@@ -190,8 +192,8 @@ def rows_to_U(rows: Iterable[_RowLike], height: int, m: int = 3, width: float = 
     for j in range(n):
         slot = half + j - mid
         if 0 <= slot < m:
-            a, b, c = lines[order[j]]
-            U[:, slot] = _x_of(a, b, c, y)
+            a, b, c, e = lines[order[j]]
+            U[:, slot] = _x_of(a, b, c, e, y)
     return U
 
 
@@ -290,8 +292,8 @@ def crda_thesis(result: Any, gt: Any, sigma: float = 0.3, candidates: int = 13,
     j = np.arange(-(candidates // 2), candidates // 2 + 1, dtype=np.float64)[:, None]  # (J, 1)
     u_gt = c[None, :] + j * d[None, :] + result.width / 2  # (J, n)
     total = 0.0
-    for a, b, curv in lines:  # (c above is the ground truth's column array)
-        x = _x_of(a, b, curv, v)  # (n,)
+    for a, b, curv, cubic in lines:  # (c above is the ground truth's column array)
+        x = _x_of(a, b, curv, cubic, v)  # (n,)
         s = match_score(u_gt, x[None, :], d[None, :], sigma)  # (J, n)
         if nearest == "image_row":
             total += float(s.max(axis=0).sum() / n)

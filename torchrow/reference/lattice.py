@@ -6,8 +6,8 @@ Replaces section 7 when ``Params.mode == "improved"``. Three stages, named as in
 * :func:`green_mask`: excess green ``2G - R - B`` above its Otsu threshold (11.1);
 * :func:`comb_search`: equally spaced straight rows through the (rounded) vanishing point,
   found by a comb on the pixels projected onto the bottom image row (11.2);
-* :func:`fit_lattice`: rows ``x = c(t) + k*d(t)``, ``c`` and ``d`` quadratic in
-  ``t = y - (H-1)``, refit by least squares on the mean x of each row's pixels on each
+* :func:`fit_lattice`: rows ``x = c(t) + k*d(t)``, ``c`` cubic (or quadratic) and ``d``
+  quadratic in ``t = y - (H-1)``, refit by least squares on the mean x of each row's pixels on each
   image row (11.3), with a confidence per row (11.4).
 
 Every sum that decides a discrete output adds integers (exact in float64), so the order of
@@ -21,16 +21,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from torchrow.core.io import check_lattice_size
 from torchrow.core.params import Params
 from torchrow.core.results import Row
 
 __all__ = ["LatticeFit", "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_grid",
-           "vp_cells", "vp_search", "comb_search",
-           "solve_normal", "row_cells", "normal_equations", "fit_lattice", "lattice_rows", "N_COEF"]
+           "vp_cells", "vp_search", "comb_search", "coef_index", "solve_normal", "centre_spacing", "row_cells",
+           "normal_equations", "fit_lattice", "lattice_rows", "N_COEF"]
 
-#: Coefficients ``(c0, c1, c2, d0, d1, d2)`` of ``x = c(t) + k d(t)``, ``c(t) = c0 + c1 t + c2 t^2``,
-#: ``d(t) = d0 + d1 t + d2 t^2``.
-N_COEF = 6
+#: Coefficients ``(c0, c1, c2, c3, d0, d1, d2)`` of ``x = c(t) + k d(t)``, ``c(t) = c0 + c1 t + c2 t^2 +
+#: c3 t^3`` (``c3`` = 0 with ``lattice_center_degree`` 2), ``d(t) = d0 + d1 t + d2 t^2``.
+N_COEF = 7
 #: Excess green ``2G - R - B`` of uint8 RGB lies in ``[-510, 510]``.
 EXG_OFFSET = 510
 EXG_BINS = 2 * EXG_OFFSET + 1
@@ -40,8 +41,8 @@ EXG_BINS = 2 * EXG_OFFSET + 1
 class LatticeFit:
     """The fitted lattice of one image.
 
-    ``coef`` = ``(c0, c1, c2, d0, d1, d2)`` (px, px/px, px/px^2, ...) of
-    ``x = (c0 + c1 t + c2 t^2) + k (d0 + d1 t + d2 t^2)``, ``t = y - (H-1)``; ``k`` = row index relative
+    ``coef`` = ``(c0, c1, c2, c3, d0, d1, d2)`` (px, px/px, px/px^2, ...) of
+    ``x = (c0 + c1 t + c2 t^2 + c3 t^3) + k (d0 + d1 t + d2 t^2)``, ``t = y - (H-1)``; ``k`` = row index relative
     to the central row. ``spacing``/``phase``: the comb's bottom-row spacing and the central
     row's bottom-row x (px, integers). ``vp``: the rounded vanishing point the comb used.
     ``support``: image rows holding an inlier of each row, ``(2K+1,)``; ``span``: image rows
@@ -272,55 +273,82 @@ def comb_search(mask: np.ndarray, vp: tuple[int, int], params: Params) -> tuple[
     return d_q, p_q + k0 * d_q, True
 
 
+def coef_index(params: Params) -> list[int]:
+    """Where each basis function of :meth:`Params.lattice_basis` sits in ``coef`` (section 11.3)."""
+    return [p if k == 0 else 4 + p for p, k in params.lattice_basis()]
+
+
 def solve_normal(m: np.ndarray, r: np.ndarray, params: Params) -> np.ndarray | None:
-    """Gaussian elimination without pivoting of the SPD system ``m z = r`` (6x6, float64).
+    """Gaussian elimination without pivoting of the SPD system ``m z = r`` (``n x n``, float64).
 
     Row ``i`` is eliminated with pivot ``m[i, i]`` in index order; the system is singular
-    (``None``) when a pivot is ``<= lattice_pivot_tol * max(diag(m), 1)``. Written scalar by
-    scalar so that the tensor path evaluates the same operations.
+    (``None``) when a pivot is ``<= lattice_pivot_tol * max(m[i, i], 1)``, its own diagonal
+    entry before elimination (the basis' entries range from 1 to ``t^6``, so one scale for all
+    rows would call every cubic system singular). Written scalar by scalar so that the tensor
+    path evaluates the same operations.
     """
-    a = [[float(m[i, j]) for j in range(N_COEF)] for i in range(N_COEF)]
+    n = len(r)
+    a = [[float(m[i, j]) for j in range(n)] for i in range(n)]
     z = [float(v) for v in r]
-    scale = max(max(a[i][i] for i in range(N_COEF)), 1.0)
-    for i in range(N_COEF):
+    scale = [max(a[i][i], 1.0) for i in range(n)]
+    for i in range(n):
         piv = a[i][i]
-        if not piv > params.lattice_pivot_tol * scale:
+        if not piv > params.lattice_pivot_tol * scale[i]:
             return None
-        for j in range(i + 1, N_COEF):
+        for j in range(i + 1, n):
             f = a[j][i] / piv
-            for k in range(i, N_COEF):
+            for k in range(i, n):
                 a[j][k] = a[j][k] - f * a[i][k]
             z[j] = z[j] - f * z[i]
-    out = [0.0] * N_COEF
-    for i in range(N_COEF - 1, -1, -1):
+    out = [0.0] * n
+    for i in range(n - 1, -1, -1):
         s = z[i]
-        for k in range(i + 1, N_COEF):
+        for k in range(i + 1, n):
             s = s - a[i][k] * out[k]
         out[i] = s / a[i][i]
     return np.array(out, np.float64)
 
 
-def _assign(xs: np.ndarray, t: np.ndarray, coef: np.ndarray, params: Params) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest row ``k`` of each pixel and whether it is an inlier (section 11.3)."""
-    c0, c1, c2, d0, d1, d2 = (np.float64(v) for v in coef)
+def centre_spacing(t: np.ndarray, coef: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``c(t) = ((c0 + c1 t) + c2 t^2) + c3 t^3`` and ``d(t) = (d0 + d1 t) + d2 t^2`` (px, float64,
+    this order; ``t^2 = t t``, ``t^3 = t^2 t``)."""
+    c0, c1, c2, c3, d0, d1, d2 = (np.float64(v) for v in coef)
     tt = t * t
-    cc = (c0 + c1 * t) + c2 * tt
-    dd = (d0 + d1 * t) + d2 * tt
+    return ((c0 + c1 * t) + c2 * tt) + c3 * (tt * t), (d0 + d1 * t) + d2 * tt
+
+
+def row_cells(mask: np.ndarray, coef: np.ndarray, params: Params) -> tuple[np.ndarray, np.ndarray]:
+    """Section 11.3: inlier count and sum of x per lattice row and image row, two ``(2K+1, H)`` int64.
+
+    On image row ``y`` (``t = y - (H-1)``) where ``d(t) > lattice_min_spacing_px``, the inliers
+    of row ``k`` are the mask pixels with ``lo < x < hi``: ``centre = c(t) + k d(t)``,
+    ``half = lattice_tolerance * d(t)``, ``lo = centre - half``, ``hi = centre + half`` (float64,
+    this order), i.e. the columns ``floor(lo) + 1 .. ceil(hi) - 1`` clipped to the image. The
+    counts and sums are differences of the mask's per-row prefix sums (integers).
+    """
+    h, w = mask.shape
+    m = mask.astype(np.int64)
+    pre = np.zeros((h, w + 1), np.int64)
+    pre_x = np.zeros((h, w + 1), np.int64)
+    pre[:, 1:] = np.cumsum(m, axis=1)
+    pre_x[:, 1:] = np.cumsum(m * np.arange(w, dtype=np.int64), axis=1)
+    cc, dd = centre_spacing(np.arange(h, dtype=np.float64) - np.float64(h - 1), coef)
     ok = dd > params.lattice_min_spacing_px
-    f = (xs - cc) / np.where(ok, dd, np.float64(1.0))
-    k = np.rint(f)
-    inl = ok & (np.abs(f - k) < params.lattice_tolerance) & (np.abs(k) <= params.lattice_half)
-    return np.where(inl, k, 0.0), inl
-
-
-def row_cells(xs: np.ndarray, ys: np.ndarray, k: np.ndarray, inl: np.ndarray, height: int,
-              params: Params) -> tuple[np.ndarray, np.ndarray]:
-    """Inlier count and sum of x per lattice row and image row: two ``(2K+1, H)`` int64 arrays."""
-    n_k = 2 * params.lattice_half + 1
-    cell = (k[inl].astype(np.int64) + params.lattice_half) * height + ys[inl]
-    cnt = np.bincount(cell, minlength=n_k * height).reshape(n_k, height)
-    sx = np.bincount(cell, weights=xs[inl], minlength=n_k * height)  # integer-valued, exact
-    return cnt.astype(np.int64), sx.astype(np.int64).reshape(n_k, height)
+    half = np.float64(params.lattice_tolerance) * dd
+    yy = np.arange(h)
+    cnt = np.zeros((2 * params.lattice_half + 1, h), np.int64)
+    sx = np.zeros_like(cnt)
+    with np.errstate(invalid="ignore", over="ignore"):
+        for i, k in enumerate(range(-params.lattice_half, params.lattice_half + 1)):
+            centre = cc + np.float64(k) * dd
+            lo, hi = centre - half, centre + half
+            good = ok & np.isfinite(lo) & np.isfinite(hi)
+            x0 = np.clip(np.floor(np.where(good, lo, 0.0)) + 1, 0, w).astype(np.int64)
+            x1 = np.clip(np.ceil(np.where(good, hi, 0.0)), 0, w).astype(np.int64)
+            x1 = np.where(good, np.maximum(x1, x0), x0)
+            cnt[i] = pre[yy, x1] - pre[yy, x0]
+            sx[i] = pre_x[yy, x1] - pre_x[yy, x0]
+    return cnt, sx
 
 
 def normal_equations(cnt: np.ndarray, sx: np.ndarray, height: int,
@@ -328,9 +356,10 @@ def normal_equations(cnt: np.ndarray, sx: np.ndarray, height: int,
     """Section 11.3: the least-squares system of one observation per occupied cell.
 
     Cell ``(k, y)`` with ``n > 0`` inliers observes ``x = q / G`` with ``q = round_half_even((G *
-    sum x) / n)`` (float64 division; ``G = lattice_cell_grid``), basis ``phi = (1, t, t^2, k, k t,
-    k t^2)``. ``M = sum phi phi^T`` and ``r = sum q phi`` are summed in int64 (exact), then
-    ``M`` is converted to float64 and ``r`` to float64 divided by ``G``.
+    sum x) / n)`` (float64 division; ``G = lattice_cell_grid``), basis ``phi`` =
+    :meth:`Params.lattice_basis` (``1, t, t^2 (, t^3), k, k t, k t^2``). ``M = sum phi phi^T`` and
+    ``r = sum q phi`` are summed in int64 (exact; :func:`torchrow.core.io.check_lattice_size`
+    bounds them), then ``M`` is converted to float64 and ``r`` to float64 divided by ``G``.
     """
     half = params.lattice_half
     kk, yy = np.nonzero(cnt > 0)
@@ -338,70 +367,76 @@ def normal_equations(cnt: np.ndarray, sx: np.ndarray, height: int,
     q = np.rint((np.float64(params.lattice_cell_grid) * sx[kk, yy].astype(np.float64)) / n).astype(np.int64)
     t = yy.astype(np.int64) - (height - 1)
     k = kk.astype(np.int64) - half
-    phi = np.stack([np.ones_like(t), t, t * t, k, k * t, k * t * t], axis=1)  # (cells, 6) int64
+    phi = np.stack([t**p * k**e for p, e in params.lattice_basis()], axis=1)  # (cells, n) int64
     m = (phi[:, :, None] * phi[:, None, :]).sum(axis=0)
     r = (phi * q[:, None]).sum(axis=0)
     return m.astype(np.float64), r.astype(np.float64) / np.float64(params.lattice_cell_grid)
 
 
 def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, params: Params) -> LatticeFit:
-    """Sections 11.2-11.4 on a green mask: comb start, then ``lattice_iterations`` refits.
+    """Sections 11.2-11.4 on a green mask: comb start, then up to ``lattice_iterations`` refits.
 
     Start: ``c(t) = phase + ((phase - xv) / (H-1 - yv)) t``, ``d(t) = d + (d / (H-1 - yv)) t``,
-    no ``t^2`` terms (straight rows through the VP). Each iteration assigns every mask pixel
-    below ``sky`` to ``k = round_half_even((x - c(t)) / d(t))`` (where ``d(t) >
-    lattice_min_spacing_px``), keeps it when ``|f - k| < lattice_tolerance`` and ``|k| <=
-    lattice_half``, and solves :func:`normal_equations`. With fewer than
-    ``lattice_min_points`` inlier pixels or a singular system the coefficients stay (and the
-    iterations stop).
+    no higher terms (straight rows through the VP). Each iteration takes the inlier cells of
+    :func:`row_cells` (mask pixels below ``sky``) and solves :func:`normal_equations`. With fewer
+    than ``lattice_min_points`` inlier pixels or a singular system the coefficients stay (and
+    the iterations stop); cells equal to the previous iteration's would give the same
+    coefficients again, so the iterations stop there too (a fixed point: the result is that
+    of running all of them).
     """
     h, w = mask.shape
+    check_lattice_size(w, h, params)
     v = vp_search(mask, params) if params.lattice_vp == "search" else init_vp(vp, w, params)
     d, phase, found = comb_search(mask, v, params)
     xv, yv = v
     den = np.float64(h - 1 - yv)
-    coef = np.array([np.float64(phase), (np.float64(phase) - np.float64(xv)) / den, 0.0,
+    coef = np.array([np.float64(phase), (np.float64(phase) - np.float64(xv)) / den, 0.0, 0.0,
                      np.float64(d), np.float64(d) / den, 0.0], np.float64)
-    ys, xs = np.nonzero(mask)
-    keep = ys >= sky
-    ys = ys[keep].astype(np.int64)
-    xs, t = xs[keep].astype(np.float64), (ys - (h - 1)).astype(np.float64)
+    mask = mask.copy()
+    mask[:max(sky, 0)] = False
+    where = coef_index(params)
+    last = None
     for _ in range(params.lattice_iterations):
-        k, inl = _assign(xs, t, coef, params)
-        if int(inl.sum()) < params.lattice_min_points:
+        cnt, sx = row_cells(mask, coef, params)
+        if int(cnt.sum()) < params.lattice_min_points:
             break
-        cnt, sx = row_cells(xs, ys, k, inl, h, params)
+        if last is not None and np.array_equal(cnt, last[0]) and np.array_equal(sx, last[1]):
+            break
         sol = solve_normal(*normal_equations(cnt, sx, h, params), params)
         if sol is None:
             break
-        coef = sol
-    k, inl = _assign(xs, t, coef, params)
-    cnt, _ = row_cells(xs, ys, k, inl, h, params)
+        coef = np.zeros(N_COEF, np.float64)
+        coef[where] = sol
+        last = (cnt, sx)
+    cnt, _ = row_cells(mask, coef, params)
     support = tuple(int(s) for s in (cnt > 0).sum(axis=1))
     span = h - max(sky, 0)
     return LatticeFit(tuple(float(c) for c in coef), d, phase, v, support, span, found)
 
 
 def lattice_rows(fit: LatticeFit, height: int, params: Params) -> list[Row]:
-    """Section 11.4: rows ``k = -K .. K`` as ``x = c*y^2 + a*y + b`` with a confidence.
+    """Section 11.4: rows ``k = -K .. K`` as ``x = e*y^3 + c*y^2 + a*y + b`` with a confidence.
 
-    With ``Y = H-1``: ``c = c2 + k d2``, ``a = (c1 + k d1) - (2 c) Y``, ``b = ((c0 + k d0) -
-    (c1 + k d1) Y) + c (Y Y)``. Confidence = image rows holding an inlier of the row /
-    image rows below the horizon. A row is valid iff the comb found pixels and its
-    confidence is ``>= lattice_min_confidence`` (reason ``no_support`` otherwise).
+    With ``Y = H-1``, ``s = c1 + k d1``, ``u = c2 + k d2``: ``e = c3``, ``c = u - (3 e) Y``,
+    ``a = (s - (2 u) Y) + (3 e) (Y Y)``, ``b = (((c0 + k d0) - s Y) + u (Y Y)) - e (Y Y Y)``.
+    Confidence = image rows holding an inlier of the row / image rows below the horizon. A
+    row is valid iff the comb found pixels and its confidence is ``>= lattice_min_confidence``
+    (reason ``no_support`` otherwise).
     """
-    c0, c1, c2, d0, d1, d2 = (np.float64(v) for v in fit.coef)
+    c0, c1, c2, c3, d0, d1, d2 = (np.float64(v) for v in fit.coef)
     yb = np.float64(height - 1)
     rows = []
     for i in range(2 * params.lattice_half + 1):
         k = np.float64(i - params.lattice_half)
         slope = c1 + k * d1
         curv = c2 + k * d2
-        a = slope - (np.float64(2.0) * curv) * yb
-        b = ((c0 + k * d0) - slope * yb) + curv * (yb * yb)
+        three = np.float64(3.0) * c3
+        a = (slope - (np.float64(2.0) * curv) * yb) + three * (yb * yb)
+        b = (((c0 + k * d0) - slope * yb) + curv * (yb * yb)) - c3 * (yb * yb * yb)
         conf = float(np.float64(fit.support[i]) / np.float64(max(fit.span, 1)))
         ok = fit.found and conf >= params.lattice_min_confidence
-        rows.append(Row(float(a), float(b), ok, "" if ok else "no_support", -1, float(curv), conf))
+        rows.append(Row(float(a), float(b), ok, "" if ok else "no_support", -1, float(curv - three * yb), conf,
+                        float(c3)))
     return rows
 
 
