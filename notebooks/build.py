@@ -249,7 +249,7 @@ print("\\n".join(worst_text))"""),
 `Params(mode="improved")` (ALGORITHM.md section 11, a torchrow extension): an excess-green mask
 with Otsu's threshold and each image row's mean, equally spaced rows found by a comb through the
 vanishing point (teeth minus the anti-teeth between them), then a curved lattice
-`x = c(t) + k d(t)` (quadratic `c` and `d`) refit by least squares; tuned on the 56 TMGEM
+`x = c(t) + k d(t)` (cubic `c`, quadratic `d`) refit by least squares; tuned on the 56 TMGEM
 training images only. Scores per subset, then the same six worst images of the faithful mode,
 faithful (top) and improved (bottom)."""),
     new_code_cell("""\
