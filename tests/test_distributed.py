@@ -69,6 +69,31 @@ def test_read_binary_items_on_ray_equal_the_cli(images: Path, tmp_path: Path) ->
     assert got == _lines(local)
 
 
+def _agree(a: object, b: object) -> bool:
+    """ALGORITHM.md "Identical results": everything equal, floats (continuous outputs) within 1e-6.
+
+    The batch a resumed run forms around an image depends on which images were done and on
+    Ray's timing, and the eager path's float sums run over the batch's padded sizes: a
+    synthetic field's row ``a`` differs by 2.8e-16 alone and in a batch of 12 (the spec allows
+    1e-6), while every discrete output is equal.
+    """
+    if isinstance(a, float) and isinstance(b, float):
+        return abs(a - b) <= 1e-6
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_agree(a[k], b[k]) for k in a)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(_agree(x, y) for x, y in zip(a, b))
+    return type(a) is type(b) and a == b
+
+
+def test_agree_is_the_spec_contract() -> None:
+    rec = {"name": "a", "rows": [{"a": 0.3376318642370483, "valid": True}], "k": 4}
+    assert _agree(rec, {"name": "a", "rows": [{"a": 0.33763186423704855, "valid": True}], "k": 4})
+    assert not _agree(rec, {"name": "a", "rows": [{"a": 0.3376, "valid": True}], "k": 4})
+    assert not _agree(rec, {"name": "a", "rows": [{"a": 0.3376318642370483, "valid": False}], "k": 4})
+    assert not _agree(rec, {"name": "a", "rows": [{"a": 0.3376318642370483, "valid": True}], "k": 5})
+
+
 def test_detect_ray_resume_and_parquet(images: Path, tmp_path: Path) -> None:
     pytest.importorskip("pyarrow")
     from torchrow.apps.sink import read_records
@@ -78,10 +103,11 @@ def test_detect_ray_resume_and_parquet(images: Path, tmp_path: Path) -> None:
     out = tmp_path / "ray.jsonl"
     out.write_text("\n".join(_lines(local)[:5]) + "\n" + _lines(local)[5][:20])
     assert main(["detect", str(images), "--out", str(out), "-q", "--engine", "ray", "--resume"]) == 0
-    assert _lines(out) == _lines(local)
+    assert _lines(out)[:5] == _lines(local)[:5]  # the records already written stay as they were
+    assert _agree([json.loads(s) for s in _lines(out)], [json.loads(s) for s in _lines(local)])
     pq = tmp_path / "ray.parquet"
     assert main(["detect", str(images), "--out", str(pq), "-q", "--engine", "ray", "--workers", "1"]) == 0
-    assert list(read_records(pq)) == [json.loads(s) for s in _lines(local)]
+    assert _agree(list(read_records(pq)), [json.loads(s) for s in _lines(local)])
 
 
 def test_video_ray_equals_local(tmp_path: Path) -> None:

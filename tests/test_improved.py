@@ -145,6 +145,38 @@ def test_row_cells_are_the_per_pixel_rule_on_both_paths(seed: int) -> None:
         assert np.array_equal(cnt[0].T.numpy(), want[0]) and np.array_equal(sx[0].T.numpy(), want[1])
 
 
+def _refit_every_iteration(mask: np.ndarray, params: Params) -> np.ndarray:
+    """Section 11.3 without the fixed-point stop: every iteration runs unless the inliers are too
+    few or the system is singular."""
+    h, w = mask.shape
+    xv, yv = rlat.vp_search(mask, params)
+    d, phase, _ = rlat.comb_search(mask, (xv, yv), params)
+    den = np.float64(h - 1 - yv)
+    coef = np.array([phase, (np.float64(phase) - xv) / den, 0, 0, d, np.float64(d) / den, 0], np.float64)
+    for _ in range(params.lattice_iterations):
+        cnt, sx = rlat.row_cells(mask, coef, params)
+        sol = None if cnt.sum() < params.lattice_min_points else rlat.solve_normal(
+            *rlat.normal_equations(cnt, sx, h, params), params)
+        if sol is None:
+            break
+        coef = np.zeros(rlat.N_COEF)
+        coef[rlat.coef_index(params)] = sol
+    return coef
+
+
+@pytest.mark.parametrize("iterations", [2, 40])
+def test_fixed_point_stop_gives_the_result_of_every_iteration(iterations: int) -> None:
+    params = IMPROVED.replace(lattice_iterations=iterations)
+    images = [_s_field(), _field(curve=0.001, seed=7), _field(spacing=45.0, shift=100.0, seed=3)]
+    masks = [rlat.green_mask(img, 0, params) for img in images] + [np.random.default_rng(2).random((240, 320)) < 0.2]
+    got = flat.fit_lattice(torch.from_numpy(np.stack(masks)), torch.zeros(len(masks), dtype=torch.int64),
+                           None, None, params)[0]
+    for i, mask in enumerate(masks):
+        want = _refit_every_iteration(mask, params)
+        assert np.array_equal(np.array(rlat.fit_lattice(mask, 0, None, params).coef), want)
+        assert np.array_equal(got[i].numpy(), want)
+
+
 def test_lattice_refuses_working_sizes_whose_sums_could_overflow() -> None:
     from torchrow.core.io import ImageError, check_lattice_size
 
