@@ -49,26 +49,6 @@ def images(tmp_path_factory) -> Path:
     return d
 
 
-def test_detect_ray_equals_local(images: Path, tmp_path: Path) -> None:
-    local, dist = tmp_path / "local.jsonl", tmp_path / "ray.jsonl"
-    assert main(["detect", str(images), "--out", str(local), "-q", "--batch-size", "4"]) == 0
-    assert main(["detect", str(images), "--out", str(dist), "-q", "--batch-size", "4", "--engine", "ray",
-                 "--workers", "2"]) == 0
-    assert _lines(dist) == _lines(local)  # same records, same (input) order
-    assert len(_lines(local)) == 14
-
-
-def test_read_binary_items_on_ray_equal_the_cli(images: Path, tmp_path: Path) -> None:
-    from torchrow.engines import distributed
-
-    local = tmp_path / "local.jsonl"
-    assert main(["detect", str(images), "--out", str(local), "-q"]) == 0
-    items = list(distributed.read_binary(str(images), width=320))
-    assert [n for n, _ in items] == [json.loads(s)["name"] for s in _lines(local)]
-    got = [json.dumps(r.to_record()) for _, _, r, _ in distributed.run(items, progress=False, batch_size=4)]
-    assert got == _lines(local)
-
-
 def _agree(a: object, b: object) -> bool:
     """ALGORITHM.md "Identical results": everything equal, floats (continuous outputs) within 1e-6.
 
@@ -84,6 +64,26 @@ def _agree(a: object, b: object) -> bool:
     if isinstance(a, list) and isinstance(b, list):
         return len(a) == len(b) and all(_agree(x, y) for x, y in zip(a, b))
     return type(a) is type(b) and a == b
+
+
+def test_detect_ray_equals_local(images: Path, tmp_path: Path) -> None:
+    local, dist = tmp_path / "local.jsonl", tmp_path / "ray.jsonl"
+    assert main(["detect", str(images), "--out", str(local), "-q", "--batch-size", "4"]) == 0
+    assert main(["detect", str(images), "--out", str(dist), "-q", "--batch-size", "4", "--engine", "ray",
+                 "--workers", "2"]) == 0
+    assert _agree([json.loads(s) for s in _lines(dist)], [json.loads(s) for s in _lines(local)])  # same order
+    assert len(_lines(local)) == 14
+
+
+def test_read_binary_items_on_ray_equal_the_cli(images: Path, tmp_path: Path) -> None:
+    from torchrow.engines import distributed
+
+    local = tmp_path / "local.jsonl"
+    assert main(["detect", str(images), "--out", str(local), "-q"]) == 0
+    items = list(distributed.read_binary(str(images), width=320))
+    assert [n for n, _ in items] == [json.loads(s)["name"] for s in _lines(local)]
+    got = [r.to_record() for _, _, r, _ in distributed.run(items, progress=False, batch_size=4)]
+    assert _agree(got, [json.loads(s) for s in _lines(local)])
 
 
 def test_agree_is_the_spec_contract() -> None:
