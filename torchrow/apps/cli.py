@@ -706,7 +706,9 @@ def _with_mode(params: Params, args: argparse.Namespace) -> Params:
     if mode == "improved" and getattr(args, "impl", None) == "onnx":
         raise CLIError("--mode improved has no ONNX export yet; use --impl tensor or reference")
     if mode == "improved" and args.command == "video":
-        raise CLIError("--mode improved is not available for video yet (the tracker is faithful only)")
+        raise CLIError("--mode improved is not available for video yet: the tracker is faithful only, and the "
+                       "lattice's CRBD geometry (vanishing point above the image, rows 40-180 px apart) does not "
+                       "hold for a camera that sees the horizon (ALGORITHM.md 11.5)")
     return params.replace(mode=mode)
 
 
