@@ -253,6 +253,21 @@ def test_cubic_lattice_follows_an_s_bend_that_a_quadratic_cannot() -> None:
     _records_equal(detect(img, IMPROVED), got)
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_row_polynomials_are_the_lattice_model(seed: int) -> None:
+    # section 11.4 expands x_k(y) = c(t) + k d(t), t = y - (H-1), into e y^3 + c y^2 + a y + b
+    rng = np.random.default_rng(seed)
+    coef = (rng.uniform(100, 200), rng.normal() * 0.3, rng.normal() * 1e-3, rng.normal() * 1e-5,
+            rng.uniform(40, 120), rng.normal() * 0.2, rng.normal() * 1e-4)
+    fit = rlat.LatticeFit(coef, 90, 160, (160, -60), (100, 120, 140), 240, True)
+    rows = rlat.lattice_rows(fit, 240, IMPROVED)
+    y = np.arange(240.0)
+    cc, dd = rlat.centre_spacing(y - 239, np.array(coef))
+    for k, row in zip((-1, 0, 1), rows):
+        np.testing.assert_allclose(row.x_at(y), cc + k * dd, atol=1e-6)
+        assert row.e == coef[3]
+
+
 def test_faithful_rows_carry_zero_curvature() -> None:
     res = detect(_field(), Params())
     rec = res.to_record()
