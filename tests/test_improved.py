@@ -177,18 +177,23 @@ def test_fixed_point_stop_gives_the_result_of_every_iteration(iterations: int) -
         assert np.array_equal(got[i].numpy(), want)
 
 
-def test_lattice_refuses_working_sizes_whose_sums_could_overflow() -> None:
-    from torchrow.core.io import ImageError, check_lattice_size
+def test_tall_images_fall_back_to_a_quadratic_where_cubic_sums_could_overflow() -> None:
+    from torchrow.core.io import ImageError, lattice_params
 
-    check_lattice_size(320, 240, IMPROVED)
-    check_lattice_size(4096, 4096, IMPROVED.replace(lattice_center_degree=2))
-    with pytest.raises(ImageError, match="lattice_center_degree=2"):
-        check_lattice_size(800, 600, IMPROVED)
-    mask = np.zeros((600, 8), bool)
-    with pytest.raises(ImageError, match="8x600"):
-        rlat.fit_lattice(mask, 0, None, IMPROVED)
-    with pytest.raises(ImageError, match="8x600"):
-        flat.fit_lattice(torch.from_numpy(mask)[None], torch.zeros(1, dtype=torch.int64), None, None, IMPROVED)
+    assert lattice_params(320, 240, IMPROVED) is IMPROVED
+    assert lattice_params(640, 578, IMPROVED) is IMPROVED
+    assert lattice_params(800, 579, IMPROVED) == IMPROVED.replace(lattice_center_degree=2)
+    assert lattice_params(4096, 4096, IMPROVED.replace(lattice_center_degree=2)).lattice_center_degree == 2
+    with pytest.raises(ImageError, match="too large"):
+        lattice_params(64, 4096, IMPROVED.replace(lattice_half=64, lattice_cell_grid=2**16))
+    mask = np.zeros((600, 120), bool)
+    for x0 in (15, 55, 95):  # three slanted stripes
+        for y in range(600):
+            mask[y, x0 + y // 60:x0 + y // 60 + 4] = True
+    fit = rlat.fit_lattice(mask, 0, None, IMPROVED)
+    assert fit.found and fit.coef[3] == 0.0
+    got = flat.fit_lattice(torch.from_numpy(mask)[None], torch.zeros(1, dtype=torch.int64), None, None, IMPROVED)[0]
+    assert np.array_equal(got[0].numpy(), np.array(fit.coef))
 
 
 def test_otsu_separates_two_populations() -> None:

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 __all__ = ["ImageError", "IMAGE_EXTENSIONS", "MAX_DECODE_PIXELS", "to_rgb8", "resize_to_width", "load_image",
-           "decode_image", "working_size", "check_working_size", "check_lattice_size", "check_color", "header_size"]
+           "decode_image", "working_size", "check_working_size", "lattice_params", "check_color", "header_size"]
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 
@@ -61,21 +61,28 @@ def _lattice_sums_fit(height: int, width: int, basis: tuple[tuple[int, int], ...
     return rows * top_m < 2**63 and rows * grid * max(width - 1, 1) * top_r < 2**63
 
 
-def check_lattice_size(width: int, height: int, params: Any) -> None:
-    """The improved mode's refit sums in int64 (ALGORITHM.md 11.3): one rule for both paths.
+def lattice_params(width: int, height: int, params: Any) -> Any:
+    """The improved mode's refit parameters for a ``width x height`` image (ALGORITHM.md 11.3):
+    one rule for both paths.
+
+    The refit sums its normal equations in int64. Where they could overflow with a cubic
+    central row (more than 578 rows at ``lattice_half`` 1 and ``lattice_cell_grid`` 64) the
+    image is fitted with a quadratic one (``lattice_center_degree`` 2, its records' ``e`` = 0),
+    so a large working size still gets rows; the parameters are returned unchanged otherwise.
 
     Raises
     ------
     ImageError
-        If the normal equations of a ``width x height`` image could overflow int64 for
-        ``params.lattice_center_degree``, ``lattice_half`` and ``lattice_cell_grid`` (a cubic
-        central row allows 578 rows at ``lattice_half`` 1 and ``lattice_cell_grid`` 64, a quadratic one more than 4096).
+        If even the quadratic sums could overflow (``lattice_half`` and ``lattice_cell_grid``
+        near their bounds on a very tall image).
     """
-    if not _lattice_sums_fit(int(height), int(width), params.lattice_basis(), params.lattice_half,
-                             params.lattice_cell_grid):
-        raise ImageError(f"working size {width}x{height} is too large for the improved mode's exact refit "
-                         f"(ALGORITHM.md 11.3: int64 sums of t**{2 * max(p for p, _ in params.lattice_basis())} "
-                         f"over {height} rows); use a smaller Params.image_width or lattice_center_degree=2")
+    for degree in range(params.lattice_center_degree, 1, -1):
+        p = params if degree == params.lattice_center_degree else params.replace(lattice_center_degree=degree)
+        if _lattice_sums_fit(int(height), int(width), p.lattice_basis(), p.lattice_half, p.lattice_cell_grid):
+            return p
+    raise ImageError(f"working size {width}x{height} is too large for the improved mode's exact refit "
+                     f"(ALGORITHM.md 11.3: int64 sums over {height} rows with lattice_half "
+                     f"{params.lattice_half}); use a smaller Params.image_width")
 
 
 def to_rgb8(image: np.ndarray) -> np.ndarray:

@@ -111,7 +111,7 @@ class Params:
     lattice_max_spacing: int = 180  # px, largest
     lattice_window: float = 0.1  # comb tooth half-width, fraction of the spacing
     lattice_iterations: int = 20  # least-squares refits at most (a refit whose cells repeat stops early)
-    lattice_center_degree: int = 3  # degree of the central row c(t): 3 (S-bends) or 2 (sessions 4-10)
+    lattice_center_degree: int = 3  # degree of the central row c(t): 3 (S-bends; 2 above 578 rows) or 2
     lattice_tolerance: float = 0.15  # inlier: within this fraction of the spacing of its row
     lattice_half: int = 1  # rows k = -K..K around the central row are fitted and reported
     lattice_min_points: int = 20  # fewer inliers: the refit stops

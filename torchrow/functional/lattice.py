@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import torch
 
-from torchrow.core.io import check_lattice_size
+from torchrow.core.io import lattice_params
 from torchrow.core.params import Params
 
 __all__ = ["LatticeRows", "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_table",
@@ -345,7 +345,7 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor, has_vp:
     sums (about 40 MB for 64 images of 320x240) besides the mask.
     """
     bsz, h, w = mask.shape
-    check_lattice_size(w, h, params)
+    params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
     dev = mask.device
     v = vp_search(mask, params) if params.lattice_vp == "search" else init_vp(vp, has_vp, w, params)
     spacing, phase, found = comb_search(mask, v, params)

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from torchrow.core.io import check_lattice_size
+from torchrow.core.io import lattice_params
 from torchrow.core.params import Params
 from torchrow.core.results import Row
 
@@ -358,8 +358,8 @@ def normal_equations(cnt: np.ndarray, sx: np.ndarray, height: int,
     Cell ``(k, y)`` with ``n > 0`` inliers observes ``x = q / G`` with ``q = round_half_even((G *
     sum x) / n)`` (float64 division; ``G = lattice_cell_grid``), basis ``phi`` =
     :meth:`Params.lattice_basis` (``1, t, t^2 (, t^3), k, k t, k t^2``). ``M = sum phi phi^T`` and
-    ``r = sum q phi`` are summed in int64 (exact; :func:`torchrow.core.io.check_lattice_size`
-    bounds them), then ``M`` is converted to float64 and ``r`` to float64 divided by ``G``.
+    ``r = sum q phi`` are summed in int64 (exact; :func:`torchrow.core.io.lattice_params`
+    keeps them in range), then ``M`` is converted to float64 and ``r`` to float64 divided by ``G``.
     """
     half = params.lattice_half
     kk, yy = np.nonzero(cnt > 0)
@@ -385,7 +385,7 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
     of running all of them).
     """
     h, w = mask.shape
-    check_lattice_size(w, h, params)
+    params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
     v = vp_search(mask, params) if params.lattice_vp == "search" else init_vp(vp, w, params)
     d, phase, found = comb_search(mask, v, params)
     xv, yv = v
