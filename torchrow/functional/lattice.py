@@ -5,7 +5,8 @@ sum that decides a discrete output adds integers (exact in float64 whatever the 
 other float is the reference's expression in its order, so the results are identical.
 
 Memory: a few ``(B, H, W)`` int64/float64/bool temporaries (about 40 bytes per pixel,
-~200 MB for a batch of 64 images of 320x240) plus ``(B, 3W)`` comb histograms.
+~200 MB for a batch of 64 images of 320x240: the mask, the VP search's cells, the comb's
+projections, the refit's two prefix sums) plus ``(B, 3W)`` comb histograms.
 """
 
 from __future__ import annotations
@@ -341,8 +342,9 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor, has_vp:
     The cells (count and x sum of the inliers per image row and lattice row) are integer sums,
     so the normal equations equal the reference's bit for bit. An image stops when it has too
     few inliers, a singular system, or cells equal to its previous step's (a fixed point);
-    the loop ends once every image has stopped. Peak memory: two ``(B, H, W+1)`` int64 prefix
-    sums (about 40 MB for 64 images of 320x240) besides the mask.
+    the loop ends once every image has stopped. Memory: two ``(B, H, W+1)`` int64 prefix sums
+    (about 40 MB each for 64 images of 320x240) besides the mask; a step's own temporaries are
+    ``(B, H, 2K+1)``.
     """
     bsz, h, w = mask.shape
     params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
