@@ -139,7 +139,7 @@ def test_row_cells_are_the_per_pixel_rule_on_both_paths(seed: int) -> None:
     pre = flat.prefix_sums(torch.from_numpy(mask)[None])
     for coef in coefs:
         want = _cells_by_pixel(mask, coef, params)
-        got = rlat.row_cells(mask, coef, params)
+        got = rlat.row_cells(rlat.prefix_sums(mask), coef, params)
         assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
         cnt, sx = flat.row_cells(pre, torch.from_numpy(coef)[None], params)
         assert np.array_equal(cnt[0].T.numpy(), want[0]) and np.array_equal(sx[0].T.numpy(), want[1])
@@ -154,13 +154,13 @@ def _refit_every_iteration(mask: np.ndarray, params: Params) -> np.ndarray:
     den = np.float64(h - 1 - yv)
     coef = np.array([phase, (np.float64(phase) - xv) / den, 0, 0, d, np.float64(d) / den, 0], np.float64)
     for _ in range(params.lattice_iterations):
-        cnt, sx = rlat.row_cells(mask, coef, params)
+        cnt, sx = rlat.row_cells(rlat.prefix_sums(mask), coef, params)
         sol = None if cnt.sum() < params.lattice_min_points else rlat.solve_normal(
             *rlat.normal_equations(cnt, sx, h, params), params)
         if sol is None:
             break
         coef = np.zeros(rlat.N_COEF)
-        coef[rlat.coef_index(params)] = sol
+        coef[params.lattice_coef_index()] = sol
     return coef
 
 

@@ -142,6 +142,11 @@ class Params:
         """
         return tuple((j, 0) for j in range(self.lattice_center_degree + 1)) + ((0, 1), (1, 1), (2, 1))
 
+    def lattice_coef_index(self) -> list[int]:
+        """Where each function of :meth:`lattice_basis` sits in the coefficients ``(c0, c1, c2, c3,
+        d0, d1, d2)`` of section 11.3 (the refit's solution fills these, the others are 0)."""
+        return [p if k == 0 else 4 + p for p, k in self.lattice_basis()]
+
     def hough_band_px(self, width: int) -> int:
         """Band (px) erased around each picked Hough line: ``int(W / 30)`` unless set."""
         return self.hough_band if self.hough_band is not None else int(width / 30)

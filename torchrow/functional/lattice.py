@@ -358,7 +358,7 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor, has_vp:
     coef = torch.stack([ph, (ph - v[:, 0].to(torch.float64)) / den, zero, zero, sp, sp / den, zero], dim=1)
     rows = torch.arange(h, device=dev).view(1, h, 1)
     pre = prefix_sums(mask & (rows >= sky.to(torch.int64).view(-1, 1, 1)))
-    where = [p if e == 0 else 4 + p for p, e in params.lattice_basis()]
+    where = params.lattice_coef_index()
     active = torch.ones(bsz, dtype=torch.bool, device=dev)
     last = None
     for _ in range(params.lattice_iterations):

@@ -26,7 +26,7 @@ from torchrow.core.params import Params
 from torchrow.core.results import Row
 
 __all__ = ["LatticeFit", "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_grid",
-           "vp_cells", "vp_search", "comb_search", "coef_index", "solve_normal", "centre_spacing", "row_cells",
+           "vp_cells", "vp_search", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
            "normal_equations", "fit_lattice", "lattice_rows", "N_COEF"]
 
 #: Coefficients ``(c0, c1, c2, c3, d0, d1, d2)`` of ``x = c(t) + k d(t)``, ``c(t) = c0 + c1 t + c2 t^2 +
@@ -273,11 +273,6 @@ def comb_search(mask: np.ndarray, vp: tuple[int, int], params: Params) -> tuple[
     return d_q, p_q + k0 * d_q, True
 
 
-def coef_index(params: Params) -> list[int]:
-    """Where each basis function of :meth:`Params.lattice_basis` sits in ``coef`` (section 11.3)."""
-    return [p if k == 0 else 4 + p for p, k in params.lattice_basis()]
-
-
 def solve_normal(m: np.ndarray, r: np.ndarray, params: Params) -> np.ndarray | None:
     """Gaussian elimination without pivoting of the SPD system ``m z = r`` (``n x n``, float64).
 
@@ -317,21 +312,30 @@ def centre_spacing(t: np.ndarray, coef: np.ndarray) -> tuple[np.ndarray, np.ndar
     return ((c0 + c1 * t) + c2 * tt) + c3 * (tt * t), (d0 + d1 * t) + d2 * tt
 
 
-def row_cells(mask: np.ndarray, coef: np.ndarray, params: Params) -> tuple[np.ndarray, np.ndarray]:
-    """Section 11.3: inlier count and sum of x per lattice row and image row, two ``(2K+1, H)`` int64.
-
-    On image row ``y`` (``t = y - (H-1)``) where ``d(t) > lattice_min_spacing_px``, the inliers
-    of row ``k`` are the mask pixels with ``lo < x < hi``: ``centre = c(t) + k d(t)``,
-    ``half = lattice_tolerance * d(t)``, ``lo = centre - half``, ``hi = centre + half`` (float64,
-    this order), i.e. the columns ``floor(lo) + 1 .. ceil(hi) - 1`` clipped to the image. The
-    counts and sums are differences of the mask's per-row prefix sums (integers).
-    """
+def prefix_sums(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per image row, the count and the x sum of the mask's pixels left of each column: two
+    ``(H, W+1)`` int64 (entry ``j`` covers columns ``0 .. j-1``). Built once per image; every
+    refit step reads them."""
     h, w = mask.shape
     m = mask.astype(np.int64)
     pre = np.zeros((h, w + 1), np.int64)
     pre_x = np.zeros((h, w + 1), np.int64)
     pre[:, 1:] = np.cumsum(m, axis=1)
     pre_x[:, 1:] = np.cumsum(m * np.arange(w, dtype=np.int64), axis=1)
+    return pre, pre_x
+
+
+def row_cells(pre: tuple[np.ndarray, np.ndarray], coef: np.ndarray, params: Params) -> tuple[np.ndarray, np.ndarray]:
+    """Section 11.3: inlier count and sum of x per lattice row and image row, two ``(2K+1, H)`` int64.
+
+    On image row ``y`` (``t = y - (H-1)``) where ``d(t) > lattice_min_spacing_px``, the inliers
+    of row ``k`` are the mask pixels with ``lo < x < hi``: ``centre = c(t) + k d(t)``,
+    ``half = lattice_tolerance * d(t)``, ``lo = centre - half``, ``hi = centre + half`` (float64,
+    this order), i.e. the columns ``floor(lo) + 1 .. ceil(hi) - 1`` clipped to the image. The
+    counts and sums are differences of the mask's :func:`prefix_sums` (integers).
+    """
+    pre, pre_x = pre
+    h, w = pre.shape[0], pre.shape[1] - 1
     cc, dd = centre_spacing(np.arange(h, dtype=np.float64) - np.float64(h - 1), coef)
     ok = dd > params.lattice_min_spacing_px
     half = np.float64(params.lattice_tolerance) * dd
@@ -394,10 +398,11 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
                      np.float64(d), np.float64(d) / den, 0.0], np.float64)
     mask = mask.copy()
     mask[:max(sky, 0)] = False
-    where = coef_index(params)
+    pre = prefix_sums(mask)
+    where = params.lattice_coef_index()
     last = None
     for _ in range(params.lattice_iterations):
-        cnt, sx = row_cells(mask, coef, params)
+        cnt, sx = row_cells(pre, coef, params)
         if int(cnt.sum()) < params.lattice_min_points:
             break
         if last is not None and np.array_equal(cnt, last[0]) and np.array_equal(sx, last[1]):
@@ -408,7 +413,7 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
         coef = np.zeros(N_COEF, np.float64)
         coef[where] = sol
         last = (cnt, sx)
-    cnt, _ = row_cells(mask, coef, params)
+    cnt, _ = row_cells(pre, coef, params)
     support = tuple(int(s) for s in (cnt > 0).sum(axis=1))
     span = h - max(sky, 0)
     return LatticeFit(tuple(float(c) for c in coef), d, phase, v, support, span, found)
