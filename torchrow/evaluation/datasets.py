@@ -1,4 +1,8 @@
-"""Loader for the Crop Row Benchmark Dataset (CRBD) in the authors' release layout.
+"""Loaders for the Crop Row Benchmark Dataset (CRBD) and the Crop Row Detection Lincoln Dataset
+(CRDLD), each in its authors' layout.
+
+CRBD
+----
 
 Layout (the folder given, or its ``crbd/`` sub-folder)::
 
@@ -11,6 +15,10 @@ Layout (the folder given, or its ``crbd/`` sub-folder)::
 Only ``Images/`` and ``GT data/`` are required. The classification files and the TMGEM
 results are read on first use; when absent, only the methods that need them raise.
 
+CRDLD (:class:`CRDLD`): a split folder holding ``image/N.jpg`` (RGB) and ``label/N.jpg``
+(white polyline masks at any size), or a folder holding ``train/`` and ``test/`` split
+folders, or a data folder holding ``crdld_dev/``.
+
 The data location is never hard-coded: pass it, or set ``TORCHROW_DATA`` (see
 :func:`resolve_data_root`).
 """
@@ -22,11 +30,18 @@ import re
 import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
 import numpy as np
 
-__all__ = ["ENV_VAR", "SUBSETS", "resolve_data_root", "GroundTruth", "CRBDItem", "CRBD"]
+from torchrow.core.io import IMAGE_EXTENSIONS
+from torchrow.core.params import Params
+
+if TYPE_CHECKING:
+    from torchrow.evaluation.crdld import CRDLDTruth
+
+__all__ = ["ENV_VAR", "SUBSETS", "CRDLD_SPLITS", "resolve_data_root", "GroundTruth", "CRBDItem", "CRBD",
+           "CRDLDItem", "CRDLD"]
 
 #: Environment variable naming the data folder (or the CRBD folder itself).
 ENV_VAR = "TORCHROW_DATA"
@@ -36,6 +51,10 @@ SUBSETS = ("all", "straight", "curved", "train", "test")
 
 _LAYOUT = ("Images/crop_row_NNN.JPG|jpg, GT data/crop_row_NNN.crp, "
            "TMGEM results/crop_row_NNN.tmg")
+#: Splits of :class:`CRDLD`.
+CRDLD_SPLITS = ("train", "test")
+_CRDLD_LAYOUT = "image/N.jpg and label/N.jpg"
+_CRDLD_DIR = "crdld_dev"
 _IMAGE_RE = re.compile(r"^(crop_row_(\d+))\.jpe?g$", re.IGNORECASE)
 _ROW_SET_FILE = "imageClassification.txt"
 _TMGEM_SET_FILE = "imageClassificationTMGEM.txt"
@@ -414,3 +433,160 @@ class CRBD:
         else:
             raise ValueError(f"unknown subset {subset!r}; expected one of {', '.join(SUBSETS)}")
         return [i for i, s in enumerate(self.stems) if table.get(s.lower()) in want]
+
+
+@dataclass(frozen=True)
+class CRDLDItem:
+    """One CRDLD image: paths and its ground truth.
+
+    Attributes
+    ----------
+    name : str
+        Image file name (``12.jpg``).
+    image_path, label_path : pathlib.Path
+    ground_truth : CRDLDTruth
+        Labelled lines in the image's own pixels (:func:`torchrow.evaluation.crdld.truth_from_mask`).
+    """
+
+    name: str
+    image_path: Path
+    label_path: Path
+    ground_truth: CRDLDTruth
+
+
+def _number_key(path: Path) -> tuple[int, int, str]:
+    """Numeric file names first, by number (0, 1, 2, ..., 10), then the others by name."""
+    stem = path.stem
+    return (0, int(stem), path.name) if stem.isdigit() else (1, 0, path.name)
+
+
+class CRDLD:
+    """A split of the Crop Row Detection Lincoln Dataset, items sorted by image number.
+
+    Parameters
+    ----------
+    root : str or path-like, optional
+        A split folder holding ``image/`` and ``label/``; or a folder holding ``train/`` and
+        ``test/`` split folders; or a data folder holding ``crdld_dev/`` with them. Default:
+        ``TORCHROW_DATA`` (:func:`resolve_data_root`).
+    split : {"test", "train"}
+        The split taken where ``root`` holds split folders.
+
+    Attributes
+    ----------
+    root : pathlib.Path
+        The split folder itself.
+    names : list of str
+        Image file names (``N.jpg``).
+
+    Raises
+    ------
+    FileNotFoundError
+        One line naming the expected layout and the path given, when no folder there holds
+        ``image/`` and ``label/``, when ``image/`` has no images, or when an image has no label
+        (``label/<stem>.*``).
+    ValueError
+        For an unknown split.
+    """
+
+    def __init__(self, root: str | os.PathLike[str] | None = None, split: str = "test") -> None:
+        if split not in CRDLD_SPLITS:
+            raise ValueError(f"unknown CRDLD split {split!r}; expected one of {', '.join(CRDLD_SPLITS)}")
+        given = resolve_data_root(root)
+        base = next((c for c in (given, given / split, given / _CRDLD_DIR / split)
+                     if (c / "image").is_dir() and (c / "label").is_dir()), None)
+        if base is None:
+            self._layout_error(given, split, "no image/ and label/ folders")
+        self.root = base
+        self.split = split
+        images = sorted((p for p in (base / "image").iterdir()
+                         if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS), key=_number_key)
+        if not images:
+            self._layout_error(given, split, "no images in image/")
+        labels: dict[str, Path] = {}
+        for p in sorted((base / "label").iterdir()):
+            if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS:
+                labels.setdefault(p.stem, p)
+        missing = [p.name for p in images if p.stem not in labels]
+        if missing:
+            self._layout_error(given, split, f"{len(missing)} label(s) missing, e.g. for image/{missing[0]}")
+        self._images = images
+        self._labels = [labels[p.stem] for p in images]
+        self.names: list[str] = [p.name for p in images]
+        self._gt_cache: dict[int, CRDLDTruth] = {}
+
+    @staticmethod
+    def _layout_error(given: Path, split: str, why: str) -> NoReturn:
+        raise FileNotFoundError(
+            f"not a CRDLD folder ({why}): expected {_CRDLD_LAYOUT} under {str(given)!r}, its "
+            f"'{split}/' or its '{_CRDLD_DIR}/{split}/' sub-folder")
+
+    def _index(self, i: int) -> int:
+        n = len(self.names)
+        i = int(i)
+        if not -n <= i < n:
+            raise IndexError(f"CRDLD index {i} out of range for {n} images")
+        return i % n
+
+    def image_path(self, i: int) -> Path:
+        """Path of image ``i``."""
+        return self._images[self._index(i)]
+
+    def label_path(self, i: int) -> Path:
+        """Path of the label mask of image ``i``."""
+        return self._labels[self._index(i)]
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def __getitem__(self, i: int) -> CRDLDItem:
+        i = self._index(i)
+        return CRDLDItem(self.names[i], self._images[i], self._labels[i], self.ground_truth(i))
+
+    def __iter__(self):
+        for i in range(len(self)):
+            yield self[i]
+
+    def __repr__(self) -> str:
+        return f"CRDLD({str(self.root)!r}, {len(self)} images)"
+
+    def image(self, i: int, width: int | None = Params.image_width) -> np.ndarray:
+        """Image ``i`` as ``uint8 (h, w, 3)`` RGB, resized to ``width`` as the detector does
+        (default the working width, 320: what a detector takes); ``width=None`` keeps the
+        stored size, the pixels of :meth:`ground_truth`."""
+        from torchrow.core.io import load_image
+
+        return load_image(self.image_path(i), width)
+
+    def image_size(self, i: int) -> tuple[int, int]:
+        """``(width, height)`` of image ``i`` as stored (px), from the JPEG header when possible."""
+        size = _jpeg_size(self.image_path(i))
+        if size is None:
+            h, w = self.image(i, None).shape[:2]
+            size = (w, h)
+        return size
+
+    def ground_truth(self, i: int) -> CRDLDTruth:
+        """Labelled lines of image ``i`` in its stored pixels (the mask scaled to the image size);
+        computed once per dataset object.
+
+        Raises
+        ------
+        ValueError
+            If the label cannot be decoded.
+        """
+        import cv2
+
+        from torchrow.evaluation.crdld import truth_from_mask
+
+        i = self._index(i)
+        gt = self._gt_cache.get(i)
+        if gt is None:
+            path = self._labels[i]
+            mask = cv2.imdecode(np.fromfile(path, dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
+            if mask is None:
+                raise ValueError(f"cannot decode label mask: {path}")
+            w, h = self.image_size(i)
+            gt = truth_from_mask(mask, w, h)
+            self._gt_cache[i] = gt
+        return gt
