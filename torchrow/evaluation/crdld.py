@@ -40,7 +40,8 @@ import cv2
 import numpy as np
 
 __all__ = ["CUT_PX", "LINK_PX", "MAX_GAP", "MIN_ROWS", "SIGMAS", "CRDLDTruth", "CRDLDScore",
-           "truth_from_mask", "extract_lines", "detected_x", "score_image", "central_mae", "score"]
+           "truth_from_mask", "extract_lines", "detected_x", "score_image", "central_mae", "score",
+           "LOW_SCORE", "CRDLDSummary", "summarize", "format_table", "match_records"]
 
 #: Adjacent labelled lines closer than this (px) on a row: that row and all above are ignored.
 CUT_PX = 12.0
@@ -424,3 +425,129 @@ def score(result: Any, truth: CRDLDTruth) -> CRDLDScore:
     else:
         err = _errors(rows, status, truth, size)
     return CRDLDScore(_crda(err, truth, SIGMAS[0]), _crda(err, truth, SIGMAS[1]), _mae(err, truth))
+
+
+#: Among ``ok`` images, the summary counts those scoring below this at sigma 0.1 (a wrong pick).
+LOW_SCORE = 0.2
+
+
+@dataclass(frozen=True)
+class CRDLDSummary:
+    """Summary of a CRDLD run (:func:`summarize`).
+
+    Attributes
+    ----------
+    n : int
+        Images.
+    n_scored : int
+        Images whose mask gives scored pairs; the means and medians are over these.
+    mean01, median01, mean03, median03 : float
+        Score at sigma 0.1 and 0.3 (NaN without a scored image).
+    mae_mean, mae_median : float
+        Central-line MAE (px) over the ``n_mae`` images where it is defined.
+    n_mae : int
+    statuses : dict of str to int
+        Records per status (``missing``: an image without a record).
+    ok_fraction : float
+        Fraction of the images whose status is ``ok``.
+    ok_low_fraction : float
+        Among the scored ``ok`` images, the fraction scoring below :data:`LOW_SCORE` at sigma 0.1.
+    """
+
+    n: int
+    n_scored: int
+    mean01: float
+    median01: float
+    mean03: float
+    median03: float
+    mae_mean: float
+    mae_median: float
+    n_mae: int
+    statuses: dict[str, int]
+    ok_fraction: float
+    ok_low_fraction: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict (NaN -> None)."""
+        def num(v: Any) -> Any:
+            return None if isinstance(v, float) and not math.isfinite(v) else v
+
+        return {f: num(getattr(self, f)) for f in self.__dataclass_fields__}
+
+
+def summarize(statuses: Iterable[str], scores: Iterable[CRDLDScore]) -> CRDLDSummary:
+    """Summary of per-image statuses and scores (same order).
+
+    Raises
+    ------
+    ValueError
+        If the two have different lengths.
+    """
+    st, sc = list(statuses), list(scores)
+    if len(st) != len(sc):
+        raise ValueError(f"statuses and scores differ in length: {len(st)} and {len(sc)}")
+    s01 = np.array([s.sigma01 for s in sc], dtype=np.float64)
+    s03 = np.array([s.sigma03 for s in sc], dtype=np.float64)
+    mae = np.array([s.central_mae for s in sc], dtype=np.float64)
+    scored, has_mae = np.isfinite(s01), np.isfinite(mae)
+    ok = np.array([x == "ok" for x in st], dtype=bool)
+
+    def stat(f: Any, a: np.ndarray) -> float:
+        return float(f(a)) if a.size else float("nan")
+
+    counts: dict[str, int] = {}
+    for x in st:
+        counts[x] = counts.get(x, 0) + 1
+    ok_scored = ok & scored
+    return CRDLDSummary(
+        n=len(st), n_scored=int(scored.sum()),
+        mean01=stat(np.mean, s01[scored]), median01=stat(np.median, s01[scored]),
+        mean03=stat(np.mean, s03[scored]), median03=stat(np.median, s03[scored]),
+        mae_mean=stat(np.mean, mae[has_mae]), mae_median=stat(np.median, mae[has_mae]), n_mae=int(has_mae.sum()),
+        statuses=dict(sorted(counts.items())), ok_fraction=stat(np.mean, ok.astype(np.float64)),
+        ok_low_fraction=stat(np.mean, (s01[ok_scored] < LOW_SCORE).astype(np.float64)))
+
+
+def format_table(rows: Iterable[tuple[str, CRDLDSummary]]) -> str:
+    """Markdown table, one line per ``(label, summary)``."""
+    def pair(a: float, b: float, digits: int = 3) -> str:
+        return "-" if not math.isfinite(a) else f"{a:.{digits}f} / {b:.{digits}f}"
+
+    out = ["| run | images (scored) | sigma 0.1 mean / median | sigma 0.3 mean / median | "
+           "central MAE px mean / median | ok | ok below 0.2 | statuses |",
+           "|---|---|---|---|---|---|---|---|"]
+    for label, s in rows:
+        statuses = ", ".join(f"{k} {v}" for k, v in s.statuses.items())
+        low = "-" if not math.isfinite(s.ok_low_fraction) else f"{s.ok_low_fraction:.1%}"
+        ok = "-" if not math.isfinite(s.ok_fraction) else f"{s.ok_fraction:.1%}"
+        out.append(f"| {label} | {s.n} ({s.n_scored}) | {pair(s.mean01, s.median01)} | "
+                   f"{pair(s.mean03, s.median03)} | {pair(s.mae_mean, s.mae_median, 1)} | {ok} | {low} | {statuses} |")
+    return "\n".join(out)
+
+
+def match_records(names: Iterable[str], records: Iterable[Mapping[str, Any]]) -> list[Mapping[str, Any] | None]:
+    """The record of each image name (``12.jpg``): the record named so, else the one whose name
+    ends in ``/12.jpg`` (records of ``torchrow detect`` over several folders); None when absent.
+
+    Raises
+    ------
+    ValueError
+        If two records end in the same file name and neither is named exactly so.
+    """
+    exact: dict[str, Mapping[str, Any]] = {}
+    by_base: dict[str, list[Mapping[str, Any]]] = {}
+    for rec in records:
+        name = str(rec.get("name"))
+        exact[name] = rec
+        by_base.setdefault(name.rsplit("/", 1)[-1], []).append(rec)
+    out: list[Mapping[str, Any] | None] = []
+    for n in names:
+        if n in exact:
+            out.append(exact[n])
+            continue
+        cands = by_base.get(n, [])
+        if len(cands) > 1:
+            raise ValueError(f"{len(cands)} records end in {n!r} (e.g. {cands[0].get('name')!r}); "
+                             "score the records of one folder at a time")
+        out.append(cands[0] if cands else None)
+    return out
