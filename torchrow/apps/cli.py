@@ -391,17 +391,30 @@ def _open_crbd(data: str | None):
         raise CLIError(f"{str(exc).splitlines()[0]} (--data {data})") from None
 
 
+def _open_crdld(data: str | None, split: str):
+    from torchrow.evaluation.datasets import CRDLD
+
+    try:
+        return CRDLD(data, split)
+    except FileNotFoundError as exc:
+        if data is None:
+            raise CLIError("no CRDLD data: pass --data CRDLD_DIR or set TORCHROW_DATA") from None
+        raise CLIError(f"{str(exc).splitlines()[0]} (--data {data})") from None
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
-    from torchrow.apps.evaluate import evaluate
+    from torchrow.apps.evaluate import evaluate, evaluate_crdld
 
     params = _with_mode(_parse_params(args.param), args)
     device = _check_device(args.device)
     if args.impl == "onnx":
         raise CLIError("eval supports --impl tensor|reference; for ONNX use: torchrow detect --impl onnx --model M")
+    if args.split is not None and args.dataset != "crdld":
+        raise CLIError(f"--split is for --dataset crdld (CRBD has no splits to pick), got --dataset {args.dataset}")
     _check_engine(args)
-    crbd = _open_crbd(args.data)
-    _check_targets([Path(crbd.root)], [("--out", Path(args.out))])
-    indices = list(range(len(crbd)))[:: args.every]
+    ds = _open_crdld(args.data, args.split or "test") if args.dataset == "crdld" else _open_crbd(args.data)
+    _check_targets([Path(ds.root)], [("--out", Path(args.out))])
+    indices = list(range(len(ds)))[:: args.every]
     if args.limit:
         indices = indices[: args.limit]
     from torchrow.apps.sink import image_key
@@ -409,8 +422,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     Path(args.out).mkdir(parents=True, exist_ok=True)
     sink = _open_sink(Path(args.out) / "detections.jsonl", image_key, args.resume)
     try:
-        report = evaluate(crbd, indices, args.impl, params, args.batch_size, device, progress=not args.quiet,
-                          sink=sink, engine=args.engine, address=args.address, workers=args.workers)
+        run = evaluate_crdld if args.dataset == "crdld" else evaluate
+        report = run(ds, indices, args.impl, params, args.batch_size, device,
+                     progress=not args.quiet, sink=sink, engine=args.engine, address=args.address,
+                     workers=args.workers)
     finally:
         sink.close(complete=False)
     print(report.format_summary())
@@ -762,8 +777,15 @@ def build_parser() -> argparse.ArgumentParser:
     common(p)
     p.set_defaults(func=cmd_detect)
 
-    p = sub.add_parser("eval", help="run on CRBD and report CRDA (official and thesis variant)")
-    p.add_argument("--data", help="CRBD folder (or a folder holding crbd/); default $TORCHROW_DATA")
+    p = sub.add_parser("eval", help="run on CRBD and report CRDA (official and thesis variant), or on CRDLD "
+                                    "(ALGORITHM.md 10.3)")
+    p.add_argument("--dataset", choices=("crbd", "crdld"), default="crbd",
+                   help="crbd (default): the CRBD benchmark; crdld: a Crop Row Detection Lincoln Dataset split")
+    p.add_argument("--data", help="CRBD folder (or a folder holding crbd/); for crdld a split folder (image/, "
+                                  "label/), a folder holding train/ and test/, or one holding crdld_dev/; "
+                                  "default $TORCHROW_DATA")
+    p.add_argument("--split", choices=("test", "train"), default=None,
+                   help="--dataset crdld: the split where --data holds train/ and test/ (default test)")
     p.add_argument("--out", default="torchrow-eval",
                    help="folder for scores.csv, detections.jsonl, summary.json, crda_histogram.png "
                         "(default torchrow-eval)")

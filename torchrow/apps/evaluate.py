@@ -1,13 +1,15 @@
-"""Dataset evaluation on CRBD: detection, CRDA per image, summaries, files and a plot."""
+"""Dataset evaluation on CRBD (CRDA) and CRDLD (ALGORITHM.md 10.3): detection, scores per image,
+summaries, files and a plot."""
 
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -16,10 +18,12 @@ from torchrow.core.io import ImageError
 from torchrow.core.params import Params
 from torchrow.core.results import ImageResult
 from torchrow.engines.runner import _progress, run
-from torchrow.evaluation.datasets import CRBD
+from torchrow.evaluation import crdld
+from torchrow.evaluation.datasets import CRBD, CRDLD
 from torchrow.evaluation.metrics import crda, crda_official, crda_thesis, summarize
 
-__all__ = ["EvalRow", "EvalReport", "evaluate", "score_tmg_files", "SUBSETS"]
+__all__ = ["EvalRow", "EvalReport", "evaluate", "score_tmg_files", "SUBSETS", "CRDLDRow", "CRDLDReport",
+           "evaluate_crdld"]
 
 #: Subsets reported: CRBD's own classification (1 straight, 2 curved).
 SUBSETS = ("all", "straight", "curved")
@@ -93,9 +97,10 @@ class EvalReport:
         return paths
 
 
-def plot_cumulative(series: Sequence[tuple[str, Sequence[float]]], path: Path, title: str = "") -> None:
-    """Normalised cumulative CRDA histogram as CRBD's demo draws it: for each CRDA value x,
-    the fraction of images scoring at least x."""
+def plot_cumulative(series: Sequence[tuple[str, Sequence[float]]], path: Path, title: str = "",
+                    metric: str = "CRDA") -> None:
+    """Normalised cumulative histogram of a score (``metric``, CRDA by default) as CRBD's demo
+    draws it: for each value x, the fraction of images scoring at least x."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -109,8 +114,8 @@ def plot_cumulative(series: Sequence[tuple[str, Sequence[float]]], path: Path, t
             continue
         frac = (s[None, :] >= x[:, None]).mean(axis=1)
         ax.plot(x, frac, label=f"{label} (mean {s.mean():.3f}, median {np.median(s):.3f})")
-    ax.set_xlabel("CRDA")
-    ax.set_ylabel("fraction of images with CRDA >= x")
+    ax.set_xlabel(metric)
+    ax.set_ylabel(f"fraction of images with {metric} >= x")
     ax.set_xlim(0, 1)
     ax.set_ylim(0, 1.02)
     ax.grid(alpha=0.3)
@@ -132,6 +137,42 @@ def _load_crbd(path: str, width: int) -> np.ndarray:
     return rgb
 
 
+def _detections(names: Sequence[str], loader: Callable[[int], Callable[[], np.ndarray]], indices: Sequence[int],
+                impl: str, params: Params, batch_size: int, device: str | None, progress: bool,
+                sink: RecordSink | None, engine: str, address: str | None, workers: int | None,
+                desc: str) -> list[tuple[int, ImageResult, dict, float]]:
+    """``(index, result, record, seconds)`` for every index, in order: detected (streamed to
+    ``sink``), or read back from the records ``sink`` already holds (``seconds`` NaN)."""
+    prior: dict[str, dict] = {}
+    if sink is not None and sink.done:
+        wanted = {names[i] for i in indices}
+        prior = {r["name"]: r for r in read_records(sink.stream) if r.get("name") in wanted}
+    todo = [i for i in indices if names[i] not in prior]
+    items = [(names[i], loader(i)) for i in todo]
+    if engine == "ray":
+        from torchrow.engines.distributed import run as ray_run
+
+        stream: Iterator = ray_run(items, impl, params, batch_size, device, progress, desc=f"{desc} ({impl}, ray)",
+                                   workers=workers, address=address)
+    else:
+        stream = run(items, impl, params, batch_size, device, progress, desc=f"{desc} ({impl})")
+    got: dict[int, tuple[ImageResult, dict, float]] = {}
+    for k, _, res, seconds in stream:
+        rec = res.to_record()
+        if sink is not None:
+            sink.write(rec)
+        got[todo[k]] = (res, rec, seconds)
+    out = []
+    for i in indices:
+        if i in got:
+            res, rec, seconds = got.pop(i)
+        else:
+            rec = prior[names[i]]
+            res, seconds = ImageResult.from_record(rec, params.theta_step), float("nan")
+        out.append((i, res, rec, seconds))
+    return out
+
+
 def evaluate(crbd: CRBD, indices: Sequence[int] | None = None, impl: str = "tensor",
              params: Params | None = None, batch_size: int = 64, device: str | None = None,
              progress: bool = True, sink: RecordSink | None = None, engine: str = "local",
@@ -145,38 +186,16 @@ def evaluate(crbd: CRBD, indices: Sequence[int] | None = None, impl: str = "tens
     but scored from that record (``seconds`` NaN). ``engine="ray"`` detects on a Ray cluster
     (:func:`torchrow.engines.distributed.run`, ``address``, ``workers``).
     """
-    import functools
-
     params = params or Params()
     indices = list(range(len(crbd))) if indices is None else list(indices)
-    prior: dict[str, dict] = {}
-    if sink is not None and sink.done:
-        wanted = {crbd.names[i] for i in indices}
-        prior = {r["name"]: r for r in read_records(sink.stream) if r.get("name") in wanted}
-    todo = [i for i in indices if crbd.names[i] not in prior]
-    items = [(crbd.names[i], functools.partial(_load_crbd, str(crbd.image_path(i)), params.image_width))
-             for i in todo]
-    if engine == "ray":
-        from torchrow.engines.distributed import run as ray_run
 
-        stream: Iterator = ray_run(items, impl, params, batch_size, device, progress, desc=f"eval ({impl}, ray)",
-                                   workers=workers, address=address)
-    else:
-        stream = run(items, impl, params, batch_size, device, progress, desc=f"eval ({impl})")
-    got: dict[int, tuple[EvalRow, dict]] = {}
-    for k, _, res, seconds in stream:
-        rec = res.to_record()
-        if sink is not None:
-            sink.write(rec)
-        got[todo[k]] = (_score(crbd, todo[k], res, params, seconds), rec)
+    def loader(i: int) -> Callable[[], np.ndarray]:
+        return functools.partial(_load_crbd, str(crbd.image_path(i)), params.image_width)
+
     report = EvalReport()
-    for i in indices:
-        if i in got:
-            row, rec = got.pop(i)
-        else:
-            rec = prior[crbd.names[i]]
-            row = _score(crbd, i, ImageResult.from_record(rec, params.theta_step), params, float("nan"))
-        report.rows.append(row)
+    for i, res, rec, seconds in _detections(crbd.names, loader, indices, impl, params, batch_size, device,
+                                            progress, sink, engine, address, workers, "eval"):
+        report.rows.append(_score(crbd, i, res, params, seconds))
         report.records.append(rec)
     return report
 
@@ -218,3 +237,79 @@ def score_tmg_files(crbd: CRBD, results_dir: Path, ext: str = ".tmg",
         out.append((item.name, s01, s03))
     bar.close()
     return out
+
+
+@dataclass
+class CRDLDRow:
+    """Scores of one CRDLD image (:func:`torchrow.evaluation.crdld.score`; NaN: undefined)."""
+
+    name: str
+    status: str
+    sigma01: float
+    sigma03: float
+    central_mae: float
+    seconds: float
+
+
+@dataclass
+class CRDLDReport:
+    split: str = ""
+    rows: list[CRDLDRow] = field(default_factory=list)
+    records: list[dict] = field(default_factory=list)
+
+    def summary(self) -> crdld.CRDLDSummary:
+        return crdld.summarize([r.status for r in self.rows],
+                               [crdld.CRDLDScore(r.sigma01, r.sigma03, r.central_mae) for r in self.rows])
+
+    def format_summary(self) -> str:
+        return self.summary().format(f"CRDLD {self.split}")
+
+    def write(self, out_dir: Path, records: bool = True) -> list[Path]:
+        """Write ``scores.csv``, ``detections.jsonl``, ``summary.json`` and ``crda_histogram.png``
+        (``records=False``: not ``detections.jsonl``, which the run streamed itself)."""
+        out_dir.mkdir(parents=True, exist_ok=True)
+        paths = [out_dir / "scores.csv", out_dir / "detections.jsonl", out_dir / "summary.json",
+                 out_dir / "crda_histogram.png"]
+        with open(paths[0], "w", newline="") as fh:
+            wr = csv.writer(fh)
+            wr.writerow(["name", "status", "crdld_sigma0.1", "crdld_sigma0.3", "central_mae_px", "seconds"])
+            for r in self.rows:
+                wr.writerow([r.name, r.status, f"{r.sigma01:.6f}", f"{r.sigma03:.6f}", f"{r.central_mae:.4f}",
+                             f"{r.seconds:.4f}"])
+        if records:
+            with open(paths[1], "w") as fh:
+                for rec in self.records:
+                    fh.write(json.dumps(rec) + "\n")
+        else:
+            paths.pop(1)
+        paths[-2].write_text(json.dumps({"dataset": "crdld", "split": self.split, **self.summary().to_dict()},
+                                        indent=2) + "\n")
+        scored = [r.sigma01 for r in self.rows if np.isfinite(r.sigma01)]
+        plot_cumulative([("torchrow", scored)], paths[-1], metric="CRDLD score",
+                        title=f"CRDLD {self.split}, sigma 0.1, central row and neighbours, {len(scored)} images")
+        return paths
+
+
+def evaluate_crdld(ds: CRDLD, indices: Sequence[int] | None = None, impl: str = "tensor",
+                   params: Params | None = None, batch_size: int = 64, device: str | None = None,
+                   progress: bool = True, sink: RecordSink | None = None, engine: str = "local",
+                   address: str | None = None, workers: int | None = None) -> CRDLDReport:
+    """Detect CRDLD images with ``impl`` ("tensor" or "reference") and score each one
+    (ALGORITHM.md 10.3); arguments and resuming as for :func:`evaluate`. Images are resized
+    to the working width as ``torchrow detect`` does; the score scales the rows back to the
+    image's own pixels."""
+    from torchrow.core.io import load_image
+
+    params = params or Params()
+    indices = list(range(len(ds))) if indices is None else list(indices)
+
+    def loader(i: int) -> Callable[[], np.ndarray]:
+        return functools.partial(load_image, str(ds.image_path(i)), params.image_width, params.max_pixels)
+
+    report = CRDLDReport(split=ds.split)
+    for i, res, rec, seconds in _detections(ds.names, loader, indices, impl, params, batch_size, device,
+                                            progress, sink, engine, address, workers, "eval"):
+        s = crdld.score(res, ds.ground_truth(i))
+        report.rows.append(CRDLDRow(ds.names[i], res.status, s.sigma01, s.sigma03, s.central_mae, seconds))
+        report.records.append(rec)
+    return report

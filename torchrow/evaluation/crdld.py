@@ -474,6 +474,21 @@ class CRDLDSummary:
 
         return {f: num(getattr(self, f)) for f in self.__dataclass_fields__}
 
+    def format(self, title: str = "CRDLD") -> str:
+        """A few lines for a terminal: the scores, the central error and the statuses."""
+        def pair(a: float, b: float, unit: str = "", digits: int = 3) -> str:
+            return "-" if not math.isfinite(a) else f"mean {a:.{digits}f}{unit}  median {b:.{digits}f}{unit}"
+
+        statuses = ", ".join(f"{k} {v}" for k, v in self.statuses.items()) or "none"
+        low = "-" if not math.isfinite(self.ok_low_fraction) else f"{self.ok_low_fraction:.1%}"
+        ok = "-" if not math.isfinite(self.ok_fraction) else f"{self.ok_fraction:.1%}"
+        return "\n".join([
+            f"{title}: {self.n} images, {self.n_scored} with a scorable label",
+            f"score sigma 0.1: {pair(self.mean01, self.median01)}",
+            f"score sigma 0.3: {pair(self.mean03, self.median03)}",
+            f"central row MAE, lower half: {pair(self.mae_mean, self.mae_median, ' px', 1)}  (n={self.n_mae})",
+            f"statuses: {statuses}; ok: {ok} of the images; ok images scoring below {LOW_SCORE}: {low}"])
+
 
 def summarize(statuses: Iterable[str], scores: Iterable[CRDLDScore]) -> CRDLDSummary:
     """Summary of per-image statuses and scores (same order).
