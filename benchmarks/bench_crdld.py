@@ -10,7 +10,7 @@ or detect first (tensor path, default parameters unless ``--param``)::
 
 ``--data`` is a CRDLD split folder (``image/``, ``label/``), a folder holding ``train/`` and
 ``test/`` (``--split``), or a data folder holding ``crdld_dev/``; default ``TORCHROW_DATA`` or
-``../shared/data``. Prints the table of ALGORITHM.md 10.3: mean / median at sigma 0.1 and 0.3,
+``../shared/data``. Prints the table of ALGORITHM.md 10.1: mean / median at sigma 0.1 and 0.3,
 the central line's MAE, the fraction of ``ok`` images and, among them, those scoring below
 0.2. ``--truth-fit`` adds a line for a straight line least-squares-fitted to every labelled line
 (about 0.997 on ``test``: what the metric leaves to a perfect straight-row detector).

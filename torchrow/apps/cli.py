@@ -778,7 +778,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_detect)
 
     p = sub.add_parser("eval", help="run on CRBD and report CRDA (official and thesis variant), or on CRDLD "
-                                    "(ALGORITHM.md 10.3)")
+                                    "(ALGORITHM.md 10.1)")
     p.add_argument("--dataset", choices=("crbd", "crdld"), default="crbd",
                    help="crbd (default): the CRBD benchmark; crdld: a Crop Row Detection Lincoln Dataset split")
     p.add_argument("--data", help="CRBD folder (or a folder holding crbd/); for crdld a split folder (image/, "

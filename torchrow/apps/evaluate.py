@@ -1,4 +1,4 @@
-"""Dataset evaluation on CRBD (CRDA) and CRDLD (ALGORITHM.md 10.3): detection, scores per image,
+"""Dataset evaluation on CRBD (CRDA) and CRDLD (ALGORITHM.md 10.1): detection, scores per image,
 summaries, files and a plot."""
 
 from __future__ import annotations
@@ -295,7 +295,7 @@ def evaluate_crdld(ds: CRDLD, indices: Sequence[int] | None = None, impl: str = 
                    progress: bool = True, sink: RecordSink | None = None, engine: str = "local",
                    address: str | None = None, workers: int | None = None) -> CRDLDReport:
     """Detect CRDLD images with ``impl`` ("tensor" or "reference") and score each one
-    (ALGORITHM.md 10.3); arguments and resuming as for :func:`evaluate`. Images are resized
+    (ALGORITHM.md 10.1); arguments and resuming as for :func:`evaluate`. Images are resized
     to the working width as ``torchrow detect`` does; the score scales the rows back to the
     image's own pixels."""
     from torchrow.core.io import load_image

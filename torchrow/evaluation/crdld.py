@@ -1,4 +1,4 @@
-"""CRDLD score: a CRDA-style measure for forward-camera crop rows (ALGORITHM.md 10.3, a torchrow
+"""CRDLD score: a CRDA-style measure for forward-camera crop rows (ALGORITHM.md 10.1, a torchrow
 extension). NumPy and OpenCV only; independent of the detector.
 
 The Crop Row Detection Lincoln Dataset (CRDLD) labels each crop row as a white polyline on a
