@@ -1,3 +1,3 @@
-"""Evaluation data and scores: the CRBD dataset, CRDA metrics, synthetic fields with exact ground
-truth.
+"""Evaluation data and scores: the CRBD and CRDLD datasets, CRDA metrics and the CRDLD score,
+synthetic fields with exact ground truth.
 """

@@ -420,10 +420,7 @@ def score(result: Any, truth: CRDLDTruth) -> CRDLDScore:
         size = (int(result.get("width") or 0), int(result.get("height") or 0))
     else:
         rows, status, size = result.rows, str(result.status), (int(result.width), int(result.height))
-    if status in _NO_ROWS or min(size) < 1:
-        err = None
-    else:
-        err = _errors(rows, status, truth, size)
+    err = None if min(size) < 1 else _errors(rows, status, truth, size)  # an error record may have no size
     return CRDLDScore(_crda(err, truth, SIGMAS[0]), _crda(err, truth, SIGMAS[1]), _mae(err, truth))
 
 
