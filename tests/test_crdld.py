@@ -156,6 +156,13 @@ def test_cli_eval_crdld_writes_the_report(tmp_path: Path, capsys) -> None:
     assert "tmgem_sigma0.1" not in rows[0] and all(0.0 <= float(r["crdld_sigma0.1"]) <= 1.0 for r in rows)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["dataset"] == "crdld" and summary["n"] == 2 and sum(summary["statuses"].values()) == 2
+    # --resume scores the streamed records again without detecting (seconds unknown)
+    assert main(argv + ["--resume"]) == 0
+    with open(out / "scores.csv") as fh:
+        again = list(csv.DictReader(fh))
+    assert [r["crdld_sigma0.1"] for r in again] == [r["crdld_sigma0.1"] for r in rows]
+    assert all(r["seconds"] == "nan" for r in again)
+    capsys.readouterr()
     assert main(["eval", "--split", "train", "--out", str(out), "-q"]) == 2  # --split is CRDLD's
     assert "--split is for --dataset crdld" in capsys.readouterr().err
 
