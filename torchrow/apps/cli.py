@@ -47,6 +47,14 @@ def _parse_params(items: Sequence[str] | None) -> Params:
         raise CLIError(str(exc)) from None
 
 
+def _replace_params(params: Params, option: str, **changes: object) -> Params:
+    """``params.replace(**changes)`` for a command-line option: a value outside its rule is one line."""
+    try:
+        return params.replace(**changes)
+    except (ValueError, TypeError) as exc:
+        raise CLIError(f"{option}: {exc}") from None
+
+
 def _collect_images(inputs: Sequence[str]) -> list[Path]:
     """Image files of the inputs (folders: their images sorted by name), each file once."""
     paths: list[Path] = []
@@ -348,12 +356,12 @@ def cmd_export(args: argparse.Namespace) -> int:
                            f"{width} (e.g. 281 for 1280x720 video at the default video_width 500)")
         height = args.height
         if width != params.video_width:
-            params = params.replace(video_width=width)
+            params = _replace_params(params, "--width", video_width=width)
     else:
         width = args.width if args.width is not None else 320
         height = args.height if args.height is not None else 240
         if width != params.image_width:
-            params = params.replace(image_width=width)
+            params = _replace_params(params, "--width", image_width=width)
     out = Path(args.out)
     if not out.parent.is_dir():
         raise CLIError(f"output folder does not exist: {out.parent}")
@@ -587,7 +595,7 @@ def cmd_video(args: argparse.Namespace) -> int:
             raise CLIError("--hough-every cannot change an exported model; export one with --param hough_every=N")
         if args.hough_every < 1:
             raise CLIError(f"--hough-every must be >= 1, got {args.hough_every}")
-        params = params.replace(hough_every=args.hough_every)
+        params = _replace_params(params, "--hough-every", hough_every=args.hough_every)
     if args.fov is not None and not 0 < args.fov < 180:
         raise CLIError(f"--fov must lie in (0, 180) degrees, got {args.fov}")
     device = _check_device(args.device)
