@@ -102,6 +102,7 @@ def test_detect_ray_resume_and_parquet(images: Path, tmp_path: Path) -> None:
     assert main(["detect", str(images), "--out", str(local), "-q"]) == 0
     out = tmp_path / "ray.jsonl"
     out.write_text("\n".join(_lines(local)[:5]) + "\n" + _lines(local)[5][:20])
+    Path(f"{out}.run.json").write_bytes(Path(f"{local}.run.json").read_bytes())  # the run that wrote it
     assert main(["detect", str(images), "--out", str(out), "-q", "--engine", "ray", "--resume"]) == 0
     assert _lines(out)[:5] == _lines(local)[:5]  # the records already written stay as they were
     assert _agree([json.loads(s) for s in _lines(out)], [json.loads(s) for s in _lines(local)])
