@@ -163,11 +163,19 @@ def _check_engine(args: argparse.Namespace, onnx_workers: bool = False) -> None:
             raise CLIError("--workers is only used with --engine ray" + (" or --impl onnx" if onnx_workers else ""))
         return
     try:
+        import ray
         import ray.data  # noqa: F401
     except ImportError:
         raise CLIError("--engine ray needs Ray Data: pip install 'torchrow[ray]'") from None
     if getattr(args, "annotate", None):
         raise CLIError("--annotate needs --engine local (the Ray engine returns records, not images)")
+    if not ray.is_initialized():  # an initialised Ray is used as it is (torchrow.engines.distributed.init)
+        from torchrow.engines.distributed import check_address
+
+        try:
+            check_address(args.address)
+        except ValueError as exc:
+            raise CLIError(str(exc)) from None
 
 
 def _out_targets(out: Path) -> list[tuple[str, Path]]:
