@@ -243,6 +243,25 @@ def test_export_argument_errors(tmp_path: Path):
         to_onnx(tmp_path / "missing" / "m.onnx")
 
 
+@pytest.mark.parametrize("argv,words", [
+    (["--batch", "100000"], "batch of a detector export must be <= 256"),
+    (["--tracker", "--height", "281", "--batch", "1000"], "batch of a tracker export must be <= 64"),
+    (["--width", "5000"], "--width: Params.image_width"),
+    (["--tracker", "--width", "5000", "--height", "10"], "--width: Params.video_width"),
+    (["--height", "200000"], "320x200000 working image has 64000000 pixels, more than max_pixels"),
+    (["--height", "10000000"], "height of a detector export must be <= 524288"),
+])
+def test_export_sizes_are_bounded_before_tracing(tmp_path: Path, capsys, argv, words):
+    """Issue 26: absurd export sizes are one line (exit 2) at once, not a traceback or
+    gigabytes of example inputs."""
+    from torchrow.apps.cli import main
+
+    assert main(["export", "onnx", "--out", str(tmp_path / "m.onnx"), "-q", *argv]) == 2
+    err = capsys.readouterr().err
+    assert words in err and err.count("\n") == 1, err
+    assert not (tmp_path / "m.onnx").exists()
+
+
 # --- CLI -------------------------------------------------------------------------------------
 def _write_images(folder: Path, batch: torch.Tensor) -> None:
     import cv2

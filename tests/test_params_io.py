@@ -123,6 +123,17 @@ def test_derived_bands():
     ("n_colors", 10**9),
     ("n_rows", 1000),
     ("video_k_max", 10**9),
+    # issue 26: values outside int64 (tensor path) or absurdly large ones (a loop per unit)
+    ("ransac_min_points", 2**63),
+    ("angle_excl", 2**63),
+    ("horizontal_excl", 2**63),
+    ("track_band", 2**63),
+    ("track_band", 20000),
+    ("hough_every", 10**30),
+    ("bushy_ratio", 1e30),
+    ("bushy_ratio", 10**30),
+    ("outlier_min_px", 10**400),
+    ("hough_band", 10**30),
 ])
 def test_invalid_values_raise_naming_the_field(field, value):
     with pytest.raises(ValueError) as info:
@@ -172,6 +183,26 @@ def test_params_frozen_and_hashable():
         p.n_rows = 3  # type: ignore[misc]
     assert p == Params() and hash(p) == hash(Params())
     assert p != Params(n_rows=4)
+
+
+def test_every_numeric_field_has_a_bound_within_int64_and_float64():
+    """Issue 26: no integer (or float) of any size reaches the tensor path; ``10**30`` is refused
+    by every numeric field, naming it."""
+    from torchrow.core.params import _RULES
+
+    for f in dataclasses.fields(Params):
+        rule = _RULES[f.name]
+        if rule.kind == "choice":
+            continue
+        assert rule.lo is not None and rule.hi is not None and -(2**63) <= rule.lo <= rule.hi < 2**63, f.name
+        bad = (10**30, 10**30) if rule.kind == "pair" else (10**30,) if rule.kind == "ints" else 10**30
+        with pytest.raises(ValueError, match=f.name):
+            Params(**{f.name: bad})
+
+
+def test_float_fields_hold_floats():
+    p = Params(bushy_ratio=0, color_tol=6)
+    assert type(p.bushy_ratio) is float and type(p.color_tol) is float and p == Params(bushy_ratio=0.0, color_tol=6.0)
 
 
 def test_valid_edge_values_are_accepted():

@@ -208,6 +208,148 @@ def test_video_resume_after_a_cut_equals_a_clean_run(tmp_path: Path) -> None:
     lines = clean.read_bytes().splitlines(keepends=True)
     assert len(lines) == 14
     cut.write_bytes(b"".join(lines[:5]) + lines[5][:30])  # sequence 1 cut short, torn line
+    Path(f"{cut}.run.json").write_bytes(Path(f"{clean}.run.json").read_bytes())  # the run that wrote it
     assert main([*base, "--out", str(cut), "--resume"]) == 0
     assert sorted(_lines(cut)) == sorted(_lines(clean))
     assert len(_lines(cut)) == 14
+
+
+# -- issue 26: run header, lock, Parquet that cannot fail at the end, journal paths -------
+
+def _one_line_error(capsys, *words: str) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("torchrow: error: ") and "\n" not in err, err
+    for w in words:
+        assert w in err, err
+    return err
+
+
+@pytest.fixture(scope="module")
+def two_small(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("two")
+    for i in range(2):
+        img = render(FieldSpec(seed=40 + i, width=96, height=64)).image
+        cv2.imwrite(str(d / f"s{i}.png"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+    return d
+
+
+def test_resume_refuses_an_output_of_another_run(two_small: Path, tmp_path: Path, capsys) -> None:
+    """Reproducer 5: --resume mixed n_rows 5 and 2, faithful and improved, detect and video records."""
+    out = tmp_path / "r.jsonl"
+    _cli_records(two_small, out)
+    data = out.read_bytes()
+    capsys.readouterr()
+    for extra, words in ((["--param", "n_rows=2"], "params.n_rows 5 there, 2 now"),
+                         (["--mode", "improved"], "params.mode 'faithful' there, 'improved' now")):
+        assert main(["detect", str(two_small), "--out", str(out), "-q", "--resume", *extra]) == 2
+        _one_line_error(capsys, "cannot --resume", words)
+    assert main(["detect", str(two_small / "s0.png"), "--out", str(out), "-q", "--resume"]) == 2
+    _one_line_error(capsys, "sources")
+    assert main(["video", str(two_small), "--out", str(out), "-q", "--resume", "--plot", "none"]) == 2
+    _one_line_error(capsys, "command 'detect' there, 'video' now")
+    assert out.read_bytes() == data
+    # the same run, inputs spelled otherwise: resumed (nothing left to do)
+    assert main(["detect", str(two_small / "."), "--out", str(out), "-q", "--resume"]) == 0
+    assert out.read_bytes() == data
+    capsys.readouterr()
+    # records that no header describes (an older torchrow, or by hand) are not resumed by the CLI
+    header = out.with_name(out.name + ".run.json")
+    header.unlink()
+    assert main(["detect", str(two_small), "--out", str(out), "-q", "--resume"]) == 2
+    _one_line_error(capsys, "no run header")
+
+
+def test_video_resume_with_the_source_spelled_otherwise(tmp_path: Path, monkeypatch) -> None:
+    """Reproducer 5: `cat20` then `/abs/cat20` gave 8 duplicate records under a second name."""
+    d = tmp_path / "seq"
+    d.mkdir()
+    for i, spec in enumerate(sequence(FieldSpec(seed=5, width=160, height=96), 3)):
+        cv2.imwrite(str(d / f"f{i}.png"), cv2.cvtColor(spec.image, cv2.COLOR_RGB2BGR))
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "v.jsonl"
+    small = ["--param", "video_width=160", "--plot", "none", "-q"]
+    assert main(["video", "seq", "--out", str(out), *small]) == 0
+    lines = _lines(out)
+    (out.parent / "cut.jsonl").write_text("\n".join(lines[:1]) + "\n")
+    os.replace(out.parent / "cut.jsonl", out)
+    assert main(["video", str(d), "--out", str(out), "--resume", *small]) == 0
+    assert _lines(out) == lines  # one name, every frame once
+
+
+def test_a_second_writer_of_the_same_output_fails_at_once(two_small: Path, tmp_path: Path, capsys) -> None:
+    """Reproducer 6: two runs on one .jsonl both exited 0 (84 records for 59 inputs, a garbled
+    line); on one .parquet the second deleted the first one's journal."""
+    for name in ("r.jsonl", "r.parquet"):
+        out = tmp_path / name
+        with RecordSink(out) as first:
+            first.write({"name": "kept", "status": "ok"})
+            for resume in ([], ["--resume"]):
+                assert main(["detect", str(two_small), "--out", str(out), "-q", *resume]) == 2
+                _one_line_error(capsys, "being written by another torchrow run")
+            first.write({"name": "kept2", "status": "ok"})
+        if name.endswith(".parquet") and not _has_pyarrow():
+            continue
+        assert [r["name"] for r in read_records(out)] == ["kept", "kept2"]
+    with pytest.raises(SinkError, match="locked"):
+        with RecordSink(tmp_path / "x.jsonl"), RecordSink(tmp_path / "x.jsonl", resume=True):
+            pass
+
+
+def _has_pyarrow() -> bool:
+    try:
+        import pyarrow  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def test_parquet_schema_is_fixed_up_front_and_names_are_bytes_safe(tmp_path: Path) -> None:
+    """Reproducer 7: > 4096 image records then bag frames (keys first seen late), and a file
+    name that is not UTF-8, ended in tracebacks with no .parquet and a stray .parquet.tmp."""
+    pytest.importorskip("pyarrow")
+    out = tmp_path / "x.parquet"
+    odd = os.fsdecode(b"caf\xe9.jpg")  # as Python lists a non-UTF-8 file name
+    with RecordSink(out) as sink:
+        for i in range(4100):
+            sink.write({"name": f"im{i}", "status": "ok", "n_rows": 5})
+        sink.write({"name": odd, "status": "error", "error": f"cannot read /d/{odd}"})
+        sink.write({"name": "b.bag#000000", "source": "/d/b.bag", "frame": 0, "stamp_ns": 7, "status": "ok"})
+    assert not journal_path(out).exists() and not out.with_name("x.parquet.tmp").exists()
+    recs = list(read_records(out))
+    assert len(recs) == 4102 and recs[4100]["name"] == "caf\\xe9.jpg" and recs[4100]["error"] == "cannot read /d/caf\\xe9.jpg"
+    assert recs[4101]["source"] == "/d/b.bag" and recs[4101]["frame"] == 0 and "source" not in recs[0]
+    # the JSONL holds the same escaped text, and a resume finds the name in either spelling
+    sink = RecordSink(out, resume=True)
+    assert odd in sink and "caf\\xe9.jpg" in sink and len(sink.done) == 4102
+    sink.close()
+
+
+def test_a_failed_parquet_conversion_keeps_the_journal_and_no_tmp(tmp_path: Path, monkeypatch) -> None:
+    pytest.importorskip("pyarrow")
+    out = tmp_path / "x.parquet"
+    with RecordSink(out) as sink:
+        sink.write({"name": "a", "status": "ok"})
+    monkeypatch.setattr("torchrow.apps.sink.records_to_parquet",
+                        lambda recs, path, **kw: (Path(path).write_bytes(b"half"), 1 / 0))
+    with pytest.raises(SinkError, match="kept in"):
+        with RecordSink(out, resume=True) as sink:
+            sink.write({"name": "b", "status": "ok"})
+    assert not out.with_name("x.parquet.tmp").exists()
+    assert [json.loads(s)["name"] for s in _lines(journal_path(out))] == ["a", "b"]
+    monkeypatch.undo()
+    RecordSink(out, resume=True).close()
+    assert [r["name"] for r in read_records(out)] == ["a", "b"]
+
+
+def test_journal_and_temporary_paths_are_never_over_an_input(two_small: Path, tmp_path: Path, capsys) -> None:
+    """Reproducer 8: `detect o/r.parquet.partial.jsonl o/r.parquet.tmp --out o/r.parquet` deleted both inputs."""
+    o = tmp_path / "o"
+    o.mkdir()
+    for name in ("r.parquet.partial.jsonl", "r.parquet.tmp", "r.jsonl.run.json"):
+        img = o / name
+        img.write_bytes((two_small / "s0.png").read_bytes())
+        out = o / name.split(".")[0]
+        out = out.with_suffix(".parquet" if "parquet" in name else ".jsonl")
+        assert main(["detect", str(img), "--out", str(out), "-q"]) == 2
+        _one_line_error(capsys, "is an input")
+        assert img.read_bytes() == (two_small / "s0.png").read_bytes()

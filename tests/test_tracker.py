@@ -260,6 +260,9 @@ def test_cli_video_bad_inputs(tmp_path, capsys) -> None:
     assert "cannot open video" in capsys.readouterr().err
     assert main(["video", str(tmp_path), "--out", str(tmp_path / "o.jsonl"), "--hough-every", "0"]) == 2
     assert "--hough-every must be >= 1" in capsys.readouterr().err
+    assert main(["video", str(tmp_path), "--out", str(tmp_path / "o.jsonl"), "--hough-every", str(10**30)]) == 2
+    err = capsys.readouterr().err
+    assert "--hough-every: Params.hough_every must be an integer in [1, " in err and err.count("\n") == 1
     assert main(["video", str(tmp_path / "empty"), "--out", str(tmp_path / "o.jsonl"), "--fov", "200"]) == 2
 
 

@@ -47,6 +47,14 @@ def _parse_params(items: Sequence[str] | None) -> Params:
         raise CLIError(str(exc)) from None
 
 
+def _replace_params(params: Params, option: str, **changes: object) -> Params:
+    """``params.replace(**changes)`` for a command-line option: a value outside its rule is one line."""
+    try:
+        return params.replace(**changes)
+    except (ValueError, TypeError) as exc:
+        raise CLIError(f"{option}: {exc}") from None
+
+
 def _collect_images(inputs: Sequence[str]) -> list[Path]:
     """Image files of the inputs (folders: their images sorted by name), each file once."""
     paths: list[Path] = []
@@ -155,15 +163,41 @@ def _check_engine(args: argparse.Namespace, onnx_workers: bool = False) -> None:
             raise CLIError("--workers is only used with --engine ray" + (" or --impl onnx" if onnx_workers else ""))
         return
     try:
+        import ray
         import ray.data  # noqa: F401
     except ImportError:
         raise CLIError("--engine ray needs Ray Data: pip install 'torchrow[ray]'") from None
     if getattr(args, "annotate", None):
         raise CLIError("--annotate needs --engine local (the Ray engine returns records, not images)")
+    if not ray.is_initialized():  # an initialised Ray is used as it is (torchrow.engines.distributed.init)
+        from torchrow.engines.distributed import check_address
+
+        try:
+            check_address(args.address)
+        except ValueError as exc:
+            raise CLIError(str(exc)) from None
 
 
-def _open_sink(out: Path, key, resume: bool):
-    """The streaming writer of ``--out`` (torchrow.apps.sink); ``--resume`` keeps what is there."""
+def _out_targets(out: Path) -> list[tuple[str, Path]]:
+    """``("--out", path)`` for everything a sink on ``out`` writes (journal, temporary file, header)."""
+    from torchrow.apps.sink import output_paths
+
+    return [("--out", p) for p in output_paths(out)]
+
+
+def _run_header(command: str, params: Params, sources: Sequence[str | Path], **info: object) -> dict:
+    """What a run is, for ``--resume`` (torchrow.apps.sink): the command, every parameter (the
+    mode is one) and the sources as resolved paths (any order) are compared; ``info`` (impl,
+    engine, the names as spelled) is kept for the reader. Impl, engine and batch size are not
+    compared: their records agree (README, "Identical results")."""
+    return {"command": command, "params": dataclasses.asdict(params),
+            "sources": sorted({os.path.realpath(s) for s in sources}),
+            "info": {"torchrow": __version__, **info}}
+
+
+def _open_sink(out: Path, key, resume: bool, header: dict | None = None):
+    """The streaming writer of ``--out`` (torchrow.apps.sink), locked, with its run header;
+    ``--resume`` keeps what is there if the header matches."""
     from torchrow.apps.sink import RecordSink, SinkError
 
     if out.parent and not out.parent.exists():
@@ -174,9 +208,9 @@ def _open_sink(out: Path, key, resume: bool):
         except ImportError:
             raise CLIError("--out *.parquet needs pyarrow: pip install pyarrow (or 'torchrow[ray]')") from None
     try:
-        return RecordSink(out, key, resume=resume)
+        return RecordSink(out, key, resume=resume, header=header)
     except SinkError as exc:
-        raise CLIError(f"cannot --resume: {exc}") from None
+        raise CLIError(f"cannot --resume: {exc}" if resume else str(exc)) from None
 
 
 def _split_bags(inputs: Sequence[str], topic: str | None) -> tuple[list[str], list]:
@@ -230,9 +264,10 @@ def cmd_detect(args: argparse.Namespace) -> int:
     ann = Path(args.annotate) if args.annotate else None
     ann_paths = [ann / n for n in _annotation_names(names)] if ann is not None else []
     _check_targets([*map(Path, args.inputs), *paths, *([Path(model)] if model else [])],
-                   [("--out", out)] + ([("--annotate", ann)] if ann is not None else [])
+                   _out_targets(out) + ([("--annotate", ann)] if ann is not None else [])
                    + [("--annotate", a) for a in ann_paths])
-    sink = _open_sink(out, image_key, args.resume)
+    sink = _open_sink(out, image_key, args.resume, _run_header("detect", params, args.inputs, impl=args.impl,
+                                                                 engine=args.engine))
     if ann is not None:
         ann.mkdir(parents=True, exist_ok=True)
 
@@ -348,12 +383,12 @@ def cmd_export(args: argparse.Namespace) -> int:
                            f"{width} (e.g. 281 for 1280x720 video at the default video_width 500)")
         height = args.height
         if width != params.video_width:
-            params = params.replace(video_width=width)
+            params = _replace_params(params, "--width", video_width=width)
     else:
         width = args.width if args.width is not None else 320
         height = args.height if args.height is not None else 240
         if width != params.image_width:
-            params = params.replace(image_width=width)
+            params = _replace_params(params, "--width", image_width=width)
     out = Path(args.out)
     if not out.parent.is_dir():
         raise CLIError(f"output folder does not exist: {out.parent}")
@@ -420,7 +455,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from torchrow.apps.sink import image_key
 
     Path(args.out).mkdir(parents=True, exist_ok=True)
-    sink = _open_sink(Path(args.out) / "detections.jsonl", image_key, args.resume)
+    sink = _open_sink(Path(args.out) / "detections.jsonl", image_key, args.resume,
+                      _run_header("eval", params, [crbd.root], impl=args.impl, engine=args.engine))
     try:
         run = evaluate_crdld if args.dataset == "crdld" else evaluate
         report = run(ds, indices, args.impl, params, args.batch_size, device,
@@ -602,7 +638,7 @@ def cmd_video(args: argparse.Namespace) -> int:
             raise CLIError("--hough-every cannot change an exported model; export one with --param hough_every=N")
         if args.hough_every < 1:
             raise CLIError(f"--hough-every must be >= 1, got {args.hough_every}")
-        params = params.replace(hough_every=args.hough_every)
+        params = _replace_params(params, "--hough-every", hough_every=args.hough_every)
     if args.fov is not None and not 0 < args.fov < 180:
         raise CLIError(f"--fov must lie in (0, 180) degrees, got {args.fov}")
     device = _check_device(args.device)
@@ -630,13 +666,18 @@ def cmd_video(args: argparse.Namespace) -> int:
         _check_plot(plot)
     if args.fps is not None and not args.fps > 0:
         raise CLIError(f"--fps must be > 0, got {args.fps}")
-    targets = [("--out", out)] + ([("--plot", plot)] if plot is not None else [])
+    targets = _out_targets(out) + ([("--plot", plot)] if plot is not None else [])
     if args.annotate:
         targets += [("--annotate", t) for t in _Annotator.targets(args.annotate, sources)]
     _check_targets([s.path for s in sources], targets)
-    sink = _open_sink(out, frame_key, args.resume)
+    real = [os.path.realpath(s.path) for s in sources]
+    sink = _open_sink(out, frame_key, args.resume, _run_header(
+        "video", params, real, impl=args.impl, engine=args.engine, names=dict(zip(real, (s.name for s in sources)))))
     ann = _Annotator(args.annotate, sources, args.fps)
-    names = [s.name for s in sources]
+    # a source spelled otherwise than in the run being resumed (cat20, /abs/cat20) keeps that
+    # run's name, so that its frames are found and its records stay under one name
+    before = ((sink.previous_header or {}).get("info") or {}).get("names") or {}
+    names = [before.get(r, s.name) for r, s in zip(real, sources)]
     done: dict[str, set[int]] = {}
     for src, frame in sink.done:
         done.setdefault(src, set()).add(frame)
@@ -860,6 +901,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except CLIError as exc:
+        print(f"torchrow: error: {exc}", file=sys.stderr)
+        return 2
+    except ValueError as exc:  # a Parquet output that cannot be written (torchrow.apps.sink.SinkError)
+        from torchrow.apps.sink import SinkError
+
+        if not isinstance(exc, SinkError):
+            raise
         print(f"torchrow: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -15,6 +15,22 @@ a :class:`RecordSink`:
   above; when the run ends normally the journal is converted to ``x.parquet`` in row groups
   of :data:`PARQUET_ROW_GROUP` records (bounded memory) and removed. A killed run leaves the
   journal, which ``--resume`` continues. Parquet needs ``pyarrow`` (installed with ``ray``).
+  The Parquet schema is fixed before the first row is written (one pass over the journal
+  collects every key), so the conversion cannot fail half-way on a key that appears late;
+  if it fails anyway, no ``.parquet.tmp`` is left and the journal is kept for ``--resume``;
+* one writer at a time: the JSONL (the journal for Parquet) is held under an exclusive
+  ``flock`` while the sink is open (Parquet: until the conversion is done); a second sink on
+  the same file raises :class:`SinkError` at once, before it changes anything;
+* the run header ``<out>.run.json`` (:func:`header_path`; a sidecar, so that the JSONL stays
+  a stream of records for every reader) records what wrote the file: a dict given by the
+  caller (the CLI: command, parameters, sources as resolved paths) and its ``"info"`` (not
+  compared). ``resume=True`` with another header raises :class:`SinkError` naming what
+  differs; records without a header (written by an older torchrow, or by hand) are refused
+  as well when a header is given, since nothing says what wrote them;
+* text is bytes-safe: a string that is not valid Unicode (a file name that is not UTF-8,
+  decoded by Python with ``surrogateescape``) is stored with each undecodable byte as the
+  four characters ``\\xNN`` (:func:`bytes_safe`), the same in JSONL and Parquet; the keys
+  of :attr:`RecordSink.done` use that form too.
 
 Memory: one record at a time, plus the set of keys when resuming.
 """
@@ -23,11 +39,13 @@ from __future__ import annotations
 
 import json
 import os
+import tempfile
 from pathlib import Path
 from typing import Any, Callable, Hashable, Iterable, Iterator
 
 __all__ = ["RecordSink", "SinkError", "image_key", "frame_key", "read_records", "PARQUET_ROW_GROUP",
-           "journal_path", "records_to_parquet", "read_parquet_records"]
+           "journal_path", "header_path", "output_paths", "bytes_safe", "records_to_parquet",
+           "read_parquet_records"]
 
 #: Records per Parquet row group when a journal is converted (memory of the conversion).
 PARQUET_ROW_GROUP = 4096
@@ -52,6 +70,48 @@ def frame_key(rec: dict) -> Hashable:
 def journal_path(path: Path) -> Path:
     """Where records stream before the final Parquet file is written."""
     return path.with_name(path.name + ".partial.jsonl")
+
+
+def header_path(path: Path) -> Path:
+    """The run header beside an output (module docstring)."""
+    return path.with_name(path.name + ".run.json")
+
+
+def _tmp_path(path: Path) -> Path:
+    return path.with_name(path.name + ".tmp")
+
+
+def output_paths(path: str | Path) -> list[Path]:
+    """Every path a sink on ``path`` writes: the output, its run header and, for Parquet, the
+    journal and the temporary file of the conversion (for "never write over an input")."""
+    path = Path(path)
+    extra = [journal_path(path), _tmp_path(path)] if _is_parquet(path) else []
+    return [path, header_path(path), *extra]
+
+
+def bytes_safe(text: str) -> str:
+    """``text`` itself if it is valid Unicode; else each byte that ``surrogateescape`` kept
+    (a file name that is not UTF-8) as ``\\xNN`` and any other lone surrogate as ``\\uXXXX``."""
+    try:
+        text.encode("utf-8")
+        return text
+    except UnicodeEncodeError:
+        pass
+    try:
+        return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+    except UnicodeEncodeError:
+        return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
+def _safe(value: object) -> object:
+    """``value`` with every string in it :func:`bytes_safe` (records are small: dicts, lists)."""
+    if isinstance(value, str):
+        return bytes_safe(value)
+    if isinstance(value, dict):
+        return {_safe(k): _safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_safe(v) for v in value)
+    return value
 
 
 def _is_parquet(path: Path) -> bool:
@@ -113,42 +173,61 @@ class RecordSink:
     resume : bool
         Keep the records already in ``path`` (or in its journal) and append; without it the
         file is truncated.
+    header : dict, optional
+        What this run is (JSON-able; its ``"info"`` entry is kept but not compared): written
+        to :func:`header_path`; with ``resume``, the header already there must be equal
+        (module docstring). ``None``: no header is read or written.
+
+    Raises
+    ------
+    SinkError
+        Another sink holds the file; ``resume`` on a file that is not a torchrow output, or
+        that another run (another header) wrote. Nothing is changed then.
 
     Use as a context manager: on a normal exit the file is closed (and a Parquet output
     written); on an exception the JSONL (journal) is only closed, ready for ``resume``.
     """
 
-    def __init__(self, path: str | Path, key: Key = image_key, resume: bool = False) -> None:
+    def __init__(self, path: str | Path, key: Key = image_key, resume: bool = False,
+                 header: dict | None = None) -> None:
         self.path = Path(path)
         self.key = key
         self.parquet = _is_parquet(self.path)
         self.stream = journal_path(self.path) if self.parquet else self.path
         self.done: set[Hashable] = set()
         self.written = 0
-        if resume:
-            self._load_done()
-        elif self.parquet and self.stream.exists():
-            self.stream.unlink()
-        mode = "ab" if resume else "wb"
-        self._fh = open(self.stream, mode)
+        #: the header found beside ``path`` when resuming (``None``: none)
+        self.previous_header: dict | None = None
+        self._fh = _open_locked(self.stream)
+        try:
+            if resume:
+                self._load_done(header)
+            else:
+                self._fh.truncate(0)
+            if header is not None:
+                _write_header(header_path(self.path), header)
+        except BaseException:
+            self._fh.close()
+            raise
+        self._fh.seek(0, os.SEEK_END)
 
-    def _load_done(self) -> None:
-        if self.parquet and not self.stream.exists() and self.path.exists():
-            # a finished Parquet run being extended: its records go back into a journal
-            with open(self.stream, "wb") as fh:
-                for rec in read_parquet_records(self.path):
-                    fh.write(_line(rec))
-        if not self.stream.exists():
-            return
+    def _load_done(self, header: dict | None) -> None:
+        fh = self._fh
+        if self.parquet and os.fstat(fh.fileno()).st_size == 0 and self.path.exists():
+            # a finished Parquet run being extended: its records go back into the journal
+            for rec in read_parquet_records(self.path):
+                fh.write(_line(rec))
+            fh.flush()
         good = _scan(self.stream)
+        if header is not None and good:
+            self.previous_header = _check_header(self.path, header)
         for rec in _records(self.stream, good):
-            self.done.add(self.key(rec))
-        if good != self.stream.stat().st_size:
-            with open(self.stream, "r+b") as fh:
-                fh.truncate(good)
+            self.done.add(_safe(self.key(rec)))
+        if good != os.fstat(fh.fileno()).st_size:
+            fh.truncate(good)
 
     def __contains__(self, key: Hashable) -> bool:
-        return key in self.done
+        return _safe(key) in self.done
 
     def write(self, rec: dict[str, Any]) -> None:
         """Append one record and flush it to the operating system."""
@@ -157,17 +236,30 @@ class RecordSink:
         self.written += 1
 
     def close(self, complete: bool = True) -> None:
-        """Close; with ``complete`` and a Parquet target, write it and drop the journal."""
+        """Close; with ``complete`` and a Parquet target, write it and drop the journal.
+
+        The lock is held until the Parquet file is in place. A conversion that fails leaves
+        the journal (for ``resume``) and no temporary file, and raises :class:`SinkError`."""
         if self._fh.closed:
             return
-        self._fh.flush()
-        os.fsync(self._fh.fileno())
-        self._fh.close()
-        if complete and self.parquet:
-            tmp = self.path.with_name(self.path.name + ".tmp")
-            records_to_parquet(read_records(self.stream), tmp)
-            os.replace(tmp, self.path)
-            self.stream.unlink()
+        try:
+            self._fh.flush()
+            os.fsync(self._fh.fileno())
+            if complete and self.parquet:
+                tmp = _tmp_path(self.path)
+                try:
+                    keys: dict[str, None] = {}  # every key, in order of first appearance: the schema
+                    for rec in read_records(self.stream):
+                        keys.update(dict.fromkeys(rec))
+                    records_to_parquet(read_records(self.stream), tmp, keys=list(keys))
+                    os.replace(tmp, self.path)
+                except Exception as exc:
+                    tmp.unlink(missing_ok=True)
+                    raise SinkError(f"cannot write {self.path} ({type(exc).__name__}: {exc}); its records are "
+                                    f"kept in {self.stream} (--resume continues)") from None
+                self.stream.unlink()
+        finally:
+            self._fh.close()
 
     def __enter__(self) -> "RecordSink":
         return self
@@ -176,8 +268,83 @@ class RecordSink:
         self.close(complete=exc_type is None)
 
 
+def _open_locked(path: Path):
+    """``path`` opened for reading and writing (created if missing, nothing truncated) under
+    an exclusive ``flock``; :class:`SinkError` at once if another process holds it."""
+    try:
+        import fcntl
+    except ImportError:  # no flock (Windows): no lock
+        return open(path, "a+b")
+    for _ in range(3):
+        fh = open(path, "a+b")
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            fh.close()
+            raise SinkError(f"{path} is being written by another torchrow run (locked); wait for it to end "
+                            "or write elsewhere") from None
+        try:
+            same = os.fstat(fh.fileno()).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:  # not a file that the holder removed (a finished Parquet journal) meanwhile
+            return fh
+        fh.close()
+    raise SinkError(f"{path} keeps being replaced by another torchrow run; write elsewhere")
+
+
+def _write_header(path: Path, header: dict) -> None:
+    """The run header, written atomically (a temporary file beside it, renamed over it)."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(_safe({"torchrow_run": 1, **header}), fh, indent=1)
+            fh.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def _check_header(path: Path, header: dict) -> dict:
+    """The header beside ``path``, checked against this run's (:class:`SinkError` naming the
+    first entries that differ)."""
+    hp = header_path(path)
+    try:
+        old = json.loads(hp.read_text())
+        if not isinstance(old, dict) or old.get("torchrow_run") != 1:
+            raise ValueError("not a torchrow run header")
+    except FileNotFoundError:
+        raise SinkError(f"{path} has records but no run header {hp.name} (written by an older torchrow or "
+                        "another tool): what wrote them is unknown; run without --resume") from None
+    except (OSError, ValueError) as exc:
+        raise SinkError(f"cannot read the run header {hp} ({exc})") from None
+    new = json.loads(json.dumps(_safe(header)))  # the form it has once written (tuples -> lists)
+    diffs = []
+    for k in sorted((set(new) | set(old)) - {"torchrow_run", "info"}):
+        a, b = old.get(k), new.get(k)
+        if a == b:
+            continue
+        if isinstance(a, dict) and isinstance(b, dict):
+            diffs += [f"{k}.{f} {a.get(f)!r} there, {b.get(f)!r} now" for f in sorted(set(a) | set(b))
+                      if a.get(f) != b.get(f)]
+        else:
+            diffs.append(f"{k} {a!r} there, {b!r} now")
+    if diffs:
+        more = f" (and {len(diffs) - 3} more)" if len(diffs) > 3 else ""
+        raise SinkError(f"{path} was written by another run: {'; '.join(diffs[:3])}{more}; run without --resume "
+                        "or write elsewhere")
+    return old
+
+
 def _line(rec: dict) -> bytes:
-    return (json.dumps(rec) + "\n").encode()
+    line = json.dumps(rec)
+    if "\\ud" in line:  # a lone surrogate (or a pair): bytes_safe decides, the same as Parquet
+        line = json.dumps(_safe(rec))
+    return (line + "\n").encode()
 
 
 # ----------------------------------------------------------------------------------------
@@ -200,12 +367,15 @@ def _arrow_types():
     }
 
 
-def records_to_parquet(records: Iterable[dict], path: str | Path, row_group: int = PARQUET_ROW_GROUP) -> int:
+def records_to_parquet(records: Iterable[dict], path: str | Path, row_group: int = PARQUET_ROW_GROUP,
+                       keys: Iterable[str] | None = None) -> int:
     """Write records (dicts with the README's keys) to a Parquet file; returns their count.
 
     Known keys get typed columns (Hough triples as float64 lists); any other key becomes a
-    JSON string column. The columns are the keys of the first row group, plus the optional
-    ``error`` and ``stamp_ns`` (null where absent). Memory: one row group.
+    JSON string column. The columns are ``keys`` (every key of the records, so that the
+    schema is fixed before the first row group: :meth:`RecordSink.close` collects them in a
+    first pass) or, without it, the keys of the first row group; plus the optional ``error``
+    and ``stamp_ns`` (null where absent). Strings are :func:`bytes_safe`. Memory: one row group.
     """
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -219,12 +389,13 @@ def records_to_parquet(records: Iterable[dict], path: str | Path, row_group: int
         chunk = [rec for _, rec in zip(range(row_group), it)]
         if not chunk:
             break
+        chunk = [_safe(rec) for rec in chunk]  # type: ignore[misc]
         if schema is None:
-            keys: list[str] = []
+            names: list[str] = list(keys) if keys is not None else []
             for rec in chunk:
-                keys.extend(k for k in rec if k not in keys)
-            keys.extend(k for k in ("error", "stamp_ns") if k not in keys)
-            schema = pa.schema([(k, types.get(k, pa.string())) for k in keys])
+                names.extend(k for k in rec if k not in names)
+            names.extend(k for k in ("error", "stamp_ns") if k not in names)
+            schema = pa.schema([(k, types.get(k, pa.string())) for k in names])
             writer = pq.ParquetWriter(str(path), schema)
         extra = {k for rec in chunk for k in rec} - set(schema.names)
         if extra:
@@ -259,7 +430,8 @@ def read_parquet_records(path: str | Path) -> Iterator[dict]:
             for k in ("hough", "outliers"):  # back to [float, int, int], as in the JSONL
                 if rec.get(k) is not None:
                     rec[k] = [[t, int(r), int(v)] for t, r, v in rec[k]]
-            for k in ("error", "stamp_ns"):  # optional keys: absent, as in the JSONL, where null
+            # optional keys (and a bag frame's keys among image records): absent, as in the JSONL, where null
+            for k in ("error", "stamp_ns", "source", "frame"):
                 if k in rec and rec[k] is None:
                     del rec[k]
             yield rec

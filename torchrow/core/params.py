@@ -167,7 +167,8 @@ class Params:
 class _Rule:
     """How one field is checked: ``kind`` (``int``, ``int?`` = int or None, ``float``, ``pair``
     = ``(width, height)`` of ints, ``ints`` = 1 to 64 ints), inclusive bounds ``lo``/``hi``
-    (``None``: unbounded; for a pair or ``ints`` they bound each entry) and an optional extra condition with its wording.
+    (every numeric rule has both, within int64; for a pair or ``ints`` they bound each entry)
+    and an optional extra condition with its wording.
 
     A value of the wrong kind raises ``TypeError``; a value of the right kind outside the
     rule raises ``ValueError``; both name the field. Integral numbers (``numpy.int64``) become
@@ -193,12 +194,21 @@ class _Rule:
         what = "an integer" if integral else "a finite number"
         if isinstance(v, bool) or not isinstance(v, numbers.Integral if integral else numbers.Real):
             raise TypeError(f"Params.{field} must be {what}, not {type(v).__name__}; got {v!r}")
-        v = int(v) if integral else v
+        given = v
+        if integral:
+            v = int(v)  # type: ignore[call-overload]
+        else:
+            # a float field holds a float (the tensor path makes float64 tensors of it); an
+            # integer too large for float64 is out of range like any other
+            try:
+                v = float(v)  # type: ignore[arg-type]
+            except OverflowError:
+                v = math.inf
         if not integral and not math.isfinite(v):  # type: ignore[arg-type]
-            raise ValueError(f"Params.{field} must be {what} {self._bounds()}; got {v!r}")
+            raise ValueError(f"Params.{field} must be {what} {self._bounds()}; got {given!r}")
         if (self.lo is not None and v < self.lo) or (self.hi is not None and v > self.hi):  # type: ignore[operator]
             why = f" ({self.why})" if self.why and self.hi is not None and v > self.hi else ""  # type: ignore[operator]
-            raise ValueError(f"Params.{field} must be {what} {self._bounds()}{why}; got {v!r}")
+            raise ValueError(f"Params.{field} must be {what} {self._bounds()}{why}; got {given!r}")
         return v
 
     def check(self, field: str, v: object) -> object:
@@ -234,8 +244,19 @@ def _odd(v: object) -> bool:
     return int(v) % 2 == 1  # type: ignore[call-overload]
 
 
-_INT1, _INT0, _F0 = _Rule("int", 1), _Rule("int", 0), _Rule("float", 0)
 _COST = "the tensor path's cost grows with it; ALGORITHM.md 0.1"
+# Every numeric field has an upper bound (ALGORITHM.md 0.1), so that no value reaches the
+# tensor path outside int64/float64 or makes a loop run once per unit of an absurd value:
+#: pixels (counts of points, rows of an image): a working image holds at most 2**22 pixels
+_PX = 1 << 22
+#: bands around a line or row, in px across the image: the widest working image is 4096 px
+_BAND = 4096
+_PXS = "a working image holds at most 2**22 pixels (max_pixels)"
+_BANDS = "wider than the widest working image (4096 px)"
+_INT_PX = _Rule("int", 0, _PX, why=_PXS)
+_DEG = _Rule("int", 0, 180, why="an angle in degrees")
+#: ratios and tolerances that have no natural bound: far beyond any meaningful value
+_F0 = _Rule("float", 0, 1e6, why="far beyond any meaningful value")
 
 #: Every field's rule. Upper bounds exist where the tensor path's cost grows with the value
 #: faster than the reference's (ALGORITHM.md section 0, "Bounds"); defaults are far inside.
@@ -244,27 +265,36 @@ _RULES: dict[str, _Rule] = {
     "n_rows": _Rule("int", 1, 64, why=_COST), "max_outliers": _Rule("int", 1, 64, why=_COST),
     "n_colors": _Rule("int", 1, 1024, why=_COST),
     "ransac_trials": _Rule("int", 1, 100_000, why="the hypothesis table holds 16 bytes per trial"),
-    "hough_every": _INT1,
+    "hough_every": _Rule("int", 1, 1_000_000, why="frames; a day of video at 10 fps has 864,000"),
     "theta_step": _Rule("int", 1, 180, (lambda v: 180 % v == 0, "must divide 180 degrees")),
-    "ransac_subsample": _INT1, "ransac_max_points": _INT1,
+    "ransac_subsample": _Rule("int", 1, _PX, why=_PXS), "ransac_max_points": _Rule("int", 1, _PX, why=_PXS),
     "image_width": _Rule("int", 1, 4096, why=_COST), "video_width": _Rule("int", 1, 4096, why=_COST),
     "sky_median": _Rule("int", 1, 15, (_odd, "must be odd (cv2.medianBlur)"),
                         why="the exact median network's cost explodes above 15"),
     "sky_col_median": _Rule("int", 1, 255, (_odd, "must be odd (medfilt)"), why=_COST),
-    "veg_tol": _INT0, "track_band": _INT0, "ransac_min_points": _INT0, "horizontal_excl": _INT0,
-    "angle_excl": _INT0, "sky_lap_max": _INT0, "sky_min_zero_row": _INT0,
+    # the tracker's band search takes one step per pixel of band
+    "track_band": _Rule("int", 0, _BAND, why=_BANDS), "ransac_min_points": _INT_PX,
+    "horizontal_excl": _DEG, "angle_excl": _DEG,
+    "sky_lap_max": _Rule("int", 0, 256, why="the Laplacian is uint8"), "sky_min_zero_row": _INT_PX,
     # adaptive k evaluates every k in [video_k_min, video_k_max]; 255 already boxes all of LAB
+    "veg_tol": _Rule("int", 0, 255, why="255 already boxes all of LAB"),
     "video_k_start": _Rule("int", 0, 255, why=_COST), "video_k_min": _Rule("int", 0, 255, why=_COST),
-    "video_k_max": _Rule("int", 0, 255, why=_COST), "canny_low": _INT0, "canny_high": _INT0,
+    "video_k_max": _Rule("int", 0, 255, why=_COST),
+    "canny_low": _Rule("int", 0, 1 << 16, why="Sobel gradients of uint8 images stay far below"),
+    "canny_high": _Rule("int", 0, 1 << 16, why="Sobel gradients of uint8 images stay far below"),
     "seed": _Rule("int", 0, 2**63 - 1),
-    "hough_band": _Rule("int?", 0), "ransac_band": _Rule("int?", 0), "ransac_band_bushy": _Rule("int?", 0),
-    "bushy_ratio": _F0, "horizon_angle": _F0, "min_angle_diff": _F0, "outlier_ratio": _F0,
-    "outlier_min_px": _F0, "singular_tol": _F0, "video_shrink_above": _F0, "video_grow_below": _F0,
+    "hough_band": _Rule("int?", 0, _BAND, why=_BANDS), "ransac_band": _Rule("int?", 0, _BAND, why=_BANDS),
+    "ransac_band_bushy": _Rule("int?", 0, _BAND, why=_BANDS),
+    "bushy_ratio": _Rule("float", 0, 1, why="a fraction of the image's pixels"),
+    "horizon_angle": _Rule("float", 0, math.pi, why="an angle in radians"),
+    "min_angle_diff": _Rule("float", 0, math.pi, why="an angle in radians"), "outlier_ratio": _F0,
+    "outlier_min_px": _F0, "singular_tol": _Rule("float", 0, 1, why="a fraction of trace**2"),
+    "video_shrink_above": _F0, "video_grow_below": _F0,
     # below ~1 LAB unit (the spacing of 8-bit colours) clusters degenerate to single colours
     # and section 2 loops once per distinct colour of the image
-    "color_tol": _Rule("float", 1.0),
-    "crda_sigma": _Rule("float", 0, extra=(lambda v: v > 0, "must be > 0")),  # type: ignore[operator]
-    "ransac_threshold": _Rule("float", 0, extra=(lambda v: v > 0, "must be > 0")),  # type: ignore[operator]
+    "color_tol": _Rule("float", 1.0, 1000.0, why="CIE76 distances of 8-bit colours stay below 400"),
+    "crda_sigma": _Rule("float", 0, 1e6, extra=(lambda v: v > 0, "must be > 0")),  # type: ignore[operator]
+    "ransac_threshold": _Rule("float", 0, 1e6, extra=(lambda v: v > 0, "must be > 0")),  # type: ignore[operator]
     "sky_blur": _Rule("pair", 1, 64, why="cv2.blur's division table has 255*w*h entries"),
     "sky_erode": _Rule("pair", 1, 255, why=_COST), "bushy_erode": _Rule("pair", 1, 255, why=_COST),
     # odd: x -> x*mult mod 2**32 is then a bijection, so subsampling keys never tie (section 7.2)
@@ -282,15 +312,16 @@ _RULES: dict[str, _Rule] = {
     "green_floor": _Rule("int", -(2**31) + 1, 2**31 - 1),
     "lattice_vp_max_y": _Rule("int", -(2**31) + 1, 2**31 - 1),
     "lattice_vp_fallback_y": _Rule("int", -(2**31) + 1, -1, why="the fallback VP lies above the image"),
-    "lattice_vp_margin": _INT1,
+    "lattice_vp_margin": _INT_PX,
     "lattice_min_spacing": _Rule("int", 1, 4096, why=_COST), "lattice_max_spacing": _Rule("int", 1, 4096, why=_COST),
-    "lattice_half": _Rule("int", 1, 64, why=_COST), "lattice_min_points": _INT1,
+    "lattice_half": _Rule("int", 1, 64, why=_COST), "lattice_min_points": _Rule("int", 1, _PX, why=_PXS),
     "lattice_iterations": _Rule("int", 0, 1000, why=_COST),
     "lattice_center_degree": _Rule("int", 2, 3, why="the refit's int64 sums; the records hold x up to y**3"),
     "lattice_cell_grid": _Rule("int", 1, 2**16, why="the int64 sums stay exact"),
     "lattice_window": _Rule("float", 0, 0.5, (lambda v: 0 < v < 0.5, "must lie in (0, 0.5)")),  # type: ignore[operator]
     "lattice_tolerance": _Rule("float", 0, 0.5, (lambda v: 0 < v < 0.5, "must lie in (0, 0.5)")),  # type: ignore[operator]
-    "lattice_min_spacing_px": _F0, "lattice_pivot_tol": _F0, "lattice_min_confidence": _Rule("float", 0, 1),
+    "lattice_min_spacing_px": _F0, "lattice_pivot_tol": _Rule("float", 0, 1, why="a fraction of a pivot"),
+    "lattice_min_confidence": _Rule("float", 0, 1),
 }
 
 #: Rules that tie fields together: (field named in the error, condition, wording).

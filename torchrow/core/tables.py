@@ -102,8 +102,12 @@ def _crc32(path: Path) -> int:
 
 
 def _stamp(path: Path) -> dict:
+    """What says that a file is the one last verified. ``ctime_ns`` (inode change time) is set
+    by the kernel on every write and on every ``utime``, so a table changed in place with its
+    modification time put back is caught too; a check record without it (older torchrow)
+    means one full verification."""
     st = path.stat()
-    return {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "inode": st.st_ino}
+    return {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "ctime_ns": st.st_ctime_ns, "inode": st.st_ino}
 
 
 def _write_atomic(path: Path, write) -> None:
@@ -131,9 +135,10 @@ def _record_check(path: Path, crc: int) -> None:
 def _damage(path: Path) -> str | None:
     """Why the cached table at ``path`` cannot be used (``None``: it is sound).
 
-    Cheap when nothing changed: the size, modification time and inode recorded beside the
-    table at its last verification are compared with the file's. Otherwise the file's CRC-32
-    is recomputed (0.4 s) and compared with the recorded one, and the new stamp is recorded.
+    Cheap when nothing changed: the size, modification and inode change times and inode
+    recorded beside the table at its last verification are compared with the file's
+    (:func:`_stamp`). Otherwise the file's CRC-32 is recomputed (0.4 s) and compared with the
+    recorded one, and the new stamp is recorded.
     """
     try:
         record = json.loads(_check_path(path).read_text())
@@ -223,11 +228,11 @@ def lab_table_torch(device: "str | torch.device" = "cpu"):
     if t is None or torch.compiler.is_exporting():  # never cache a tensor traced by torch.export
         base = _TORCH_TABLES.get("cpu")
         if base is None:
-            import warnings
-
+            table = lab_table()  # outside the filter below: its CacheWarning must be seen
             with warnings.catch_warnings():  # read-only memory map: torch never writes to it
-                warnings.simplefilter("ignore", UserWarning)
-                base = torch.from_numpy(lab_table())
+                warnings.filterwarnings("ignore", message="The given NumPy array is not writable",
+                                        category=UserWarning)
+                base = torch.from_numpy(table)
             if not torch.compiler.is_exporting():
                 _TORCH_TABLES["cpu"] = base
         t = base if dev.type == "cpu" else base.to(dev)

@@ -1,20 +1,22 @@
 """The Ray engine: ``torchrow detect|eval|video --engine ray`` and its Python entry point.
 
-Needs ``pip install 'torchrow[ray]'`` (Ray Data). Records are identical to the local
-engine's (:mod:`torchrow.engines.runner`): the workers run the same code on the same inputs, and an
-image's or a sequence's result never depends on what else is in its batch.
+Needs ``pip install 'torchrow[ray]'`` (Ray Data). Records agree with the local engine's
+(:mod:`torchrow.engines.runner`) as ALGORITHM.md "Identical results" defines it: the workers
+run the same code on the same inputs, every discrete output is equal, and floats may differ
+in their last bits (seen: up to 6e-14; the contract is 1e-6) where a float sum runs over a
+batch that the engines form differently.
 
-* **Images** (:func:`run`, a drop-in for :func:`torchrow.engines.runner.run`): the inputs become a
-  Ray dataset of ``(index, name, pickled loader)`` rows; ``map_batches`` runs them on an
-  actor pool of ``workers`` actors, each holding one
+* **Images** (:func:`run`, a drop-in for :func:`torchrow.engines.runner.run`): the inputs are
+  read lazily in batches of ``batch_size`` ``(index, name, pickled loader)`` rows and sent to
+  a pool of ``workers`` actors (at most :data:`BATCHES_IN_FLIGHT` batches per actor out, so
+  the driver never holds a whole bag's frames), each holding one
   :class:`~torchrow.engines.detector.CropRowDetector` (built once, ``cpus_per_worker`` torch
-  threads). Inside a batch of ``batch_size`` rows the images are grouped by working size
+  threads). Inside a batch the images are grouped by working size
   (:func:`torchrow.engines.runner.run`), so mixed sizes cost extra calls, never wrong results.
   Loaders run *on the workers*: they must be picklable (``functools.partial(load_image,
   path, width)``, a :class:`torchrow.apps.rosbag.BagFrame`, a lambda over a path) and the paths
   must be readable there (one machine, a shared file system, or object storage read by the
-  loader, see :func:`read_binary`). Results come back in input order
-  (``preserve_order``), as Ray's streaming executor produces them.
+  loader, see :func:`read_binary`). Results come back in input order.
 * **Video** (:func:`track`): one Ray task (a streaming generator) per batch of sequences
   that the local engine would track together (``batch_size`` 1: one task per sequence); it
   opens its sources itself and runs :func:`torchrow.engines.runner.track` on them; records of a
@@ -38,10 +40,19 @@ import numpy as np
 from torchrow.core.params import Params
 from torchrow.core.results import ImageResult
 
-__all__ = ["init", "run", "track", "read_binary", "RECORDS_PER_CHUNK"]
+__all__ = ["init", "check_address", "run", "track", "read_binary", "RECORDS_PER_CHUNK", "BATCHES_IN_FLIGHT",
+           "CONNECT_TIMEOUT_S"]
 
 #: Video records per object sent back by a sequence's task.
 RECORDS_PER_CHUNK = 16
+
+#: Batches sent ahead per detector actor by :func:`run`: the driver holds at most
+#: ``BATCHES_IN_FLIGHT * workers * batch_size`` inputs (a bag frame's loader holds its bytes).
+BATCHES_IN_FLIGHT = 2
+
+#: Seconds a TCP connection to a cluster's address may take before it is called unreachable
+#: (``ray.init`` itself waits minutes, deaf to SIGTERM for part of it).
+CONNECT_TIMEOUT_S = 3.0
 
 
 def _ray():
@@ -53,16 +64,48 @@ def _ray():
     return ray
 
 
+def check_address(address: str | None) -> None:
+    """Fail fast, with a one-line ``ValueError``, on a cluster address that cannot work.
+
+    ``address`` (else ``$RAY_ADDRESS``): ``None``, ``"auto"`` and ``"local"`` are left to Ray;
+    ``"ray://HOST:PORT"`` needs the Ray client (``pip install 'ray[client]'``); for
+    ``HOST:PORT`` and ``ray://HOST:PORT`` something must accept a TCP connection there within
+    :data:`CONNECT_TIMEOUT_S` seconds.
+    """
+    import importlib.util
+    import socket
+
+    given = address or os.environ.get("RAY_ADDRESS") or None
+    if given is None or given in ("auto", "local"):
+        return
+    what = f"--address {given}" if address else f"RAY_ADDRESS={given}"
+    hostport = given
+    if given.startswith("ray://"):
+        if importlib.util.find_spec("grpc") is None:
+            raise ValueError(f"{what}: a ray:// address needs the Ray client: pip install 'ray[client]'")
+        hostport = given[len("ray://"):]
+    host, sep, port = hostport.rpartition(":")
+    if not sep or not port.isdigit() or not host:
+        return  # a form Ray knows and this check does not: Ray decides
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=CONNECT_TIMEOUT_S).close()
+    except OSError as exc:
+        raise ValueError(f"{what}: no Ray cluster answers at {host}:{port} ({exc.strerror or exc}); start one "
+                         "there (ray start --head) or leave --address out for a local one") from None
+
+
 def init(address: str | None = None, num_cpus: int | None = None, quiet: bool = True):
     """Connect to (or start) a Ray cluster; returns the ``ray`` module.
 
-    An initialised Ray is kept. Otherwise ``ray.init(address=address)``; without an address
-    (and without ``RAY_ADDRESS``) a local cluster with ``num_cpus`` (default: all) CPUs.
+    An initialised Ray is kept. Otherwise ``ray.init(address=address)`` once
+    :func:`check_address` passes; without an address (and without ``RAY_ADDRESS``) a local
+    cluster with ``num_cpus`` (default: all) CPUs.
     """
     ray = _ray()
     if not ray.is_initialized():
         import logging
 
+        check_address(address)
         kw: dict = dict(include_dashboard=False, logging_level=logging.WARNING if quiet else logging.INFO,
                         log_to_driver=not quiet)
         if address is None and not os.environ.get("RAY_ADDRESS"):
@@ -76,7 +119,7 @@ def _cluster_cpus(ray) -> int:
 
 
 class _Detect:
-    """Ray Data actor: one detector, built once; runs batches of ``(index, name, loader)`` rows."""
+    """Detector actor: one detector, built once; runs batches of ``(index, name, loader)`` rows."""
 
     def __init__(self, impl: str, params: Params, device: str | None, model: str | None, threads: int) -> None:
         import torch
@@ -92,6 +135,10 @@ class _Detect:
             from torchrow.engines.export import OnnxDetector
 
             self.det = OnnxDetector(model)
+
+    def detect(self, batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The remote method (an actor's ``__call__`` is not one)."""
+        return self(batch)
 
     def __call__(self, batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         from torchrow.engines.runner import run
@@ -111,50 +158,72 @@ def run(items: Iterable[tuple[str, Callable[[], np.ndarray]]], impl: str = "tens
         cpus_per_worker: int = 1, address: str | None = None
         ) -> Iterator[tuple[int, None, ImageResult, float]]:
     """:func:`torchrow.engines.runner.run` on a Ray cluster: yields ``(index, None, result, seconds)``
-    in input order (no RGB comes back). ``workers``: actors in the pool (default: the
-    cluster's CPUs // ``cpus_per_worker``); ``batch_size``: rows per ``map_batches`` call
-    (made smaller for short runs, so that every worker gets a batch). The driver holds one
-    row per input (name and pickled loader, a few hundred bytes) and the results that
-    arrive ahead of an earlier one; Ray's streaming executor bounds the rest."""
+    in input order (no RGB comes back). ``workers``: detector actors (default: the cluster's
+    CPUs // ``cpus_per_worker``); ``batch_size``: inputs per call of an actor (made smaller
+    for short runs, so that every worker gets a batch, when ``total`` is known).
+
+    ``items`` is read lazily, one batch at a time: at most :data:`BATCHES_IN_FLIGHT` batches
+    per actor are out (pickled loaders: a path, or a bag frame's bytes), and results come back
+    in input order as they finish, so the driver's memory does not grow with the run."""
+    import itertools
+
     from ray import cloudpickle
+    from ray.util import ActorPool
 
     ray = init(address)
     params = params or Params()
-    rows = [{"index": i, "name": name, "loader": cloudpickle.dumps(loader)} for i, (name, loader) in enumerate(items)]
-    if not rows:
-        return
     n_workers = workers or max(1, _cluster_cpus(ray) // cpus_per_worker)
-    # DataContext is per process: set what this run needs, put the caller's values back after
-    ctx = ray.data.DataContext.get_current()
-    saved = (ctx.execution_options.preserve_order, ctx.enable_progress_bars)
-    ctx.execution_options.preserve_order = True
-    ctx.enable_progress_bars = progress
-    # at least one block per worker, so that a short (e.g. resumed) run still spreads out
-    batch_size = max(1, min(batch_size, -(-len(rows) // n_workers)))
-    blocks = max(1, min(len(rows), -(-len(rows) // batch_size)))
-    ds = ray.data.from_items(rows, override_num_blocks=blocks)
-    ds = ds.map_batches(_Detect, batch_size=batch_size, batch_format="numpy", concurrency=n_workers,
-                        num_cpus=cpus_per_worker, fn_constructor_kwargs=dict(
-                            impl=impl, params=params, device=device, model=model, threads=cpus_per_worker))
+    if total is not None:  # at least one batch per worker, so that a short (e.g. resumed) run spreads out
+        batch_size = max(1, min(batch_size, -(-total // n_workers)))
+    it = iter(items)
+
+    def batches() -> Iterator[dict]:
+        start = 0
+        while chunk := list(itertools.islice(it, batch_size)):
+            yield {"index": list(range(start, start + len(chunk))), "name": [n for n, _ in chunk],
+                   "loader": [cloudpickle.dumps(loader) for _, loader in chunk]}
+            start += len(chunk)
+
+    todo = batches()
+    first = next(todo, None)
+    if first is None:
+        return
+    actor = ray.remote(num_cpus=cpus_per_worker)(_Detect)
+    actors = [actor.remote(impl=impl, params=params, device=device, model=model, threads=cpus_per_worker)
+              for _ in range(n_workers)]
+    pool = ActorPool(actors)
     from torchrow.engines.runner import _progress
 
-    bar = _progress(total if total is not None else len(rows), desc, progress)
-    waiting: dict[int, tuple[ImageResult, float]] = {}
-    nxt = 0
+    bar = _progress(total if total is not None else 0, desc, progress)
+    nxt, sent, out = 0, 0, 0  # results yielded, inputs sent, batches sent and not yet back
+
+    def back() -> Iterator[tuple[int, None, ImageResult, float]]:
+        nonlocal nxt, out
+        res = pool.get_next()  # batches come back in the order they were sent
+        out -= 1
+        for i, blob, sec in zip(res["index"], res["result"], res["seconds"]):
+            if int(i) != nxt:
+                raise RuntimeError(f"Ray returned input {int(i)} where {nxt} was due")
+            bar.update(1)
+            yield nxt, None, pickle.loads(blob), float(sec)
+            nxt += 1
+
     try:
-        for batch in ds.iter_batches(batch_size=None, batch_format="numpy"):
-            for i, blob, sec in zip(batch["index"], batch["result"], batch["seconds"]):
-                waiting[int(i)] = (pickle.loads(blob), float(sec))
-            while nxt in waiting:  # preserve_order keeps input order; this only guards it
-                res, sec = waiting.pop(nxt)
-                bar.update(1)
-                yield nxt, None, res, sec
-                nxt += 1
+        for batch in itertools.chain([first], todo):
+            pool.submit(lambda a, b: a.detect.remote(b), batch)
+            sent += len(batch["index"])
+            out += 1
+            del batch
+            if out >= BATCHES_IN_FLIGHT * n_workers:
+                yield from back()
+        while out:
+            yield from back()
     finally:
         bar.close()
-        ctx.execution_options.preserve_order, ctx.enable_progress_bars = saved
-    if nxt != len(rows):
-        raise RuntimeError(f"Ray returned {nxt} of {len(rows)} results")
+        for a in actors:
+            ray.kill(a)
+    if nxt != sent:
+        raise RuntimeError(f"Ray returned {nxt} of {sent} results")
 
 
 def _track_task(paths: list[str], topic: str | None, names: list[str], impl: str, params: Params,
@@ -189,8 +258,9 @@ def track(sources: Sequence[str | Path], names: Sequence[str] | None = None, imp
     a source).
 
     One Ray task per batch of :func:`torchrow.engines.runner.track_batches` (the local engine's
-    batches: sources of one working size, up to ``batch_size``), so that records are the
-    local engine's bit for bit; each task runs its batch in groups on ``workers`` threads
+    batches: sources of one working size, up to ``batch_size``), so that a sequence's float
+    sums run over the same group as there (records within the contract of the module
+    docstring; in practice equal); each task runs its batch in groups on ``workers`` threads
     (default: this process's torch thread count, the local engine's grouping) and reserves
     one CPU per group. ``batch_size=1`` gives one task per sequence, the most parallel (rows
     may then differ from a local batched run in a last bit, see ``track_batches``).

@@ -50,7 +50,7 @@ from torchrow.engines.detector import BatchResult
 
 __all__ = ["to_onnx", "OnnxDetector", "OnnxTracker", "step_differences", "float64_python_constants", "legalize",
            "op_counts", "model_info", "model_meta", "ort_optimized",
-           "FORBIDDEN_OPS", "DEFAULT_OPSET"]
+           "FORBIDDEN_OPS", "DEFAULT_OPSET", "MAX_EXPORT_BATCH"]
 
 DEFAULT_OPSET = 18
 
@@ -245,10 +245,25 @@ def op_counts(model) -> Counter:
     return c
 
 
-def _check_shape(height: int, width: int, batch: int, opset: int) -> None:
-    for name, v, lo in (("height", height, 1), ("width", width, 1), ("batch", batch, 1), ("opset", opset, 18)):
+#: Largest static batch of an export: the example inputs (and the tracker's ``k_table``, 16 MiB
+#: per sequence) are allocated before tracing, and a graph's intermediate tensors grow with it.
+MAX_EXPORT_BATCH = {"detector": 256, "tracker": 64}
+
+
+def _check_shape(height: int, width: int, batch: int, opset: int, params: Params, tracker: bool) -> None:
+    """One-line ``ValueError`` for a size that is not an integer in range, checked before any
+    tracing or allocation: the working image within ``params.max_pixels`` (ALGORITHM.md 0.1)
+    and the batch within :data:`MAX_EXPORT_BATCH`."""
+    kind = "tracker" if tracker else "detector"
+    for name, v, lo, hi in (("height", height, 1, params.max_pixels), ("width", width, 1, 4096),
+                            ("batch", batch, 1, MAX_EXPORT_BATCH[kind]), ("opset", opset, 18, None)):
         if not isinstance(v, int) or isinstance(v, bool) or v < lo:
             raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
+        if hi is not None and v > hi:
+            raise ValueError(f"{name} of a {kind} export must be <= {hi}, got {v}")
+    if height * width > params.max_pixels:
+        raise ValueError(f"a {width}x{height} working image has {height * width} pixels, more than "
+                         f"max_pixels = {params.max_pixels} (ALGORITHM.md 0.1)")
 
 
 def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 1, params: Params | None = None,
@@ -304,8 +319,8 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
 
     from torchrow.functional import static
 
-    _check_shape(height, width, batch, opset)
     params = params or Params()
+    _check_shape(height, width, batch, opset, params, tracker)
     path = Path(path)
     if not path.parent.is_dir():
         raise FileNotFoundError(f"output folder does not exist: {path.parent}")

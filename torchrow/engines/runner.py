@@ -14,8 +14,10 @@ is out. So that one image of an odd size (or a rare size) cannot hold the output
 concurrent onnxruntime runs, ``(workers + 1) * batch_size`` if that is more) are read ahead of the
 oldest input without a result: when the window is full, the group holding that input runs at
 once, even if it is not full. Memory is bounded by ``window`` working images (about 230 kB
-each at 320x240), whatever the length of the run; results never depend on the window, since
-images are independent of the batch they run in.
+each at 320x240), whatever the length of the run. Discrete outputs never depend on the window
+(or on ``batch_size``), since images are independent of the batch they run in; floats may
+differ in their last bits where a sum runs over a batch's padded sizes (seen: 2.2e-16), within
+the 1e-6 of ALGORITHM.md "Identical results".
 """
 
 from __future__ import annotations
