@@ -288,9 +288,9 @@ def annotations(rec: dict, image: PublishedImage | None, stamp_ns: int):
             label += f" {row.confidence:.2f}"
         if not row.valid:
             label += f" {row.reason}"
+        foot = float(np.clip((xs[-1] + 0.5) * sx, 4 * px, w * sx - 60 * px))  # a foot outside: label at the border
         texts.append(fm.TextAnnotation(
-            timestamp=ts, position=fm.Point2(x=float(np.clip((xs[-1] + 0.5) * sx, 4 * px, w * sx - 60 * px)), y=float(h * sy - 4 * px)),
-            text=label,
+            timestamp=ts, position=fm.Point2(x=foot, y=float(h * sy - 4 * px)), text=label,
             font_size=12.0 * px, text_color=color, background_color=fm.Color(r=0, g=0, b=0, a=0.6)))
     if res.sky > 0:
         points.append(fm.PointsAnnotation(
