@@ -43,7 +43,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 
@@ -51,9 +51,9 @@ from torchrow.apps.annotate import HORIZON, INVALID, VALID, VP_COLOR, row_top
 from torchrow.core.io import header_size
 from torchrow.core.results import ImageResult
 
-__all__ = ["MISSING", "JPEG_QUALITY", "POLYLINE_POINTS", "CHUNK_BYTES", "SIGNALS_SCHEMA", "FoxgloveMissing", "FrameOrigins",
-           "PublishedImage", "Recorder", "available", "frame_stamp", "parse_serve", "published_image",
-           "topic_prefixes", "with_stamp"]
+__all__ = ["MISSING", "JPEG_QUALITY", "POLYLINE_POINTS", "CHUNK_BYTES", "SIGNALS_SCHEMA", "FoxgloveMissing",
+           "FrameOrigins", "PublishedImage", "RecordedMessage", "Recorder", "available", "image_annotations", "frame_stamp",
+           "parse_serve", "published_image", "read_mcap", "signals", "topic_prefixes", "with_stamp"]
 
 #: The one-line reason given when the SDK is not installed.
 MISSING = "needs the Foxglove SDK: pip install 'torchrow[foxglove]'"
@@ -221,7 +221,7 @@ class FrameOrigins:
 
     def __init__(self, source) -> None:
         self.source = source
-        self._frames = None
+        self._frames: Iterator[Any] | None = None
         self._held: object = None
         self._index = -1
 
@@ -260,7 +260,7 @@ def _timestamp(fm, stamp_ns: int):
     return fm.Timestamp(stamp_ns // 10**9, stamp_ns % 10**9)
 
 
-def annotations(rec: dict, image: PublishedImage | None, stamp_ns: int):
+def image_annotations(rec: dict, image: PublishedImage | None, stamp_ns: int):
     """``foxglove.messages.ImageAnnotations`` of one record (module docstring), in the pixels
     of ``image`` (the working image's when ``None``)."""
     _, fm = _sdk()
@@ -327,6 +327,37 @@ def signals(rec: dict, stamp_ns: int, frame: int) -> dict[str, Any]:
     return msg
 
 
+@dataclass(frozen=True)
+class RecordedMessage:
+    """One message of an MCAP file as :func:`read_mcap` returns it."""
+
+    topic: str
+    schema: str
+    log_time: int
+    data: bytes
+
+
+def read_mcap(path: str | Path) -> tuple[list[RecordedMessage], bool]:
+    """The messages of an MCAP file in file order, and whether the file is whole.
+
+    A run killed while writing leaves the whole chunks and a torn last one (no summary):
+    the messages of the whole chunks come back with ``False``. Uses the ``mcap`` reader, as a
+    stream, so it needs no summary section.
+    """
+    from mcap.exceptions import McapError
+    from mcap.reader import NonSeekingReader
+
+    out: list[RecordedMessage] = []
+    with open(path, "rb") as fh:
+        reader = NonSeekingReader(fh)
+        try:
+            for schema, channel, msg in reader.iter_messages(log_time_order=False):
+                out.append(RecordedMessage(channel.topic, schema.name if schema else "", msg.log_time, msg.data))
+        except (McapError, EOFError, ValueError):
+            return out, False
+    return out, True
+
+
 class _Listener:
     """Counts the server's subscriptions (a ``foxglove.websocket.ServerListener``)."""
 
@@ -372,8 +403,8 @@ class Recorder:
         self.prefixes = topic_prefixes(labels)
         self.labels = list(labels)
         self._ctx = foxglove.Context()
-        self._writer = None
-        self._server = None
+        self._writer: Any = None
+        self._server: Any = None
         self._anchor: dict[int, tuple[float, int]] = {}
         self._period = 0.0
         self.published = 0
@@ -437,7 +468,7 @@ class Recorder:
         if image is not None:
             img_ch.log(fm.CompressedImage(timestamp=_timestamp(fm, stamp), frame_id=self._frame_id(seq),
                                           data=image.data, format=image.format), log_time=stamp)
-        ann_ch.log(annotations(rec, image, stamp), log_time=stamp)
+        ann_ch.log(image_annotations(rec, image, stamp), log_time=stamp)
         sig_ch.log(signals(rec, stamp, index), log_time=stamp)
         self.published += 1
         return rec
