@@ -148,8 +148,8 @@ def test_video_mcap_of_caterra_frames(data_dir: Path, tmp_path: Path) -> None:
     assert [r["stamp_ns"] for r in recs] == [t * 100_000_000 for t in range(5)]
     assert [list(r)[:3] for r in recs] == [["source", "frame", "stamp_ns"]] * 5
     _check_recording(mcap, recs, "/torchrow", [f.read_bytes() for f in files])
-    msgs, whole = read_mcap(mcap)
-    assert whole and len(msgs) == 15
+    recording = read_mcap(mcap)
+    assert recording.whole and len(recording.messages) == 15
 
 
 def test_video_and_detect_mcap_of_a_ros2_bag(tmp_path: Path) -> None:
@@ -294,9 +294,9 @@ def test_a_killed_recording_keeps_its_whole_chunks(tmp_path: Path) -> None:
     proc = subprocess.run([sys.executable, "-c", _KILLED, str(mcap), str(jpeg), "10"], env=env, timeout=60,
                           capture_output=True)
     assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()
-    msgs, whole = read_mcap(mcap)
-    assert not whole
-    frames = [m for m in msgs if m.topic == "/torchrow/image"]
+    recording = read_mcap(mcap)
+    assert not recording.whole
+    frames = [m for m in recording.messages if m.topic == "/torchrow/image"]
     assert 1 <= len(frames) < 10 and all(jpeg.read_bytes() in m.data for m in frames)
     assert [m.log_time for m in frames] == [j * 100_000_000 for j in range(len(frames))]
 

@@ -43,7 +43,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Iterator, NamedTuple, Sequence
 
 import numpy as np
 
@@ -52,8 +52,9 @@ from torchrow.core.io import header_size
 from torchrow.core.results import ImageResult
 
 __all__ = ["MISSING", "JPEG_QUALITY", "POLYLINE_POINTS", "CHUNK_BYTES", "SIGNALS_SCHEMA", "FoxgloveMissing",
-           "FrameOrigins", "PublishedImage", "RecordedMessage", "Recorder", "available", "image_annotations", "frame_stamp",
-           "parse_serve", "published_image", "read_mcap", "signals", "topic_prefixes", "with_stamp"]
+           "FrameOrigins", "PublishedImage", "RecordedMessage", "Recorder", "Recording", "ServeAddress", "available",
+           "frame_stamp", "image_annotations", "parse_serve", "published_image", "read_mcap", "signals",
+           "topic_prefixes", "with_stamp"]
 
 #: The one-line reason given when the SDK is not installed.
 MISSING = "needs the Foxglove SDK: pip install 'torchrow[foxglove]'"
@@ -116,14 +117,21 @@ def available() -> bool:
     return True
 
 
-def parse_serve(spec: str) -> tuple[str, int]:
-    """``[HOST:]PORT`` (``[::1]:PORT`` for IPv6) -> ``(host, port)``; the host defaults to
-    127.0.0.1 (this machine only). Raises ``ValueError`` with a one-line reason."""
+class ServeAddress(NamedTuple):
+    """Where ``--serve`` listens (port 0: one the system picks)."""
+
+    host: str
+    port: int
+
+
+def parse_serve(spec: str) -> ServeAddress:
+    """``[HOST:]PORT`` (``[::1]:PORT`` for IPv6); the host defaults to 127.0.0.1 (this machine
+    only). Raises ``ValueError`` with a one-line reason."""
     host, sep, port = spec.rpartition(":")
     host = host.strip("[]") if sep else "127.0.0.1"
     if not port.isdigit() or not 0 <= int(port) <= 65535 or (sep and not host):
         raise ValueError(f"--serve expects [HOST:]PORT with a port in 0..65535, got {spec!r}")
-    return host, int(port)
+    return ServeAddress(host, int(port))
 
 
 def topic_prefixes(labels: Sequence[str]) -> list[str]:
@@ -188,8 +196,10 @@ def published_image(origin: object, rgb: np.ndarray | None, quality: int = JPEG_
     data: bytes | None = None
     if isinstance(origin, Path):
         try:
-            with open(origin, "rb") as fh:
-                data = fh.read()
+            with open(origin, "rb") as fh:  # only a JPEG is read whole (a PNG is re-encoded)
+                data = fh.read(len(_JPEG_MAGIC))
+                if data == _JPEG_MAGIC:
+                    data += fh.read()
         except OSError:
             data = None
     elif getattr(origin, "compressed", False):
@@ -337,12 +347,20 @@ class RecordedMessage:
     data: bytes
 
 
-def read_mcap(path: str | Path) -> tuple[list[RecordedMessage], bool]:
-    """The messages of an MCAP file in file order, and whether the file is whole.
+@dataclass(frozen=True)
+class Recording:
+    """What :func:`read_mcap` finds: the messages in file order, and whether the file is whole."""
+
+    messages: list[RecordedMessage]
+    whole: bool
+
+
+def read_mcap(path: str | Path) -> Recording:
+    """The messages of an MCAP file in file order.
 
     A run killed while writing leaves the whole chunks and a torn last one (no summary):
-    the messages of the whole chunks come back with ``False``. Uses the ``mcap`` reader, as a
-    stream, so it needs no summary section.
+    their messages come back with ``whole=False``. Uses the ``mcap`` reader as a stream, so
+    it needs no summary section.
     """
     from mcap.exceptions import McapError
     from mcap.reader import NonSeekingReader
@@ -354,8 +372,8 @@ def read_mcap(path: str | Path) -> tuple[list[RecordedMessage], bool]:
             for schema, channel, msg in reader.iter_messages(log_time_order=False):
                 out.append(RecordedMessage(channel.topic, schema.name if schema else "", msg.log_time, msg.data))
         except (McapError, EOFError, ValueError):
-            return out, False
-    return out, True
+            return Recording(out, False)
+    return Recording(out, True)
 
 
 class _Listener:
@@ -381,7 +399,7 @@ class Recorder:
     labels : one label per sequence (its topic prefix, :func:`topic_prefixes`).
     fps : frames per second of each sequence, for frames without a bag stamp.
     mcap : MCAP file to write (overwritten), or ``None``.
-    serve : ``(host, port)`` of the WebSocket server, or ``None``. With a server, frames are
+    serve : where the WebSocket server listens (:func:`parse_serve`), or ``None``. With a server, frames are
         paced at their log times (each sequence from its first frame) and the constructor
         waits up to ``serve_wait`` seconds for a first client.
     log : where the server's address and waiting notes go (stderr).
@@ -392,7 +410,7 @@ class Recorder:
     """
 
     def __init__(self, labels: Sequence[str], fps: Sequence[float], mcap: Path | None = None,
-                 serve: tuple[str, int] | None = None, serve_wait: float = 10.0, log=None) -> None:
+                 serve: ServeAddress | None = None, serve_wait: float = 10.0, log=None) -> None:
         foxglove, fm = _sdk()
         from foxglove.channels import CompressedImageChannel, ImageAnnotationsChannel
         from foxglove.mcap import MCAPCompression, MCAPWriteOptions
@@ -423,7 +441,7 @@ class Recorder:
                 self._close(linger=False)
                 raise
 
-    def _serve(self, foxglove, serve: tuple[str, int], wait: float) -> None:
+    def _serve(self, foxglove, serve: ServeAddress, wait: float) -> None:
         listener = _Listener()
         try:
             self._server = foxglove.start_server(name="torchrow", host=serve[0], port=serve[1], context=self._ctx,
@@ -438,6 +456,7 @@ class Recorder:
         deadline = time.monotonic() + wait
         first = None
         while True:
+            listener.changed.clear()  # before looking: a subscription from now on ends the wait below
             now = time.monotonic()
             if len(listener.subscribed) >= n_channels or (first is not None and now >= first + SETTLE_S):
                 return
@@ -445,7 +464,6 @@ class Recorder:
                 if first is None:
                     self._log(f"torchrow: no client after {wait:g} s; running without one")
                 return
-            listener.changed.clear()
             limit = deadline if first is None else min(deadline, first + SETTLE_S)
             listener.changed.wait(max(0.0, limit - now))
             if first is None and listener.subscribed:
