@@ -7,6 +7,7 @@ file that cannot be read inside a run gets an ``error`` record and the run goes 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
@@ -231,6 +232,42 @@ def _split_bags(inputs: Sequence[str], topic: str | None) -> tuple[list[str], li
     return others, bags
 
 
+def _check_foxglove(args: argparse.Namespace) -> bool:
+    """``--mcap`` / ``--serve`` (torchrow.apps.foxglove): the SDK installed, the local engine, no
+    ``--resume`` with ``--mcap``; parses ``--serve`` in place. True when either is asked."""
+    serve = getattr(args, "serve", None)
+    asked = [flag for flag, v in (("--mcap", args.mcap), ("--serve", serve)) if v is not None]
+    if not asked:
+        return False
+    from torchrow.apps.foxglove import MISSING, available, parse_serve
+
+    what = " and ".join(asked)
+    if not available():
+        raise CLIError(f"{what} {MISSING}")
+    if args.engine == "ray":
+        raise CLIError(f"{what} needs --engine local (the Ray engine returns records, not frames)")
+    if args.mcap is not None and args.resume:
+        raise CLIError("--resume cannot continue an MCAP recording; run without --resume, or without --mcap")
+    if args.mcap is not None and not Path(args.mcap).parent.is_dir():
+        raise CLIError(f"folder of --mcap does not exist: {Path(args.mcap).parent}")
+    if serve is not None:
+        try:
+            args.serve = parse_serve(serve)
+        except ValueError as exc:
+            raise CLIError(str(exc)) from None
+        if not args.serve_wait >= 0:
+            raise CLIError(f"--serve-wait must be >= 0 seconds, got {args.serve_wait}")
+    return True
+
+
+def _open_recorder(args: argparse.Namespace, labels: list[str], fps: list[float]):
+    """The Foxglove recorder of ``--mcap`` / ``--serve`` (checked by ``_check_foxglove``)."""
+    from torchrow.apps.foxglove import Recorder
+
+    return Recorder(labels, fps, Path(args.mcap) if args.mcap is not None else None,
+                    getattr(args, "serve", None), getattr(args, "serve_wait", 0.0))
+
+
 def cmd_detect(args: argparse.Namespace) -> int:
     import functools
 
@@ -263,33 +300,38 @@ def cmd_detect(args: argparse.Namespace) -> int:
     names = _record_names(paths)
     ann = Path(args.annotate) if args.annotate else None
     ann_paths = [ann / n for n in _annotation_names(names)] if ann is not None else []
+    foxglove = _check_foxglove(args)
     _check_targets([*map(Path, args.inputs), *paths, *([Path(model)] if model else [])],
                    _out_targets(out) + ([("--annotate", ann)] if ann is not None else [])
-                   + [("--annotate", a) for a in ann_paths])
+                   + [("--annotate", a) for a in ann_paths] + ([("--mcap", Path(args.mcap))] if args.mcap else []))
     sink = _open_sink(out, image_key, args.resume, _run_header("detect", params, args.inputs, impl=args.impl,
                                                                  engine=args.engine))
     if ann is not None:
         ann.mkdir(parents=True, exist_ok=True)
+    # --mcap: the image files are one sequence, each bag another
+    fox = _open_recorder(args, (["images"] if paths else []) + _Annotator._stems(bags),
+                         [_Annotator.DEFAULT_FPS] * (bool(paths) + len(bags))) if foxglove else None
 
     def inputs():
-        """(name, loader, annotated picture, extra record keys); bag frames after the files."""
+        """(name, loader, annotated picture, extra record keys, (sequence, index, source of
+        the frame's bytes)); bag frames after the files."""
         for j, (p, name) in enumerate(zip(paths, names)):
             yield (name, functools.partial(load_image, p, params.image_width, params.max_pixels),
-                   ann_paths[j] if ann is not None else None, None)
-        for b in bags:
+                   ann_paths[j] if ann is not None else None, None, (0, j, p))
+        for s, b in enumerate(bags, bool(paths)):
             for f in b.frames(params.image_width):
                 yield (f"{b.path.name}#{f.frame:06d}", f,
                        ann / f"{b.path.name}_{f.frame:06d}.png" if ann is not None else None,
-                       {"source": b.name, "frame": f.frame, "stamp_ns": f.stamp_ns})
+                       {"source": b.name, "frame": f.frame, "stamp_ns": f.stamp_ns}, (s, f.frame, f))
 
-    meta: dict[int, tuple[Path | None, dict | None]] = {}
+    meta: dict[int, tuple[Path | None, dict | None, tuple]] = {}
 
     def todo():
         k = 0
-        for name, loader, picture, extra in inputs():
+        for name, loader, picture, extra, origin in inputs():
             if name in sink:  # --resume: already in --out
                 continue
-            meta[k] = (picture, extra)
+            meta[k] = (picture, extra, origin)
             k += 1
             yield name, loader
 
@@ -305,12 +347,14 @@ def cmd_detect(args: argparse.Namespace) -> int:
 
         stream = run(todo(), workers=args.workers if args.impl == "onnx" else None, **common)
     counts: dict[str, int] = {}
-    with sink:
+    with sink, (fox or contextlib.nullcontext()):
         for i, rgb, res, _ in stream:
-            picture, extra = meta.pop(i)
+            picture, extra, origin = meta.pop(i)
             rec = res.to_record()
             if extra:
                 rec = {"name": rec.pop("name"), **extra, **rec}
+            if fox is not None:
+                rec = fox.frame(*origin[:2], rec, rgb, origin[2])
             sink.write(rec)
             counts[res.status] = counts.get(res.status, 0) + 1
             if picture is not None and rgb is not None:
@@ -669,11 +713,20 @@ def cmd_video(args: argparse.Namespace) -> int:
     targets = _out_targets(out) + ([("--plot", plot)] if plot is not None else [])
     if args.annotate:
         targets += [("--annotate", t) for t in _Annotator.targets(args.annotate, sources)]
+    foxglove = _check_foxglove(args)
+    if args.mcap is not None:
+        targets.append(("--mcap", Path(args.mcap)))
     _check_targets([s.path for s in sources], targets)
     real = [os.path.realpath(s.path) for s in sources]
     sink = _open_sink(out, frame_key, args.resume, _run_header(
         "video", params, real, impl=args.impl, engine=args.engine, names=dict(zip(real, (s.name for s in sources)))))
     ann = _Annotator(args.annotate, sources, args.fps)
+    fox = None
+    if foxglove:
+        from torchrow.apps.foxglove import FrameOrigins
+
+        fox = _open_recorder(args, _Annotator._stems(sources), ann.fps)
+        origins = [FrameOrigins(s) for s in sources]
     # a source spelled otherwise than in the run being resumed (cat20, /abs/cat20) keeps that
     # run's name, so that its frames are found and its records stay under one name
     before = ((sink.previous_header or {}).get("info") or {}).get("names") or {}
@@ -708,7 +761,7 @@ def cmd_video(args: argparse.Namespace) -> int:
     total = sum(sources[i].length for i in todo)
     bar = progress(total, "video", enabled=not args.quiet, unit="frame")
     try:
-        with sink:
+        with sink, (fox or contextlib.nullcontext()):
             for i, rec, res, rgb in stream:
                 bar.update(1)
                 if rec is None:
@@ -716,6 +769,8 @@ def cmd_video(args: argparse.Namespace) -> int:
                         continue
                     rec = res.to_record()
                     ann.write(i, res, rgb)
+                    if fox is not None:
+                        rec = fox.frame(i, res.frame, rec, rgb, origins[i](res.frame))
                 sink.write(rec)
                 counts[rec["status"]] = counts.get(rec["status"], 0) + 1
     finally:
@@ -814,6 +869,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--topic", default=None, help="image topic of the ROS bag inputs (default: the only one)")
     engine(p)
     p.add_argument("--annotate", metavar="DIR", help="write annotated PNGs to DIR")
+    p.add_argument("--mcap", metavar="OUT.mcap", default=None,
+                   help="also write the images, rows and signals as a Foxglove MCAP recording "
+                        "(pip install 'torchrow[foxglove]')")
     impl(p)
     common(p)
     p.set_defaults(func=cmd_detect)
@@ -857,7 +915,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--hough-every", dest="hough_every", type=int, default=None, metavar="K",
                    help="run the Hough stage every K frames (default: Params.hough_every, 5)")
     p.add_argument("--fps", type=float, default=None,
-                   help="frame rate of an annotated video (default: the source's; 10 for a folder of frames)")
+                   help="frame rate of the frames (annotated video, MCAP times and --serve pace of sources "
+                        "without stamps; default: the source's; 10 for a folder of frames)")
+    p.add_argument("--mcap", metavar="OUT.mcap", default=None,
+                   help="also write the frames, rows and signals as a Foxglove MCAP recording "
+                        "(pip install 'torchrow[foxglove]')")
+    p.add_argument("--serve", metavar="[HOST:]PORT", default=None,
+                   help="show the run live in Foxglove: a WebSocket server on HOST (default 127.0.0.1), "
+                        "frames paced at the source's rate")
+    p.add_argument("--serve-wait", dest="serve_wait", type=float, default=10.0, metavar="SEC",
+                   help="--serve: wait up to SEC seconds for a first client before tracking (default 10)")
     p.add_argument("--fov", type=float, default=None, metavar="DEG",
                    help="horizontal field of view of the frames, for heading_rad (null without it)")
     p.add_argument("--plot", default=None, help="plot file (default: --out with suffix .png); 'none': no plot")
