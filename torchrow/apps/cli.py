@@ -500,7 +500,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     Path(args.out).mkdir(parents=True, exist_ok=True)
     sink = _open_sink(Path(args.out) / "detections.jsonl", image_key, args.resume,
-                      _run_header("eval", params, [crbd.root], impl=args.impl, engine=args.engine))
+                      _run_header("eval", params, [ds.root], impl=args.impl, engine=args.engine))
     try:
         run = evaluate_crdld if args.dataset == "crdld" else evaluate
         report = run(ds, indices, args.impl, params, args.batch_size, device,
