@@ -224,3 +224,20 @@ def test_file_size_bound_before_reading_the_bytes(tmp_path: Path) -> None:
     recs = {r["name"]: r for r in map(json.loads, out.read_text().splitlines())}
     assert [recs[n]["status"] == "error" for n in sorted(recs)] == [True, True, False]
     assert "larger than torchrow reads" in recs["b_4gib.jpg"]["error"]
+
+
+def test_read_binary_loaders_have_the_bounds_of_load_image(tmp_path: Path) -> None:
+    """Issue 26: the object-storage reader (distributed.read_binary) had neither the working-size
+    bound nor the file-size bound."""
+    pytest.importorskip("pyarrow")
+    from torchrow.engines.distributed import read_binary
+
+    cv2.imwrite(str(tmp_path / "a_tall.png"), np.zeros((400, 4, 3), np.uint8))
+    (tmp_path / "b_padded.jpg").write_bytes(b"\xff\xd8")
+    os.truncate(tmp_path / "b_padded.jpg", 4 * GIB)
+    for uri in (str(tmp_path), tmp_path.as_uri()):
+        (_, tall), (_, padded) = read_binary(uri, width=64, max_pixels=100_000)
+        with pytest.raises(ImageError, match="working size 64x6400"):
+            tall()
+        with pytest.raises(ImageError, match=f"file of {4 * GIB} bytes is larger than torchrow reads"):
+            padded()

@@ -18,8 +18,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-__all__ = ["ImageError", "IMAGE_EXTENSIONS", "MAX_DECODE_PIXELS", "MAX_FILE_BYTES", "to_rgb8", "resize_to_width", "load_image",
-           "decode_image", "working_size", "check_working_size", "lattice_params", "check_color", "header_size"]
+__all__ = ["ImageError", "IMAGE_EXTENSIONS", "MAX_DECODE_PIXELS", "MAX_FILE_BYTES", "to_rgb8", "resize_to_width",
+           "load_image", "decode_image", "check_file_size", "working_size", "check_working_size", "lattice_params",
+           "check_color", "header_size"]
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 
@@ -187,12 +188,14 @@ def load_image(path: str | Path, width: int | None = None, max_pixels: int | Non
     p = Path(path)
     if not p.is_file():
         raise ImageError(f"no such file: {p}")
-    _check_file_bytes(p.stat().st_size, str(p))
+    check_file_size(p.stat().st_size, str(p))
     # bytes, not np.fromfile: decode_image and Pillow's header read then share one buffer
     return decode_image(p.read_bytes(), width, max_pixels, what=str(p))
 
 
-def _check_file_bytes(size: int, what: str) -> None:
+def check_file_size(size: int, what: str) -> None:
+    """The file-size bound of image reads: :class:`ImageError` if ``size`` (bytes) exceeds
+    :data:`MAX_FILE_BYTES`; ``what`` names the input."""
     if size > MAX_FILE_BYTES:
         raise ImageError(f"file of {size} bytes is larger than torchrow reads as an image "
                          f"({MAX_FILE_BYTES} bytes): {what}")
@@ -205,7 +208,7 @@ def decode_image(data: bytes | np.ndarray, width: int | None = None, max_pixels:
     buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data
     if buf.size == 0:
         raise ImageError(f"empty file: {what}")
-    _check_file_bytes(buf.size, what)
+    check_file_size(buf.size, what)
     size = header_size(data if isinstance(data, bytes) else buf.tobytes(), what)
     if size is not None:
         if size[0] * size[1] > MAX_DECODE_PIXELS:
