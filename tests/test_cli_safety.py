@@ -173,3 +173,34 @@ def test_score_without_result_files_is_an_error(crbd_dir: Path, tmp_path: Path, 
 def test_eval_out_inside_the_data_is_refused(crbd_dir: Path, capsys) -> None:
     assert main(["eval", "--data", str(crbd_dir), "--out", str(crbd_dir / "Images"), "--limit", "1", "-q"]) == 2
     _one_line_error(capsys, "inside the input folder")
+
+
+def test_file_names_that_are_not_utf8(tmp_path: Path) -> None:
+    """Issue 26.9: with --annotate, cv2.imwrite crashed the process (rc 139) on such a name in
+    `detect` (both impls) and `video --annotate DIR`; video's default plot raised after the
+    records. OpenCV now never sees such a name (pictures are written by Python, videos are
+    opened through a link)."""
+    base = os.fsencode(tmp_path)
+    try:
+        os.mkdir(base + b"/imgs\xff")
+    except OSError:
+        pytest.skip("this file system takes UTF-8 names only")
+    folder = Path(os.fsdecode(base + b"/imgs\xff"))
+    for i, name in enumerate((b"a\xfe.png", b"b.png")):
+        _write(tmp_path / "x.png", i, (64, 48))  # (cv2.imwrite itself crashes on the name)
+        os.rename(tmp_path / "x.png", folder / os.fsdecode(name))
+    for impl in ("tensor", "reference"):
+        out, ann = tmp_path / f"{impl}.jsonl", tmp_path / f"ann_{impl}"
+        assert main(["detect", str(folder), "--out", str(out), "--annotate", str(ann), "-q", "--impl", impl,
+                     "--param", "image_width=64"]) == 0
+        assert [r["name"] for r in _records(out)] == [os.fsdecode(b"a\xfe.png"), "b.png"]
+        assert sorted(os.listdir(os.fsencode(ann))) == [b"a\xfe.png", b"b.png"]
+    video = Path(os.fsdecode(base + b"/v\xff.avi"))
+    _corrupt_avi(tmp_path / "v.avi", 2, 1)
+    os.rename(tmp_path / "v.avi", video)
+    for src in (folder, video):
+        out = tmp_path / "v.jsonl"
+        assert main(["video", str(src), "--out", str(out), "--annotate", str(tmp_path / "vann"), "-q",
+                     "--param", "video_width=64"]) == 0
+        assert [r["source"] for r in _records(out)] == [str(src)] * 2 and out.with_suffix(".png").is_file()
+    assert len(os.listdir(tmp_path / "vann")) == 4

@@ -60,6 +60,16 @@ def test_fake_layout_both_extensions_sorted(tmp_path):
         it.name = "x"  # frozen
 
 
+def test_index_must_be_an_integer(tmp_path):
+    """Issue 26.18: CRBD.image(1.5) returned image 1."""
+    ds = CRBD(make_crbd(tmp_path))
+    for bad in (1.5, 1.0, np.float64(1), "1", True):
+        for get in (ds.image, ds.image_path, ds.ground_truth, ds.__getitem__):
+            with pytest.raises(TypeError, match="CRBD index must be an integer"):
+                get(bad)
+    assert ds.image_path(np.int64(1)) == ds.image_path(1) == ds.image_path(-2)
+
+
 def test_fake_ground_truth_image_and_tmgem(tmp_path):
     ds = CRBD(make_crbd(tmp_path, size=(64, 48)))
     gt = ds.ground_truth(0)

@@ -7,6 +7,7 @@ The memory test runs ``torchrow detect`` in a subprocess under an address-space 
 from __future__ import annotations
 
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -200,3 +201,43 @@ def test_header_size_matches_the_decoded_image(tmp_path: Path) -> None:
     assert header_size(tmp_path / "p.png") == (9, 7)
     (tmp_path / "junk.png").write_bytes(b"not an image")
     assert header_size(tmp_path / "junk.png") is None
+
+
+def test_file_size_bound_before_reading_the_bytes(tmp_path: Path) -> None:
+    """Issue 26.11: a JPEG padded to 2 or 4 GB ended the run with MemoryError and the other
+    image's record was lost. The padded files here are sparse: their size costs no disk, and
+    the bound is checked on the size, before any byte is read."""
+    from torchrow.apps.cli import main
+    from torchrow.core.io import MAX_FILE_BYTES
+
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    ok, buf = cv2.imencode(".jpg", render(FieldSpec(seed=1, width=64, height=48)).image)
+    for name, size in (("a_just_over.jpg", MAX_FILE_BYTES + 1), ("b_4gib.jpg", 4 * GIB)):
+        (folder / name).write_bytes(buf.tobytes())
+        os.truncate(folder / name, size)  # a valid JPEG, then zeros: it would decode
+        with pytest.raises(ImageError, match=f"file of {size} bytes is larger than torchrow reads"):
+            load_image(folder / name, 64)
+    cv2.imwrite(str(folder / "c_field.png"), np.zeros((48, 64, 3), np.uint8))
+    out = tmp_path / "r.jsonl"
+    assert main(["detect", str(folder), "--out", str(out), "-q", "--param", "image_width=64"]) == 0
+    recs = {r["name"]: r for r in map(json.loads, out.read_text().splitlines())}
+    assert [recs[n]["status"] == "error" for n in sorted(recs)] == [True, True, False]
+    assert "larger than torchrow reads" in recs["b_4gib.jpg"]["error"]
+
+
+def test_read_binary_loaders_have_the_bounds_of_load_image(tmp_path: Path) -> None:
+    """Issue 26: the object-storage reader (distributed.read_binary) had neither the working-size
+    bound nor the file-size bound."""
+    pytest.importorskip("pyarrow")
+    from torchrow.engines.distributed import read_binary
+
+    cv2.imwrite(str(tmp_path / "a_tall.png"), np.zeros((400, 4, 3), np.uint8))
+    (tmp_path / "b_padded.jpg").write_bytes(b"\xff\xd8")
+    os.truncate(tmp_path / "b_padded.jpg", 4 * GIB)
+    for uri in (str(tmp_path), tmp_path.as_uri()):
+        (_, tall), (_, padded) = read_binary(uri, width=64, max_pixels=100_000)
+        with pytest.raises(ImageError, match="working size 64x6400"):
+            tall()
+        with pytest.raises(ImageError, match=f"file of {4 * GIB} bytes is larger than torchrow reads"):
+            padded()

@@ -175,6 +175,17 @@ def draw_result(rgb: np.ndarray, result: ImageResult, scale: int = 2,
 
 
 def save_rgb(path, rgb: np.ndarray) -> None:
-    """Write an RGB uint8 image with OpenCV (format from the extension)."""
-    if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
-        raise OSError(f"could not write image {path}")
+    """Write an RGB uint8 image, encoded by OpenCV (format from the extension).
+
+    The file itself is written by Python, not ``cv2.imwrite``: OpenCV takes a name as UTF-8
+    and crashes the process on one that is not (a file name of arbitrary bytes)."""
+    from pathlib import Path
+
+    suffix = Path(path).suffix
+    try:
+        ok, buf = cv2.imencode(suffix, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    except cv2.error:
+        ok = False
+    if not ok:
+        raise OSError(f"could not write image {path}: OpenCV cannot encode {suffix or 'a name without suffix'!r}")
+    Path(path).write_bytes(buf.tobytes())

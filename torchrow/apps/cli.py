@@ -91,15 +91,26 @@ def _record_names(paths: Sequence[Path]) -> list[str]:
     return [Path(os.path.relpath(a, root)).as_posix() for a in absolute]
 
 
-def _annotation_names(names: Sequence[str]) -> list[str]:
+def _annotation_names(names: Sequence[str], bags: Sequence[str] = ()) -> list[str]:
     """Annotated-picture paths (relative to ``--annotate``) for record names: the name with
-    its suffix replaced by ``.png``; where two names would meet (``x.jpg``, ``x.png``), the
-    whole name plus ``.png`` (``x.jpg.png``, ``x.png.png``), so pictures never overwrite each other."""
+    its suffix replaced by ``.png``; where two names would meet (``x.jpg``, ``x.png``), or a
+    name would meet a bag frame's picture (``BAG_FRAME.png``, :func:`_bag_picture`; ``bags``:
+    the bags' record names), the whole name plus ``.png`` (``x.jpg.png``, ``x.png.png``), so
+    pictures never overwrite each other."""
+    import re
+
     stems = [Path(n).with_suffix(".png").as_posix() for n in names]
     taken: dict[str, int] = {}
     for s in stems:
         taken[s] = taken.get(s, 0) + 1
-    return [s if taken[s] == 1 else n + ".png" for n, s in zip(names, stems)]
+    frame = re.compile("|".join(re.escape(b) + r"_\d{6,}\.png" for b in bags)) if bags else None
+    return [s if taken[s] == 1 and not (frame and frame.fullmatch(s)) else n + ".png" for n, s in zip(names, stems)]
+
+
+def _bag_picture(bag: str, frame: int) -> str:
+    """Annotated-picture path (relative to ``--annotate``) of a bag frame: ``BAG_FRAME.png``,
+    ``bag`` being the bag's record name (:func:`_record_names` of the bags)."""
+    return f"{bag}_{frame:06d}.png"
 
 
 def _check_targets(inputs: Sequence[Path], targets: Sequence[tuple[str, Path]]) -> None:
@@ -215,12 +226,17 @@ def _open_sink(out: Path, key, resume: bool, header: dict | None = None):
 
 
 def _split_bags(inputs: Sequence[str], topic: str | None) -> tuple[list[str], list]:
-    """ROS bag inputs (opened, ``topic`` chosen) apart from image files and folders."""
+    """ROS bag inputs (opened, ``topic`` chosen) apart from image files and folders; the same
+    bag named twice (another spelling, a link) is one input, as for files."""
     from torchrow.apps.rosbag import BagError, is_bag, open_bag
 
     others, bags = [], []
+    seen: set[str] = set()
     for raw in inputs:
         if is_bag(raw):
+            if os.path.realpath(raw) in seen:
+                continue
+            seen.add(os.path.realpath(raw))
             try:
                 bags.append(open_bag(raw, topic))
             except BagError as exc:
@@ -298,8 +314,11 @@ def cmd_detect(args: argparse.Namespace) -> int:
                            f"(export a model with --width {first.shape[1]} --height {first.shape[0]})")
     out = Path(args.out)
     names = _record_names(paths)
+    # bag frames are named BAG#FRAME, BAG the bag's path relative to the bags' common folder,
+    # so that two bags of one file name (dayA/cam.bag, dayB/cam.bag) keep apart
+    bag_names = _record_names([b.path for b in bags])
     ann = Path(args.annotate) if args.annotate else None
-    ann_paths = [ann / n for n in _annotation_names(names)] if ann is not None else []
+    ann_paths = [ann / n for n in _annotation_names(names, bag_names)] if ann is not None else []
     foxglove = _check_foxglove(args)
     _check_targets([*map(Path, args.inputs), *paths, *([Path(model)] if model else [])],
                    _out_targets(out) + ([("--annotate", ann)] if ann is not None else [])
@@ -318,10 +337,9 @@ def cmd_detect(args: argparse.Namespace) -> int:
         for j, (p, name) in enumerate(zip(paths, names)):
             yield (name, functools.partial(load_image, p, params.image_width, params.max_pixels),
                    ann_paths[j] if ann is not None else None, None, (0, j, p))
-        for s, b in enumerate(bags, bool(paths)):
-            for f in b.frames(params.image_width):
-                yield (f"{b.path.name}#{f.frame:06d}", f,
-                       ann / f"{b.path.name}_{f.frame:06d}.png" if ann is not None else None,
+        for s, (b, bag) in enumerate(zip(bags, bag_names), bool(paths)):
+            for f in b.frames(params.image_width, params.max_pixels):
+                yield (f"{bag}#{f.frame:06d}", f, ann / _bag_picture(bag, f.frame) if ann is not None else None,
                        {"source": b.name, "frame": f.frame, "stamp_ns": f.stamp_ns}, (s, f.frame, f))
 
     meta: dict[int, tuple[Path | None, dict | None, tuple]] = {}
@@ -573,7 +591,11 @@ def _open_sources(raw: Sequence[str], topic: str | None = None):
     if topic is not None and not any(is_bag(r) for r in raw):
         raise CLIError("--topic applies to ROS bag sources only (a rosbag2 folder or a .bag file)")
     out = []
+    seen: set[str] = set()
     for r in raw:
+        if os.path.realpath(r) in seen:  # the same source named twice is one input
+            continue
+        seen.add(os.path.realpath(r))
         try:
             out.append(open_source(r, topic=topic))
         except (FileNotFoundError, ImageError) as exc:
@@ -741,7 +763,9 @@ def cmd_video(args: argparse.Namespace) -> int:
     if args.resume:
         from torchrow.engines.runner import track_batches
 
-        complete = [set(range(s.length)) <= done.get(names[i], set()) for i, s in enumerate(sources)]
+        # all(...) stops at the first frame without a record: the bag's stated message count
+        # (metadata, possibly wrong) sizes nothing
+        complete = [all(t in done.get(names[i], ()) for t in range(s.length)) for i, s in enumerate(sources)]
         todo = [i for batch in track_batches(sources, args.impl, params, args.batch_size, onnx=onnx)
                 if not all(complete[j] for j in batch) for i in batch]
     if args.engine == "ray":

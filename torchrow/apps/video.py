@@ -8,7 +8,10 @@ callable returning one (it may raise :class:`~torchrow.core.io.ImageError` or ``
 
 from __future__ import annotations
 
+import contextlib
+import os
 import queue
+import tempfile
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,9 +22,35 @@ import numpy as np
 from torchrow.core.io import IMAGE_EXTENSIONS, ImageError, header_size, load_image, resize_to_width, to_rgb8, working_size
 
 __all__ = ["LoadedFrame", "load_item", "load_items", "READ_AHEAD", "VIDEO_EXTENSIONS", "FrameSource", "open_source",
-           "VideoWriter"]
+           "VideoWriter", "display_name"]
 
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
+
+
+def display_name(name: str) -> str:
+    """``name`` for text that is drawn or encoded (plot titles): a file name that is not valid
+    UTF-8 (undecodable bytes kept as surrogates, as Python keeps them) with each such byte as
+    U+FFFD."""
+    return name.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+
+
+@contextlib.contextmanager
+def _cv2_name(path: str | Path, create: bool = False) -> Iterator[str]:
+    """A name of ``path`` that OpenCV can open: the path itself, or, for a name that is not
+    valid UTF-8 (OpenCV crashes the process on one), a symbolic link to it in a temporary
+    folder, kept while the block runs. ``create``: make the file first (a writer's target), so
+    the link is not dangling."""
+    name = str(path)
+    if display_name(name) == name:
+        yield name
+        return
+    suffix = Path(path).suffix
+    if create:
+        Path(path).touch()
+    with tempfile.TemporaryDirectory(prefix="torchrow-") as tmp:
+        link = os.path.join(tmp, "file" + (suffix if display_name(suffix) == suffix else ""))
+        os.symlink(os.path.abspath(path), link)
+        yield link
 
 
 @dataclass
@@ -145,21 +174,22 @@ class FrameSource:
                 raise ImageError(f"frame {i} of {self.path} cannot be decoded")
             return fail
 
-        cap = cv2.VideoCapture(str(self.path))
-        try:
-            i = 0
-            while True:
-                ok, bgr = cap.read()
-                if not ok:
-                    if i >= self.length:
-                        break
-                    yield f"{i:06d}", unreadable(i)
-                else:
-                    rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-                    yield f"{i:06d}", (lambda rgb=rgb: rgb)
-                i += 1
-        finally:
-            cap.release()
+        with _cv2_name(self.path) as cv_name:
+            cap = cv2.VideoCapture(cv_name)
+            try:
+                i = 0
+                while True:
+                    ok, bgr = cap.read()
+                    if not ok:
+                        if i >= self.length:
+                            break
+                        yield f"{i:06d}", unreadable(i)
+                    else:
+                        rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+                        yield f"{i:06d}", (lambda rgb=rgb: rgb)
+                    i += 1
+            finally:
+                cap.release()
 
     def working_size(self, width: int, max_pixels: int | None = None) -> tuple[int, int] | None:
         """The sequence's working ``(H, W)``: the one most of its frames have (ties: the
@@ -217,14 +247,15 @@ def open_source(path: str | Path, topic: str | None = None):
         raise FileNotFoundError(f"no such file or folder: {p}")
     import cv2
 
-    cap = cv2.VideoCapture(str(p))
-    try:
-        if not cap.isOpened():
-            raise ImageError(f"cannot open video: {p}")
-        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
-        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
-    finally:
-        cap.release()
+    with _cv2_name(p) as cv_name:
+        cap = cv2.VideoCapture(cv_name)
+        try:
+            if not cap.isOpened():
+                raise ImageError(f"cannot open video: {p}")
+            n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+            fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        finally:
+            cap.release()
     return FrameSource(p, "video", [], max(n, 0), fps if 0 < fps < 1000 else None)
 
 
@@ -247,6 +278,7 @@ class VideoWriter:
         self._h264 = self.path.suffix.lower() in self.H264
         self._out: Any = None  # av.OutputContainer or cv2.VideoWriter
         self._stream: Any = None
+        self._name = contextlib.ExitStack()  # OpenCV's name of the file while it is written (_cv2_name)
         self._size: tuple[int, int] | None = None
 
     def _open(self, height: int, width: int) -> None:
@@ -265,8 +297,10 @@ class VideoWriter:
         else:
             import cv2
 
-            vw = cv2.VideoWriter(str(self.path), cv2.VideoWriter.fourcc(*"MJPG"), self.fps, (width, height))
+            cv_name = self._name.enter_context(_cv2_name(self.path, create=True))
+            vw = cv2.VideoWriter(cv_name, cv2.VideoWriter.fourcc(*"MJPG"), self.fps, (width, height))
             if not vw.isOpened():
+                self._name.close()
                 raise OSError(f"cannot write video {self.path}")
             self._out = vw
         self._size = (height, width)
@@ -303,6 +337,7 @@ class VideoWriter:
             self._out.close()
         else:
             self._out.release()
+            self._name.close()
         self._out = None
 
 
@@ -437,7 +472,7 @@ def plot_tracks(records_by_source: dict[str, list[dict]], path: str | Path) -> N
         err = [r["frame"] for r in recs if r.get("status") == "error"]
         if err:
             ax.scatter(err, [0] * len(err), marker="x", c="red", label="unreadable frame")
-        ax.set_title(f"{src}: rows ({len(hf)} Hough frames of {len(recs)})", fontsize=9)
+        ax.set_title(f"{display_name(str(src))}: rows ({len(hf)} Hough frames of {len(recs)})", fontsize=9)
         ax.set_ylabel("x at bottom row (px)")
         ax.legend(fontsize=7, loc="upper right")
         for key, color in (("heading_px", "tab:purple"), ("lateral_px", "tab:blue")):

@@ -18,8 +18,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-__all__ = ["ImageError", "IMAGE_EXTENSIONS", "MAX_DECODE_PIXELS", "to_rgb8", "resize_to_width", "load_image",
-           "decode_image", "working_size", "check_working_size", "lattice_params", "check_color", "header_size"]
+__all__ = ["ImageError", "IMAGE_EXTENSIONS", "MAX_DECODE_PIXELS", "MAX_FILE_BYTES", "to_rgb8", "resize_to_width",
+           "load_image", "decode_image", "check_file_size", "working_size", "check_working_size", "lattice_params",
+           "check_color", "header_size"]
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 
@@ -29,6 +30,12 @@ IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 #: resizing, so this bounds the peak memory of loading (2 x 384 MiB) whatever the file's size.
 #: (Below Pillow's own bound, ``2 * PIL.Image.MAX_IMAGE_PIXELS``, above which the header read fails.)
 MAX_DECODE_PIXELS = 1 << 27
+
+#: Largest image file (or encoded image in a bag message) that :func:`load_image` reads, in
+#: bytes: an uncompressed 8-bit RGB image of :data:`MAX_DECODE_PIXELS` pixels plus 1 MiB of
+#: headers and metadata. Checked on the file's size before its bytes are read, so a file padded
+#: to gigabytes costs nothing (its bytes, read, would be held twice: the file and its decode).
+MAX_FILE_BYTES = 3 * MAX_DECODE_PIXELS + (1 << 20)
 
 
 class ImageError(ValueError):
@@ -167,9 +174,10 @@ def header_size(path: str | Path | bytes, what: str | None = None) -> tuple[int,
 def load_image(path: str | Path, width: int | None = None, max_pixels: int | None = None) -> np.ndarray:
     """Read an image file as ``uint8 (H, W, 3)`` RGB, resized to ``width`` if given.
 
-    ``max_pixels`` bounds the working size (:func:`check_working_size`, checked before the
-    resize allocates it); files of more than :data:`MAX_DECODE_PIXELS` pixels (by their
-    header, read with Pillow) are refused before decoding.
+    ``max_pixels`` bounds the working size (:func:`check_working_size`, checked on the
+    header's size before decoding where Pillow reads the header, and before the resize
+    allocates it in any case); files of more than :data:`MAX_DECODE_PIXELS` pixels (by their
+    header) or :data:`MAX_FILE_BYTES` bytes (by their size, before reading) are refused.
 
     Raises
     ------
@@ -180,7 +188,17 @@ def load_image(path: str | Path, width: int | None = None, max_pixels: int | Non
     p = Path(path)
     if not p.is_file():
         raise ImageError(f"no such file: {p}")
-    return decode_image(np.fromfile(p, dtype=np.uint8), width, max_pixels, what=str(p))
+    check_file_size(p.stat().st_size, str(p))
+    # bytes, not np.fromfile: decode_image and Pillow's header read then share one buffer
+    return decode_image(p.read_bytes(), width, max_pixels, what=str(p))
+
+
+def check_file_size(size: int, what: str) -> None:
+    """The file-size bound of image reads: :class:`ImageError` if ``size`` (bytes) exceeds
+    :data:`MAX_FILE_BYTES`; ``what`` names the input."""
+    if size > MAX_FILE_BYTES:
+        raise ImageError(f"file of {size} bytes is larger than torchrow reads as an image "
+                         f"({MAX_FILE_BYTES} bytes): {what}")
 
 
 def decode_image(data: bytes | np.ndarray, width: int | None = None, max_pixels: int | None = None,
@@ -190,10 +208,14 @@ def decode_image(data: bytes | np.ndarray, width: int | None = None, max_pixels:
     buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data
     if buf.size == 0:
         raise ImageError(f"empty file: {what}")
-    size = header_size(buf.tobytes(), what)
-    if size is not None and size[0] * size[1] > MAX_DECODE_PIXELS:
-        raise ImageError(f"image of {size[0]}x{size[1]} pixels is larger than torchrow decodes "
-                         f"({MAX_DECODE_PIXELS} px): {what}")
+    check_file_size(buf.size, what)
+    size = header_size(data if isinstance(data, bytes) else buf.tobytes(), what)
+    if size is not None:
+        if size[0] * size[1] > MAX_DECODE_PIXELS:
+            raise ImageError(f"image of {size[0]}x{size[1]} pixels is larger than torchrow decodes "
+                             f"({MAX_DECODE_PIXELS} px): {what}")
+        if width is not None:  # the working-size bound before the decode allocates anything
+            working_size(size[0], size[1], width, max_pixels)
     # ANYDEPTH|ANYCOLOR keeps 16-bit and grey data as they are and, unlike IMREAD_UNCHANGED,
     # applies the EXIF orientation as cv2.imread does; an alpha channel is dropped here.
     img = cv2.imdecode(buf, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)

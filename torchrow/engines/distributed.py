@@ -293,11 +293,13 @@ def track(sources: Sequence[str | Path], names: Sequence[str] | None = None, imp
                 yield gens[gen][b], rec
 
 
-def read_binary(uri: str | Sequence[str], width: int | None = None) -> Iterator[tuple[str, Callable[[], np.ndarray]]]:
+def read_binary(uri: str | Sequence[str], width: int | None = None, max_pixels: int | None = None
+                ) -> Iterator[tuple[str, Callable[[], np.ndarray]]]:
     """Items for :func:`run` from files on any file system pyarrow knows (local paths,
     ``s3://bucket/prefix/``, ``gs://...``): each loader reads its file *on the worker*
-    (:func:`pyarrow.fs.FileSystem.from_uri`) and decodes it as :func:`torchrow.core.io.load_image`.
-    A folder URI lists its image files (sorted)."""
+    (:func:`pyarrow.fs.FileSystem.from_uri`) and decodes it as :func:`torchrow.core.io.load_image`
+    does, with the same bounds (``max_pixels``: ``Params.max_pixels`` of the run; the file size
+    checked before the bytes are read). A folder URI lists its image files (sorted)."""
     import pyarrow.fs as pafs
 
     from torchrow.core.io import IMAGE_EXTENSIONS
@@ -312,30 +314,33 @@ def read_binary(uri: str | Sequence[str], width: int | None = None) -> Iterator[
                            and Path(f.path).suffix.lower() in IMAGE_EXTENSIONS)
             prefix = u.split("://", 1)[0] + "://" if "://" in u else ""
             for f in files:
-                yield Path(f).name, _RemoteFile(prefix + f if prefix else f, width)
+                yield Path(f).name, _RemoteFile(prefix + f if prefix else f, width, max_pixels)
         else:
-            yield Path(path).name, _RemoteFile(u, width)
+            yield Path(path).name, _RemoteFile(u, width, max_pixels)
 
 
 class _RemoteFile:
     """Picklable loader: read a file (local path or URI) and decode it to working size."""
 
-    def __init__(self, uri: str, width: int | None) -> None:
-        self.uri, self.width = uri, width
+    def __init__(self, uri: str, width: int | None, max_pixels: int | None = None) -> None:
+        self.uri, self.width, self.max_pixels = uri, width, max_pixels
 
     def __call__(self) -> np.ndarray:
-        from torchrow.core.io import ImageError, decode_image
+        from torchrow.core.io import ImageError, check_file_size, decode_image
 
         if "://" in self.uri:
             import pyarrow.fs as pafs
 
             fs, path = pafs.FileSystem.from_uri(self.uri)
             try:
+                size = fs.get_file_info(path).size
+                if size is not None:  # load_image's bound, before reading
+                    check_file_size(size, self.uri)
                 with fs.open_input_stream(path) as fh:
                     data = fh.read()
             except OSError as exc:
                 raise ImageError(f"cannot read {self.uri}: {exc}") from None
-            return decode_image(data, self.width, what=self.uri)
+            return decode_image(data, self.width, self.max_pixels, what=self.uri)
         from torchrow.core.io import load_image
 
-        return load_image(self.uri, self.width)
+        return load_image(self.uri, self.width, self.max_pixels)

@@ -25,6 +25,7 @@ The data location is never hard-coded: pass it, or set ``TORCHROW_DATA`` (see
 
 from __future__ import annotations
 
+import operator
 import os
 import re
 import struct
@@ -269,7 +270,9 @@ class CRBD:
 
     def _index(self, i: int) -> int:
         n = len(self.names)
-        i = int(i)
+        if isinstance(i, (bool, np.bool_)) or not hasattr(i, "__index__"):  # 1.5 is not image 1
+            raise TypeError(f"CRBD index must be an integer, got {type(i).__name__} {i!r}")
+        i = operator.index(i)
         if not -n <= i < n:
             raise IndexError(f"CRBD index {i} out of range for {n} images")
         return i % n
