@@ -146,27 +146,40 @@ def test_row_cells_are_the_per_pixel_rule_on_both_paths(seed: int) -> None:
 
 
 def _refit_every_iteration(mask: np.ndarray, params: Params) -> np.ndarray:
-    """Section 11.3 without the fixed-point stop: every iteration runs unless the inliers are too
-    few or the system is singular."""
+    """Sections 11.3 and 11.3.1 without the fixed-point stop: every iteration runs unless the
+    inliers are too few or the system is singular; ``"auto"`` keeps the curved refit where it
+    holds more than ``1 + lattice_curve_gain`` times the straight lattice's inlier pixels."""
     h, w = mask.shape
     xv, yv = rlat.vp_search(mask, params)
-    d, phase, _ = rlat.comb_search(mask, (xv, yv), params)
+    d, phase, _, _ = rlat.comb_search(mask, (xv, yv), params)
     den = np.float64(h - 1 - yv)
     coef = np.array([phase, (np.float64(phase) - xv) / den, 0, 0, d, np.float64(d) / den, 0], np.float64)
-    for _ in range(params.lattice_iterations):
-        cnt, sx = rlat.row_cells(rlat.prefix_sums(mask), coef, params)
-        sol = None if cnt.sum() < params.lattice_min_points else rlat.solve_normal(
-            *rlat.normal_equations(cnt, sx, h, params), params)
-        if sol is None:
-            break
-        coef = np.zeros(rlat.N_COEF)
-        coef[params.lattice_coef_index()] = sol
-    return coef
+    pre = rlat.prefix_sums(mask)
+
+    def every(coef: np.ndarray, straight: bool) -> np.ndarray:
+        for _ in range(params.lattice_iterations):
+            cnt, sx = rlat.row_cells(pre, coef, params)
+            sol = None if cnt.sum() < params.lattice_min_points else rlat.solve_normal(
+                *rlat.normal_equations(cnt, sx, h, params, straight), params)
+            if sol is None:
+                break
+            coef = np.zeros(rlat.N_COEF)
+            coef[params.lattice_coef_index(straight)] = sol
+        return coef
+
+    if params.lattice_model == "curved":
+        return every(coef, False)
+    coef = every(coef, True)
+    if params.lattice_model == "straight":
+        return coef
+    bent = every(coef, False)
+    n_s, n_b = (int(rlat.row_cells(pre, c, params)[0].sum()) for c in (coef, bent))
+    return bent if n_b > (1 + params.lattice_curve_gain) * n_s else coef
 
 
-@pytest.mark.parametrize("iterations", [2, 40])
-def test_fixed_point_stop_gives_the_result_of_every_iteration(iterations: int) -> None:
-    params = IMPROVED.replace(lattice_iterations=iterations)
+@pytest.mark.parametrize("iterations, model", [(2, "curved"), (40, "curved"), (40, "auto"), (3, "straight")])
+def test_fixed_point_stop_gives_the_result_of_every_iteration(iterations: int, model: str) -> None:
+    params = IMPROVED.replace(lattice_iterations=iterations, lattice_model=model)
     images = [_s_field(), _field(curve=0.001, seed=7), _field(spacing=45.0, shift=100.0, seed=3)]
     masks = [rlat.green_mask(img, 0, params) for img in images] + [np.random.default_rng(2).random((240, 320)) < 0.2]
     got = flat.fit_lattice(torch.from_numpy(np.stack(masks)), torch.zeros(len(masks), dtype=torch.int64),
@@ -209,7 +222,7 @@ def test_comb_and_fit_recover_a_synthetic_lattice(spacing: float, shift: float) 
     img = _field(spacing=spacing, shift=shift)
     mask = rlat.green_mask(img, 0, IMPROVED)
     vp = (160 + shift, -60.0)  # the field's own vanishing point
-    d, phase, found = rlat.comb_search(mask, (int(vp[0]), -60), IMPROVED)
+    d, phase, found, _ = rlat.comb_search(mask, (int(vp[0]), -60), IMPROVED)
     assert found and abs(d - spacing) <= 2
     assert abs(phase - (160 + shift)) <= 0.1 * spacing  # the refit below makes it exact
     rows, conf, fit = rlat.improved_rows(img, 0, vp, IMPROVED)
@@ -357,11 +370,12 @@ def test_tensor_stages_equal_reference_stages(green: str, comb: str) -> None:
                       dtype=torch.float64)
     has = torch.tensor([True, True, False, True, True])
     v = flat.init_vp(vp, has, 320, params)
-    sp, ph, found = flat.comb_search(got, v, params)
+    sp, ph, found, contrast = flat.comb_search(got, v, params)
     for i in range(len(images)):
         ref_vp = rlat.init_vp(tuple(vp[i].tolist()) if bool(has[i]) else None, 320, params)
         assert tuple(v[i].tolist()) == ref_vp
-        assert (int(sp[i]), int(ph[i]), bool(found[i])) == rlat.comb_search(got[i].numpy(), ref_vp, params)
+        want = rlat.comb_search(got[i].numpy(), ref_vp, params)
+        assert (int(sp[i]), int(ph[i]), bool(found[i]), float(contrast[i])) == want
 
 
 def _search_masks() -> list[np.ndarray]:
@@ -426,11 +440,11 @@ def test_contrast_comb_rejects_the_double_spacing(widths: list[int]) -> None:
     # (the weak rows fall between its wide teeth), the contrast score puts its anti-teeth on them
     mask = _stripes(widths)
     vp = (160, -10**6)  # projection through a far VP: nearly the identity
-    d, phase, found = rlat.comb_search(mask, vp, IMPROVED)
+    d, phase, found, _ = rlat.comb_search(mask, vp, IMPROVED)
     assert found and d == 60 and abs((phase - 10 + 30) % 60 - 30) <= 6  # on a stripe (they are flat-topped)
     if len(widths) > 1:
         assert rlat.comb_search(mask, vp, IMPROVED.replace(lattice_comb="uniform"))[0] >= 120
-    sp, _, _ = flat.comb_search(torch.from_numpy(mask)[None], torch.tensor([vp]), IMPROVED)
+    sp, _, _, _ = flat.comb_search(torch.from_numpy(mask)[None], torch.tensor([vp]), IMPROVED)
     assert int(sp[0]) == d
 
 

@@ -119,6 +119,10 @@ class Params:
     lattice_min_spacing_px: float = 2.0  # pixels where d(t) <= this are not assigned
     lattice_pivot_tol: float = 1e-12  # pivot <= this * max(its diagonal entry, 1): singular normal equations
     lattice_min_confidence: float = 0.0  # rows below this confidence are invalid
+    lattice_model: str = "auto"  # "auto": straight lattice, curved kept where it gains support; "straight"; "curved"
+    lattice_curve_gain: float = 0.1  # "auto": the curved refit must hold this fraction more inlier pixels
+    lattice_min_contrast: float = 0.0  # status ok needs the comb's contrast per binned pixel at least this
+    lattice_min_image_confidence: float = 0.0  # status ok needs the image confidence at least this
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
@@ -134,18 +138,21 @@ class Params:
         """Number of Hough angles, ``180 / theta_step``."""
         return 180 // self.theta_step
 
-    def lattice_basis(self) -> tuple[tuple[int, int], ...]:
+    def lattice_basis(self, straight: bool = False) -> tuple[tuple[int, int], ...]:
         """Section 11.3: the refit's basis as ``(power of t, power of k)`` pairs, in order.
 
-        ``1, t, t^2 (, t^3)`` for the central row ``c(t)`` (degree ``lattice_center_degree``),
-        then ``k, k t, k t^2`` for the spacing ``d(t)``.
+        Curved (``straight=False``): ``1, t, t^2 (, t^3)`` for the central row ``c(t)`` (degree
+        ``lattice_center_degree``), then ``k, k t, k t^2`` for the spacing ``d(t)``. Straight
+        (11.3.1): ``1, t, k, k t``, straight rows through one vanishing point.
         """
+        if straight:
+            return ((0, 0), (1, 0), (0, 1), (1, 1))
         return tuple((j, 0) for j in range(self.lattice_center_degree + 1)) + ((0, 1), (1, 1), (2, 1))
 
-    def lattice_coef_index(self) -> list[int]:
+    def lattice_coef_index(self, straight: bool = False) -> list[int]:
         """Where each function of :meth:`lattice_basis` sits in the coefficients ``(c0, c1, c2, c3,
         d0, d1, d2)`` of section 11.3 (the refit's solution fills these, the others are 0)."""
-        return [p if k == 0 else 4 + p for p, k in self.lattice_basis()]
+        return [p if k == 0 else 4 + p for p, k in self.lattice_basis(straight)]
 
     def hough_band_px(self, width: int) -> int:
         """Band (px) erased around each picked Hough line: ``int(W / 30)`` unless set."""
@@ -320,6 +327,10 @@ _RULES: dict[str, _Rule] = {
     "lattice_cell_grid": _Rule("int", 1, 2**16, why="the int64 sums stay exact"),
     "lattice_window": _Rule("float", 0, 0.5, (lambda v: 0 < v < 0.5, "must lie in (0, 0.5)")),  # type: ignore[operator]
     "lattice_tolerance": _Rule("float", 0, 0.5, (lambda v: 0 < v < 0.5, "must lie in (0, 0.5)")),  # type: ignore[operator]
+    "lattice_model": _Rule("choice", choices=("auto", "straight", "curved")),
+    "lattice_curve_gain": _Rule("float", 0, 100, why="a fraction of the straight lattice's inlier pixels"),
+    "lattice_min_contrast": _Rule("float", 0, 1, why="a fraction of the comb's binned pixels"),
+    "lattice_min_image_confidence": _Rule("float", 0, 1, why="a fraction of the image rows"),
     "lattice_min_spacing_px": _F0, "lattice_pivot_tol": _Rule("float", 0, 1, why="a fraction of a pivot"),
     "lattice_min_confidence": _Rule("float", 0, 1),
 }

@@ -13,8 +13,10 @@ __all__ = ["HoughLine", "Row", "ImageResult", "STATUSES", "REASONS", "record_dif
 #: ``ok``: every row valid. ``invalid``: at least one row invalid. ``no_vp``: fewer than two
 #: Hough lines or a singular vanishing-point system, so no rows. ``no_vegetation``: the
 #: vegetation mask is empty below the horizon (a special case of ``no_vp``). ``error``: the
-#: input could not be read or converted (only in records written by the CLI).
-STATUSES = ("ok", "invalid", "no_vp", "no_vegetation", "error")
+#: input could not be read or converted (only in records written by the CLI). ``weak``
+#: (improved mode, ALGORITHM.md 11.4): rows found, but the image's evidence (comb contrast,
+#: image confidence) is below the calibrated thresholds: do not steer by them.
+STATUSES = ("ok", "invalid", "no_vp", "no_vegetation", "error", "weak")
 
 #: Why a row is invalid (``""`` when valid), section 7.
 REASONS = ("", "no_support", "horizon", "parallel", "too_close")

@@ -266,6 +266,8 @@ class CropRowDetector(nn.Module):
         lap("hough+vp+ransac")
         faithful = p.mode == "faithful"
         status = fransac.image_status(rows, ls.has_vp if faithful else None, has_veg if faithful else None)
+        if not faithful:
+            status = flattice.improved_status(curved, status, p)
         return BatchResult(
             width=w, height=h, status=status, sky=sky.to(torch.int64), veg_color=color, k=k, bushy=bushy,
             n_rows=ls.n_rows if p.mode == "faithful" else torch.full_like(ls.n_rows, rows.a.shape[1]),

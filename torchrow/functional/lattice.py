@@ -13,15 +13,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 
 from torchrow.core.io import lattice_params
 from torchrow.core.params import Params
+from torchrow.core.results import STATUSES
 
 __all__ = ["LatticeRows", "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_table",
            "vp_search", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
-           "normal_equations", "fit_lattice", "improved_rows"]
+           "normal_equations", "refine", "fit_lattice", "improved_rows", "improved_status", "LatticeFitBatch"]
 
 N_COEF = 7
 EXG_OFFSET = 510
@@ -33,7 +35,8 @@ class LatticeRows:
     """Rows of the improved mode, ``(B, R)`` with ``R = 2*lattice_half + 1``: ``x = e*y**3 + c*y**2 +
     a*y + b`` (float64), ``valid`` bool, ``confidence`` float64; ``image_confidence`` ``(B,)``
     float64; ``coef`` ``(B, 7)`` float64 (``c0, c1, c2, c3, d0, d1, d2``); ``spacing``/``phase``/
-    ``found`` ``(B,)`` (the comb); ``vp`` ``(B, 2)`` int64 (the rounded VP it used)."""
+    ``found`` ``(B,)`` (the comb); ``vp`` ``(B, 2)`` int64 (the rounded VP it used); ``contrast``
+    ``(B,)`` float64 (the comb's best score per binned pixel) and ``curved`` ``(B,)`` bool (11.3.1)."""
 
     a: torch.Tensor
     b: torch.Tensor
@@ -47,6 +50,25 @@ class LatticeRows:
     phase: torch.Tensor
     found: torch.Tensor
     vp: torch.Tensor
+    contrast: torch.Tensor
+    curved: torch.Tensor
+
+
+class LatticeFitBatch(NamedTuple):
+    """:func:`fit_lattice`'s result per image: ``coef (B, 7)`` float64, the comb's ``spacing``,
+    ``phase`` ``(B,)`` int64 and ``found`` ``(B,)`` bool, ``vp`` ``(B, 2)`` int64 (the VP the comb
+    used), the final cells' counts ``cnt (B, H, R)`` int64, the comb's ``contrast`` ``(B,)``
+    float64 (best score per binned pixel, 0 without pixels) and ``curved`` ``(B,)`` bool (the
+    curved refit was kept, 11.3.1)."""
+
+    coef: torch.Tensor
+    spacing: torch.Tensor
+    phase: torch.Tensor
+    found: torch.Tensor
+    vp: torch.Tensor
+    cnt: torch.Tensor
+    contrast: torch.Tensor
+    curved: torch.Tensor
 
 
 def horizon_row(sky: torch.Tensor, params: Params) -> torch.Tensor:
@@ -177,7 +199,8 @@ def vp_search(mask: torch.Tensor, params: Params) -> torch.Tensor:
 
 
 def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params):
-    """Section 11.2 per image: ``(spacing, phase, found)``, each ``(B,)`` (int64, int64, bool).
+    """Section 11.2 per image: ``(spacing, phase, found, contrast)``, each ``(B,)`` (int64, int64,
+    bool, float64; ``contrast`` = the best score per binned pixel, 0 without pixels).
 
     The candidates are scored spacing by spacing (a static loop over
     ``lattice_min_spacing .. lattice_max_spacing``): every phase's teeth are one strided sum
@@ -225,14 +248,17 @@ def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params):
             scores.append(cap.to(torch.float64) - expect.unsqueeze(1))
         ds.append(torch.full((d,), d, dtype=torch.int64, device=dev))
         ps.append(torch.arange(d, dtype=torch.int64, device=dev))
-    q = torch.argmax(torch.cat(scores, dim=1), dim=1)  # first maximum: spacing, then phase order
+    allsc = torch.cat(scores, dim=1)
+    q = torch.argmax(allsc, dim=1)  # first maximum: spacing, then phase order
+    best = torch.gather(allsc, 1, q.unsqueeze(1)).squeeze(1)
     d_q = torch.cat(ds)[q]
     p_q = torch.cat(ps)[q] - w
     k0 = torch.round((float(w) / 2 - p_q.to(torch.float64)) / d_q.to(torch.float64)).to(torch.int64)
     found = n > 0
     spacing = torch.where(found, d_q, torch.full_like(d_q, params.lattice_min_spacing))
     phase = torch.where(found, p_q + k0 * d_q, torch.full_like(d_q, w // 2))
-    return spacing, phase, found
+    contrast = torch.where(found, best / torch.clamp(n, min=1).to(torch.float64), torch.zeros_like(best))
+    return spacing, phase, found, contrast
 
 
 def solve_normal(m: torch.Tensor, r: torch.Tensor, params: Params) -> tuple[torch.Tensor, torch.Tensor]:
@@ -312,11 +338,12 @@ def row_cells(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params
     return cnt, sx
 
 
-def normal_equations(cnt: torch.Tensor, sx: torch.Tensor, params: Params) -> tuple[torch.Tensor, torch.Tensor]:
+def normal_equations(cnt: torch.Tensor, sx: torch.Tensor, params: Params,
+                     straight: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Batched :func:`torchrow.reference.lattice.normal_equations` from ``(B, H, R)`` int64 cells.
 
     Returns ``m (B, n, n)`` and ``r (B, n)`` float64 (int64 sums, then converted), ``n`` = the
-    size of :meth:`Params.lattice_basis`.
+    size of :meth:`Params.lattice_basis` (``straight``: the straight basis of 11.3.1).
     """
     _, h, r = cnt.shape
     dev = cnt.device
@@ -326,7 +353,7 @@ def normal_equations(cnt: torch.Tensor, sx: torch.Tensor, params: Params) -> tup
     q = torch.where(occ, q.to(torch.int64), torch.zeros_like(cnt))
     t = (torch.arange(h, device=dev, dtype=torch.int64) - (h - 1)).view(1, h, 1)
     k = (torch.arange(r, device=dev, dtype=torch.int64) - params.lattice_half).view(1, 1, r)
-    phi = [(t**p) * (k**e) for p, e in params.lattice_basis()]  # (1, H, R) int64 each
+    phi = [(t**p) * (k**e) for p, e in params.lattice_basis(straight)]  # (1, H, R) int64 each
     n = len(phi)
     o = occ.to(torch.int64)
     m = torch.stack([torch.stack([(o * (phi[i] * phi[j])).sum(dim=(1, 2)) for j in range(n)], dim=1)
@@ -335,31 +362,15 @@ def normal_equations(cnt: torch.Tensor, sx: torch.Tensor, params: Params) -> tup
     return m.to(torch.float64), rr.to(torch.float64) / float(grid)
 
 
-def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor, has_vp: torch.Tensor,
-                params: Params):
-    """Sections 11.2-11.3 per image; returns ``(coef (B,7), spacing, phase, found, vp_used, counts)``.
-
-    The cells (count and x sum of the inliers per image row and lattice row) are integer sums,
-    so the normal equations equal the reference's bit for bit. An image stops when it has too
-    few inliers, a singular system, or cells equal to its previous step's (a fixed point);
-    the loop ends once every image has stopped. Memory: two ``(B, H, W+1)`` int64 prefix sums
-    (about 40 MB each for 64 images of 320x240) besides the mask; a step's own temporaries are
-    ``(B, H, 2K+1)``.
-    """
-    bsz, h, w = mask.shape
-    params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
-    dev = mask.device
-    v = vp_search(mask, params) if params.lattice_vp == "search" else init_vp(vp, has_vp, w, params)
-    spacing, phase, found = comb_search(mask, v, params)
-    den = ((h - 1) - v[:, 1]).to(torch.float64)
-    ph = phase.to(torch.float64)
-    sp = spacing.to(torch.float64)
-    zero = torch.zeros_like(ph)
-    coef = torch.stack([ph, (ph - v[:, 0].to(torch.float64)) / den, zero, zero, sp, sp / den, zero], dim=1)
-    rows = torch.arange(h, device=dev).view(1, h, 1)
-    pre = prefix_sums(mask & (rows >= sky.to(torch.int64).view(-1, 1, 1)))
-    where = params.lattice_coef_index()
-    active = torch.ones(bsz, dtype=torch.bool, device=dev)
+def refine(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: Params,
+           straight: bool) -> torch.Tensor:
+    """Batched :func:`torchrow.reference.lattice.refine`: ``coef (B, 7)`` float64 after up to
+    ``lattice_iterations`` refits. An image stops when it has too few inliers, a singular
+    system, or cells equal to its previous step's (a fixed point); the loop ends once every
+    image has stopped."""
+    bsz = coef.shape[0]
+    where = params.lattice_coef_index(straight)
+    active = torch.ones(bsz, dtype=torch.bool, device=coef.device)
     last = None
     for _ in range(params.lattice_iterations):
         cnt, sx = row_cells(pre, coef, params)
@@ -368,14 +379,47 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor, has_vp:
             active = active & ~((cnt == last[0]).flatten(1).all(dim=1) & (sx == last[1]).flatten(1).all(dim=1))
         if not bool(active.any()):  # early exit once every image has stopped
             break
-        sol, singular = solve_normal(*normal_equations(cnt, sx, params), params)
+        sol, singular = solve_normal(*normal_equations(cnt, sx, params, straight), params)
         active = active & ~singular
         new = torch.zeros_like(coef)
         new[:, where] = sol
         coef = torch.where(active.unsqueeze(1), new, coef)
         last = (cnt, sx)
+    return coef
+
+
+def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Tensor | None,
+                params: Params) -> LatticeFitBatch:
+    """Sections 11.2-11.3.1 per image (:func:`torchrow.reference.lattice.fit_lattice`).
+
+    The cells (count and x sum of the inliers per image row and lattice row) are integer sums,
+    so the normal equations equal the reference's bit for bit. Memory: two ``(B, H, W+1)``
+    int64 prefix sums (about 40 MB each for 64 images of 320x240) besides the mask; a step's
+    own temporaries are ``(B, H, 2K+1)``.
+    """
+    bsz, h, w = mask.shape
+    params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
+    dev = mask.device
+    v = vp_search(mask, params) if params.lattice_vp == "search" else init_vp(vp, has_vp, w, params)
+    spacing, phase, found, contrast = comb_search(mask, v, params)
+    den = ((h - 1) - v[:, 1]).to(torch.float64)
+    ph = phase.to(torch.float64)
+    sp = spacing.to(torch.float64)
+    zero = torch.zeros_like(ph)
+    coef = torch.stack([ph, (ph - v[:, 0].to(torch.float64)) / den, zero, zero, sp, sp / den, zero], dim=1)
+    rows = torch.arange(h, device=dev).view(1, h, 1)
+    pre = prefix_sums(mask & (rows >= sky.to(torch.int64).view(-1, 1, 1)))
+    is_curved = params.lattice_model == "curved"
+    coef = refine(pre, coef, params, straight=not is_curved)
+    curved = torch.full((bsz,), is_curved, dtype=torch.bool, device=dev)
+    if params.lattice_model == "auto":
+        bent = refine(pre, coef, params, straight=False)
+        n_straight = row_cells(pre, coef, params)[0].sum(dim=(1, 2)).to(torch.float64)
+        n_bent = row_cells(pre, bent, params)[0].sum(dim=(1, 2)).to(torch.float64)
+        curved = n_bent > (1.0 + params.lattice_curve_gain) * n_straight
+        coef = torch.where(curved.unsqueeze(1), bent, coef)
     cnt, _ = row_cells(pre, coef, params)
-    return coef, spacing, phase, found, v, cnt
+    return LatticeFitBatch(coef, spacing, phase, found, v, cnt, contrast, curved)
 
 
 def improved_rows(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor, has_vp: torch.Tensor,
@@ -387,7 +431,7 @@ def improved_rows(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor, has
     h = images.shape[2]
     top = horizon_row(sky, params)
     mask = green_mask(images, top, params)
-    coef, spacing, phase, found, v, cnt = fit_lattice(mask, top, vp, has_vp, params)
+    coef, spacing, phase, found, v, cnt, contrast, curved = fit_lattice(mask, top, vp, has_vp, params)
     support = (cnt > 0).sum(dim=1).to(torch.float64)  # (B, R)
     span = torch.clamp(h - torch.clamp(top.to(torch.int64), min=0), min=1).to(torch.float64)
     conf = support / span.unsqueeze(1)
@@ -407,7 +451,16 @@ def improved_rows(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor, has
     for i in range(1, conf.shape[1]):
         img_conf = img_conf + conf[:, i]
     img_conf = img_conf / float(conf.shape[1])
-    return LatticeRows(a, b, c, e, valid, conf, img_conf, coef, spacing, phase, found, v)
+    return LatticeRows(a, b, c, e, valid, conf, img_conf, coef, spacing, phase, found, v, contrast, curved)
+
+
+def improved_status(rows: LatticeRows, status: torch.Tensor, params: Params) -> torch.Tensor:
+    """Section 11.4 (:func:`torchrow.reference.lattice.improved_status`): ``status`` codes
+    ``(B,)`` from the row rule, with ``ok`` turned ``weak`` where the comb's contrast is below
+    ``lattice_min_contrast`` or the image confidence below ``lattice_min_image_confidence``."""
+    code = {s: i for i, s in enumerate(STATUSES)}
+    strong = (rows.contrast >= params.lattice_min_contrast) & (rows.image_confidence >= params.lattice_min_image_confidence)
+    return torch.where((status == code["ok"]) & ~strong, torch.full_like(status, code["weak"]), status)
 
 
 def as_row_fits(rows: LatticeRows):

@@ -27,7 +27,7 @@ from torchrow.core.results import Row
 
 __all__ = ["LatticeFit", "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_grid",
            "vp_cells", "vp_search", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
-           "normal_equations", "fit_lattice", "lattice_rows", "N_COEF"]
+           "normal_equations", "refine", "fit_lattice", "improved_status", "lattice_rows", "N_COEF"]
 
 #: Coefficients ``(c0, c1, c2, c3, d0, d1, d2)`` of ``x = c(t) + k d(t)``, ``c(t) = c0 + c1 t + c2 t^2 +
 #: c3 t^3`` (``c3`` = 0 with ``lattice_center_degree`` 2), ``d(t) = d0 + d1 t + d2 t^2``.
@@ -46,7 +46,9 @@ class LatticeFit:
     to the central row. ``spacing``/``phase``: the comb's bottom-row spacing and the central
     row's bottom-row x (px, integers). ``vp``: the rounded vanishing point the comb used.
     ``support``: image rows holding an inlier of each row, ``(2K+1,)``; ``span``: image rows
-    where a row can have support; ``found``: the comb saw at least one pixel.
+    where a row can have support; ``found``: the comb saw at least one pixel. ``contrast``: the
+    comb's best score per binned pixel (11.2; 0 without pixels); ``curved``: the curved refit
+    was kept (11.3.1).
     """
 
     coef: tuple[float, ...]
@@ -56,6 +58,8 @@ class LatticeFit:
     support: tuple[int, ...]
     span: int
     found: bool
+    contrast: float = 0.0
+    curved: bool = True
 
 
 def horizon_row(sky: int, params: Params) -> int:
@@ -252,13 +256,15 @@ def comb_search(mask: np.ndarray, vp: tuple[int, int], params: Params) -> tuple[
     (float64; ``n`` = binned pixels): the excess over a uniform spread. The best (first on ties)
     gives ``d`` and ``p``; the central
     row is the tooth nearest ``W/2``: ``phase = p - W + d * round_half_even((W/2 - (p - W)) / d)``.
-    Returns ``(d, phase, found)``; without pixels ``(lattice_min_spacing, W // 2, False)``.
+    Returns ``(d, phase, found, contrast)``, ``contrast`` = the best score divided by the
+    number of binned pixels (float64; the evidence of 11.4's status); without pixels
+    ``(lattice_min_spacing, W // 2, False, 0.0)``.
     """
     h, w = mask.shape
     ys, xs = np.nonzero(mask)
     bins = bottom_bins(xs, ys, vp, h, w, params)
     if bins.size == 0:
-        return params.lattice_min_spacing, w // 2, False
+        return params.lattice_min_spacing, w // 2, False, 0.0
     hist = np.bincount(bins, minlength=3 * w).astype(np.int64)
     cs = np.concatenate([[0], np.cumsum(hist)])
     d, p, hw, lo, hi, alo, ahi = _comb_tables(w, params)
@@ -270,7 +276,7 @@ def comb_search(mask: np.ndarray, vp: tuple[int, int], params: Params) -> tuple[
     q = int(np.argmax(score))
     d_q, p_q = int(d[q]), int(p[q]) - w
     k0 = int(np.rint((np.float64(w) / 2 - np.float64(p_q)) / np.float64(d_q)))
-    return d_q, p_q + k0 * d_q, True
+    return d_q, p_q + k0 * d_q, True, float(score[q] / np.float64(bins.size))
 
 
 def solve_normal(m: np.ndarray, r: np.ndarray, params: Params) -> np.ndarray | None:
@@ -356,12 +362,13 @@ def row_cells(pre: tuple[np.ndarray, np.ndarray], coef: np.ndarray, params: Para
 
 
 def normal_equations(cnt: np.ndarray, sx: np.ndarray, height: int,
-                     params: Params) -> tuple[np.ndarray, np.ndarray]:
+                     params: Params, straight: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Section 11.3: the least-squares system of one observation per occupied cell.
 
     Cell ``(k, y)`` with ``n > 0`` inliers observes ``x = q / G`` with ``q = round_half_even((G *
     sum x) / n)`` (float64 division; ``G = lattice_cell_grid``), basis ``phi`` =
-    :meth:`Params.lattice_basis` (``1, t, t^2 (, t^3), k, k t, k t^2``). ``M = sum phi phi^T`` and
+    :meth:`Params.lattice_basis` (``1, t, t^2 (, t^3), k, k t, k t^2``; ``1, t, k, k t`` when
+    ``straight``). ``M = sum phi phi^T`` and
     ``r = sum q phi`` are summed in int64 (exact; :func:`torchrow.core.io.lattice_params`
     keeps them in range), then ``M`` is converted to float64 and ``r`` to float64 divided by ``G``.
     """
@@ -371,35 +378,24 @@ def normal_equations(cnt: np.ndarray, sx: np.ndarray, height: int,
     q = np.rint((np.float64(params.lattice_cell_grid) * sx[kk, yy].astype(np.float64)) / n).astype(np.int64)
     t = yy.astype(np.int64) - (height - 1)
     k = kk.astype(np.int64) - half
-    phi = np.stack([t**p * k**e for p, e in params.lattice_basis()], axis=1)  # (cells, n) int64
+    phi = np.stack([t**p * k**e for p, e in params.lattice_basis(straight)], axis=1)  # (cells, n) int64
     m = (phi[:, :, None] * phi[:, None, :]).sum(axis=0)
     r = (phi * q[:, None]).sum(axis=0)
     return m.astype(np.float64), r.astype(np.float64) / np.float64(params.lattice_cell_grid)
 
 
-def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, params: Params) -> LatticeFit:
-    """Sections 11.2-11.4 on a green mask: comb start, then up to ``lattice_iterations`` refits.
+def refine(pre: tuple[np.ndarray, np.ndarray], coef: np.ndarray, height: int, params: Params,
+           straight: bool) -> np.ndarray:
+    """Section 11.3: up to ``lattice_iterations`` least-squares refits of ``coef`` (7,) float64.
 
-    Start: ``c(t) = phase + ((phase - xv) / (H-1 - yv)) t``, ``d(t) = d + (d / (H-1 - yv)) t``,
-    no higher terms (straight rows through the VP). Each iteration takes the inlier cells of
-    :func:`row_cells` (mask pixels below ``sky``) and solves :func:`normal_equations`. With fewer
-    than ``lattice_min_points`` inlier pixels or a singular system the coefficients stay (and
-    the iterations stop); cells equal to the previous iteration's would give the same
-    coefficients again, so the iterations stop there too (a fixed point: the result is that
-    of running all of them).
+    Each iteration takes the inlier cells of :func:`row_cells` and solves
+    :func:`normal_equations` in the straight or curved basis. With fewer than
+    ``lattice_min_points`` inlier pixels or a singular system the coefficients stay (and the
+    iterations stop); cells equal to the previous iteration's would give the same coefficients
+    again, so the iterations stop there too (a fixed point: the result is that of running all
+    of them).
     """
-    h, w = mask.shape
-    params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
-    v = vp_search(mask, params) if params.lattice_vp == "search" else init_vp(vp, w, params)
-    d, phase, found = comb_search(mask, v, params)
-    xv, yv = v
-    den = np.float64(h - 1 - yv)
-    coef = np.array([np.float64(phase), (np.float64(phase) - np.float64(xv)) / den, 0.0, 0.0,
-                     np.float64(d), np.float64(d) / den, 0.0], np.float64)
-    mask = mask.copy()
-    mask[:max(sky, 0)] = False
-    pre = prefix_sums(mask)
-    where = params.lattice_coef_index()
+    where = params.lattice_coef_index(straight)
     last = None
     for _ in range(params.lattice_iterations):
         cnt, sx = row_cells(pre, coef, params)
@@ -407,16 +403,48 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
             break
         if last is not None and np.array_equal(cnt, last[0]) and np.array_equal(sx, last[1]):
             break
-        sol = solve_normal(*normal_equations(cnt, sx, h, params), params)
+        sol = solve_normal(*normal_equations(cnt, sx, height, params, straight), params)
         if sol is None:
             break
         coef = np.zeros(N_COEF, np.float64)
         coef[where] = sol
         last = (cnt, sx)
+    return coef
+
+
+def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, params: Params) -> LatticeFit:
+    """Sections 11.2-11.4 on a green mask: comb start, then the refits of 11.3 and 11.3.1.
+
+    Start: ``c(t) = phase + ((phase - xv) / (H-1 - yv)) t``, ``d(t) = d + (d / (H-1 - yv)) t``,
+    no higher terms (straight rows through the VP). ``lattice_model`` ``"curved"``: one curved
+    :func:`refine` from the start. ``"straight"``: one straight refine. ``"auto"`` (default):
+    the straight refine, then a curved refine from its result, kept only where its inlier
+    pixels exceed ``(1 + lattice_curve_gain)`` times the straight lattice's (float64), so
+    straight rows stay straight unless the pixels demand a bend.
+    """
+    h, w = mask.shape
+    params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
+    v = vp_search(mask, params) if params.lattice_vp == "search" else init_vp(vp, w, params)
+    d, phase, found, contrast = comb_search(mask, v, params)
+    xv, yv = v
+    den = np.float64(h - 1 - yv)
+    coef = np.array([np.float64(phase), (np.float64(phase) - np.float64(xv)) / den, 0.0, 0.0,
+                     np.float64(d), np.float64(d) / den, 0.0], np.float64)
+    mask = mask.copy()
+    mask[:max(sky, 0)] = False
+    pre = prefix_sums(mask)
+    curved = params.lattice_model == "curved"
+    coef = refine(pre, coef, h, params, straight=not curved)
+    if params.lattice_model == "auto":
+        bent = refine(pre, coef, h, params, straight=False)
+        n_straight = int(row_cells(pre, coef, params)[0].sum())
+        n_bent = int(row_cells(pre, bent, params)[0].sum())
+        if np.float64(n_bent) > (np.float64(1.0) + np.float64(params.lattice_curve_gain)) * np.float64(n_straight):
+            coef, curved = bent, True
     cnt, _ = row_cells(pre, coef, params)
     support = tuple(int(s) for s in (cnt > 0).sum(axis=1))
     span = h - max(sky, 0)
-    return LatticeFit(tuple(float(c) for c in coef), d, phase, v, support, span, found)
+    return LatticeFit(tuple(float(c) for c in coef), d, phase, v, support, span, found, contrast, curved)
 
 
 def lattice_rows(fit: LatticeFit, height: int, params: Params) -> list[Row]:
@@ -443,6 +471,16 @@ def lattice_rows(fit: LatticeFit, height: int, params: Params) -> list[Row]:
         rows.append(Row(float(a), float(b), ok, "" if ok else "no_support", -1, float(curv - three * yb), conf,
                         float(c3)))
     return rows
+
+
+def improved_status(rows: list[Row], contrast: float, image_confidence: float, params: Params) -> str:
+    """Section 11.4: ``invalid`` if a row is invalid, else ``weak`` unless the comb's contrast is
+    ``>= lattice_min_contrast`` and the image confidence ``>= lattice_min_image_confidence``
+    (float64 comparisons), else ``ok``."""
+    if not all(r.valid for r in rows):
+        return "invalid"
+    strong = contrast >= params.lattice_min_contrast and image_confidence >= params.lattice_min_image_confidence
+    return "ok" if strong else "weak"
 
 
 def improved_rows(rgb: np.ndarray, sky: int, vp: tuple[float, float] | None,

@@ -8,7 +8,7 @@ from torchrow.core.io import check_color, resize_to_width, to_rgb8
 from torchrow.core.params import Params
 from torchrow.core.results import ImageResult
 from torchrow.reference.color import vegetation_color
-from torchrow.reference.lattice import improved_rows
+from torchrow.reference.lattice import improved_rows, improved_status
 from torchrow.reference.ransac import fit_row, validate_rows
 from torchrow.reference.sky import sky_row
 from torchrow.reference.vanishing import find_lines
@@ -78,9 +78,9 @@ def detect(image: np.ndarray, params: Params | None = None, name: str | None = N
         res.status = "no_vegetation"
         res.n_rows = 0
     if params.mode == "improved":  # section 11 replaces section 7 (and runs without a VP too)
-        res.rows, res.image_confidence, _ = improved_rows(rgb, sky, vp, params)
+        res.rows, res.image_confidence, fit = improved_rows(rgb, sky, vp, params)
         res.n_rows = len(res.rows)  # the rows asked: 2K + 1
-        res.status = "ok" if all(r.valid for r in res.rows) else "invalid"
+        res.status = improved_status(res.rows, fit.contrast, res.image_confidence, params)
         return res
     if vp is None:
         return res
