@@ -15,7 +15,7 @@ pytest.importorskip("rosbags")
 from bags import encode, write_bag  # noqa: E402
 
 from torchrow.apps.cli import main  # noqa: E402
-from torchrow.apps.rosbag import BagError, is_bag, open_bag  # noqa: E402
+from torchrow.core.rosbag import BagError, is_bag, open_bag  # noqa: E402
 from torchrow.evaluation.synthetic import FieldSpec, render, sequence  # noqa: E402
 
 STORAGES = ("sqlite3", "mcap", "ros1")

@@ -181,7 +181,7 @@ def _open_sink(out: Path, key, resume: bool):
 
 def _split_bags(inputs: Sequence[str], topic: str | None) -> tuple[list[str], list]:
     """ROS bag inputs (opened, ``topic`` chosen) apart from image files and folders."""
-    from torchrow.apps.rosbag import BagError, is_bag, open_bag
+    from torchrow.core.rosbag import BagError, is_bag, open_bag
 
     others, bags = [], []
     for raw in inputs:
@@ -471,9 +471,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _open_sources(raw: Sequence[str], topic: str | None = None):
-    from torchrow.apps.rosbag import is_bag
-    from torchrow.apps.video import open_source
+    from torchrow.core.frames import open_source
     from torchrow.core.io import ImageError
+    from torchrow.core.rosbag import is_bag
 
     if topic is not None and not any(is_bag(r) for r in raw):
         raise CLIError("--topic applies to ROS bag sources only (a rosbag2 folder or a .bag file)")
@@ -574,8 +574,8 @@ def _check_plot(plot: Path) -> None:
 
 
 def cmd_video(args: argparse.Namespace) -> int:
-    from torchrow.apps.progress import progress
     from torchrow.apps.video import central_jumps, plot_tracks
+    from torchrow.core.progress import progress
 
     args.model_kind = "tracker"
     model = _check_model(args)

@@ -14,8 +14,9 @@ import numpy as np
 from torchrow.apps.sink import RecordSink, read_records
 from torchrow.core.io import ImageError
 from torchrow.core.params import Params
+from torchrow.core.progress import progress as progress_bar
 from torchrow.core.results import ImageResult
-from torchrow.engines.runner import _progress, run
+from torchrow.engines.runner import run
 from torchrow.evaluation.datasets import CRBD
 from torchrow.evaluation.metrics import crda, crda_official, crda_thesis, summarize
 
@@ -201,7 +202,7 @@ def score_tmg_files(crbd: CRBD, results_dir: Path, ext: str = ".tmg",
     adjacent rows per image row). Returns ``(name, crda sigma 0.1, crda sigma 0.3)``; a missing
     or malformed file scores 0."""
     out = []
-    bar = _progress(len(crbd), "score", progress)
+    bar = progress_bar(len(crbd), "score", progress, unit="image")
     for i in range(len(crbd)):
         bar.update(1)
         item = crbd[i]

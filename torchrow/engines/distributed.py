@@ -11,7 +11,7 @@ image's or a sequence's result never depends on what else is in its batch.
   threads). Inside a batch of ``batch_size`` rows the images are grouped by working size
   (:func:`torchrow.engines.runner.run`), so mixed sizes cost extra calls, never wrong results.
   Loaders run *on the workers*: they must be picklable (``functools.partial(load_image,
-  path, width)``, a :class:`torchrow.apps.rosbag.BagFrame`, a lambda over a path) and the paths
+  path, width)``, a :class:`torchrow.core.rosbag.BagFrame`, a lambda over a path) and the paths
   must be readable there (one machine, a shared file system, or object storage read by the
   loader, see :func:`read_binary`). Results come back in input order
   (``preserve_order``), as Ray's streaming executor produces them.
@@ -136,9 +136,9 @@ def run(items: Iterable[tuple[str, Callable[[], np.ndarray]]], impl: str = "tens
     ds = ds.map_batches(_Detect, batch_size=batch_size, batch_format="numpy", concurrency=n_workers,
                         num_cpus=cpus_per_worker, fn_constructor_kwargs=dict(
                             impl=impl, params=params, device=device, model=model, threads=cpus_per_worker))
-    from torchrow.engines.runner import _progress
+    from torchrow.core.progress import progress as progress_bar
 
-    bar = _progress(total if total is not None else len(rows), desc, progress)
+    bar = progress_bar(total if total is not None else len(rows), desc, progress, unit="image")
     waiting: dict[int, tuple[ImageResult, float]] = {}
     nxt = 0
     try:
@@ -163,7 +163,7 @@ def _track_task(paths: list[str], topic: str | None, names: list[str], impl: str
     ``(position in the batch, record)``."""
     import torch
 
-    from torchrow.apps.video import open_source
+    from torchrow.core.frames import open_source
     from torchrow.engines.runner import track as track_local
 
     torch.set_num_threads(max(1, min(workers, len(paths))))
@@ -184,7 +184,7 @@ def track(sources: Sequence[str | Path], names: Sequence[str] | None = None, imp
           params: Params | None = None, device: str | None = None, hfov_deg: float | None = None,
           topic: str | None = None, skip: dict[int, set[int]] | None = None, batch_size: int = 8,
           workers: int | None = None, address: str | None = None) -> Iterator[tuple[int, dict]]:
-    """Track every source (folder, video file or ROS bag, :func:`torchrow.apps.video.open_source`)
+    """Track every source (folder, video file or ROS bag, :func:`torchrow.core.frames.open_source`)
     on a Ray cluster; yields ``(source index, record)`` as records arrive (frame order within
     a source).
 
@@ -198,7 +198,7 @@ def track(sources: Sequence[str | Path], names: Sequence[str] | None = None, imp
     """
     import torch
 
-    from torchrow.apps.video import open_source
+    from torchrow.core.frames import open_source
     from torchrow.engines.runner import track_batches
 
     ray = init(address)

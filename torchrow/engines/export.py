@@ -874,7 +874,7 @@ class OnnxTracker:
         RGB or None)``; unreadable frames and frames of another working size than the
         model's get ``error`` records. Slots without a sequence, or whose sequence has ended
         or has no readable frame now, are fed as inactive (they keep their state)."""
-        from torchrow.apps.video import load_items
+        from torchrow.core.frames import load_items
         from torchrow.core.steering import FrameResult
 
         n = len(sequences)

@@ -27,6 +27,7 @@ import numpy as np
 
 from torchrow.core.io import ImageError
 from torchrow.core.params import Params
+from torchrow.core.progress import progress as progress_bar
 from torchrow.core.results import ImageResult
 from torchrow.core.steering import FrameResult
 
@@ -35,12 +36,6 @@ __all__ = ["IMPLS", "run", "default_window", "onnx_workers", "track", "track_bat
 IMPLS = ("tensor", "reference", "onnx")
 
 Loader = Callable[[], np.ndarray]
-
-
-def _progress(total: int, desc: str, enabled: bool):
-    from torchrow.apps.progress import progress
-
-    return progress(total, desc, enabled, unit="image")
 
 
 def _load(name: str, loader: Loader) -> tuple[np.ndarray | None, ImageResult | None]:
@@ -103,7 +98,7 @@ def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Param
         window = max(default_window(batch_size), (workers + 1) * batch_size)
     if window < batch_size:
         raise ValueError(f"window must be >= batch_size ({batch_size}), got {window}")
-    bar = _progress(total, desc, progress)
+    bar = progress_bar(total, desc, progress, unit="image")
     try:
         if impl == "reference":
             from torchrow.reference import detect
@@ -232,10 +227,10 @@ def _run_tensor(items, params, batch_size, window, device, bar, det=None, worker
 
 
 def source_size(src, params: Params) -> tuple[int, int] | None:
-    """A sequence's working ``(H, W)``: :meth:`torchrow.apps.video.FrameSource.working_size` (the
+    """A sequence's working ``(H, W)``: :meth:`torchrow.core.frames.FrameSource.working_size` (the
     size most of its frames have) where the source has one, else that of its first readable
     frame; ``None`` if no frame is readable."""
-    from torchrow.apps.video import load_item
+    from torchrow.core.frames import load_item
 
     if hasattr(src, "working_size"):
         return src.working_size(params.video_width, params.max_pixels)
@@ -249,7 +244,7 @@ def source_size(src, params: Params) -> tuple[int, int] | None:
 def track(sources: Sequence, names: Sequence[str], impl: str = "tensor", params: Params | None = None,
           batch_size: int = 8, device: str | None = None, hfov_deg: float | None = None,
           workers: int | None = None, onnx=None) -> Iterator[tuple[int, FrameResult, np.ndarray | None]]:
-    """Track frame sources (:func:`torchrow.apps.video.open_source`); yields ``(source index,
+    """Track frame sources (:func:`torchrow.core.frames.open_source`); yields ``(source index,
     FrameResult, working RGB or None)``.
 
     ``impl="reference"`` tracks the sources one after the other; ``"tensor"`` in batches of

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from torchrow.apps.video import load_items
+from torchrow.core.frames import load_items
 from torchrow.core.io import check_working_size, load_image, resize_to_width, to_rgb8
 from torchrow.core.params import Params
 from torchrow.core.results import concat_batches
@@ -251,12 +251,12 @@ class Tracker(nn.Module):
         ----------
         sequences : sequence of iterables
             One iterable of items per sequence (frames or ``(name, frame)``, see
-            :mod:`torchrow.apps.video`); lengths may differ.
+            :mod:`torchrow.core.frames`); lengths may differ.
         sources : sequence of str, optional
             Sequence names stored in the records.
         size : (int, int), optional
             Working ``(H, W)`` of the batch (e.g. the sequences'
-            :meth:`torchrow.apps.video.FrameSource.working_size`); default: the first loaded
+            :meth:`torchrow.core.frames.FrameSource.working_size`); default: the first loaded
             frame's.
 
         Yields

@@ -20,7 +20,7 @@ Rules (the spec's, plus the choices it leaves open, marked *choice*):
   unreadable, the first readable frame becomes frame 0.
 * *choice*: a frame whose working size differs from the sequence's is unreadable in that
   sense. The sequence's size is given to :meth:`Tracker.track_iter` (the CLI gives the size
-  most frames have, :meth:`torchrow.apps.video.FrameSource.working_size`) or is frame 0's.
+  most frames have, :meth:`torchrow.core.frames.FrameSource.working_size`) or is frame 0's.
 * *choice*: tracked frames carry all rows of the previous frame (it was ``ok``, so all of
   them are valid); ``n_rows`` of a tracked frame is their number.
 
@@ -34,7 +34,7 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
-from torchrow.apps.video import load_items
+from torchrow.core.frames import load_items
 from torchrow.core.io import resize_to_width, to_rgb8
 from torchrow.core.params import Params
 from torchrow.core.results import ImageResult
@@ -217,10 +217,10 @@ class Tracker:
                    size: tuple[int, int] | None = None) -> Iterator[tuple[FrameResult, np.ndarray | None]]:
         """Track one sequence lazily: yields ``(result, working RGB or None)`` per item.
 
-        Items are frames or ``(name, frame)`` (:mod:`torchrow.apps.video`); unreadable frames,
+        Items are frames or ``(name, frame)`` (:mod:`torchrow.core.frames`); unreadable frames,
         and frames whose working size differs from the sequence's, get ``error`` records.
         The sequence's working ``size`` ``(H, W)`` is given (e.g.
-        :meth:`torchrow.apps.video.FrameSource.working_size`, the size most frames have) or, by
+        :meth:`torchrow.core.frames.FrameSource.working_size`, the size most frames have) or, by
         default, that of the first readable frame; frame 0 is the first readable frame of it.
         """
         state: TrackerState | None = None

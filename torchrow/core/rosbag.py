@@ -99,7 +99,7 @@ class BagFrame:
 @dataclass
 class BagSource:
     """One image topic of a bag as a frame source (the interface of
-    :class:`torchrow.apps.video.FrameSource`): iterating yields ``(name, BagFrame)`` items named
+    :class:`torchrow.core.frames.FrameSource`): iterating yields ``(name, BagFrame)`` items named
     by the frame number, ``length`` is the topic's message count."""
 
     path: Path
