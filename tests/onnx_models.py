@@ -41,7 +41,7 @@ def _source_key() -> str:
     root = Path(__file__).resolve().parents[1] / "torchrow"
     h = hashlib.sha256()
     for p in sorted([root / "engines" / "export.py", root / "core" / "params.py", root / "core" / "tables.py",
-                     *(root / "functional").glob("*.py")]):
+                     *(root / "functional").glob("*.py"), *(root / "onnx").glob("*.py")]):
         h.update(p.read_bytes())
     h.update(torch.__version__.encode())
     return h.hexdigest()[:16]

@@ -88,7 +88,6 @@ def test_no_private_imports_across_modules():
     known = {             "torchrow/engines/detector.py:208: _table of torchrow.functional.ransac",
              "torchrow/engines/export.py:722: _cache_dir from torchrow.core.tables",
              "torchrow/engines/export.py:647: _color_override from torchrow.engines.detector",
-             "torchrow/engines/export.py:958: _linear_lut from torchrow.functional.static",
              "torchrow/engines/tracker.py:143: _table of torchrow.functional.ransac"}  # being made public
     assert set(private_imports()) - known == set()
 

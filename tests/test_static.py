@@ -1,4 +1,4 @@
-"""The exportable formulations (torchrow.functional.static) run eagerly in torch, against
+"""The exportable formulations (torchrow.onnx.graphs) run eagerly in torch, against
 the eager stages: no onnx needed, no export, seconds per test.
 
 The ONNX tests (test_export*.py) check that onnxruntime runs these graphs to the same
@@ -25,10 +25,10 @@ from torchrow.evaluation.synthetic import FieldSpec, sequence
 from torchrow.functional import hough as fhough
 from torchrow.functional import ransac as fransac
 from torchrow.functional import sky as fsky
-from torchrow.functional import static
 from torchrow.functional import vanishing as fvan
 from torchrow.functional import vegetation as fveg
 from torchrow.functional.tracker import TrackerState
+from torchrow.onnx import graphs as static
 
 P = Params()
 
@@ -37,8 +37,8 @@ def test_scatter_free_votes_equal_scatter_votes() -> None:
     """Prefix sums gathered at constant run ends == scatter-add votes, on the pickable angles."""
     for h, w in ((240, 320), (37, 53)):
         masks = torch.from_numpy(np.stack([m[:h, :w] for m in _adversarial_masks()]))
-        tables = static.vote_tables(h, w, P)
-        got = static.votes(masks.reshape(len(masks), -1), tables)  # (B, A, 2D+1)
+        tables = fhough.vote_tables(h, w, P)
+        got = fhough.prefix_votes(masks.reshape(len(masks), -1), tables)  # (B, A, 2D+1)
         ref = fhough.votes(masks, P)  # (B, n_theta, 2D+1)
         assert torch.equal(got.to(torch.int64), ref.index_select(1, tables.angles).to(torch.int64))
 

@@ -2,10 +2,10 @@
 
 The tracker step (``to_onnx(..., tracker=True)``, :class:`OnnxTracker`) is one graph from a
 frame and the previous state to rows and the new state; see
-:class:`torchrow.functional.static.StaticTrackerStep` for what runs where. The rest of this
+:class:`torchrow.onnx.graphs.StaticTrackerStep` for what runs where. The rest of this
 docstring describes the image-mode detector.
 
-:func:`to_onnx` exports :class:`torchrow.functional.static.StaticDetector` (a static-shape,
+:func:`to_onnx` exports :class:`torchrow.onnx.graphs.StaticDetector` (a static-shape,
 scatter-free formulation of ALGORITHM.md sections 1 and 3-7) with torch's dynamo-based
 exporter (``torch.onnx.export(..., dynamo=True)``, opset 18 by default) for one working
 size and batch size. :class:`OnnxDetector` runs such a model in onnxruntime and returns the
@@ -21,10 +21,10 @@ What runs where:
   the best hypothesis' inliers;
 * host, after the graph: the principal direction (``atan2``, ``cos``, ``sin``: ONNX has no
   ``Atan2``, onnxruntime's ``Atan`` is float32-only) and the row validity of 7.6 on ``B x
-  n_rows`` numbers (:func:`torchrow.functional.static.finish_rows`).
+  n_rows`` numbers (:func:`torchrow.onnx.graphs.finish_rows`).
 
 Graph inputs: ``images`` uint8 ``(B, 3, H, W)`` RGB, ``veg_lab`` float64 ``(B, 3)``.
-Outputs: :data:`torchrow.functional.static.GRAPH_OUTPUTS`.
+Outputs: :data:`torchrow.onnx.graphs.GRAPH_OUTPUTS`.
 
 onnxruntime's CPU kernels lack some small-integer and bool types the exporter emits as torch
 computed them (``Where`` on bool, ``Min`` on int16); :func:`legalize` widens those nodes to
@@ -271,7 +271,7 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         ONNX opset, 18 or newer (default 18).
 
     tracker : bool
-        Export :class:`torchrow.functional.static.StaticTrackerStep` (one frame of ``B``
+        Export :class:`torchrow.onnx.graphs.StaticTrackerStep` (one frame of ``B``
         sequences + their state -> rows + new state; run it with :class:`OnnxTracker`).
         ``width`` must then equal ``params.video_width`` (set it with ``params``).
     control_flow : bool
@@ -293,16 +293,16 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
     -------
     Path
         ``path``. The detector has inputs ``images`` uint8 ``(B, 3, H, W)`` and ``veg_lab``
-        float64 ``(B, 3)`` and the outputs :data:`torchrow.functional.static.GRAPH_OUTPUTS`;
-        the tracker step has the inputs :data:`~torchrow.functional.static.TRACKER_INPUTS`
-        and outputs :data:`~torchrow.functional.static.TRACKER_OUTPUTS`.
+        float64 ``(B, 3)`` and the outputs :data:`torchrow.onnx.graphs.GRAPH_OUTPUTS`;
+        the tracker step has the inputs :data:`~torchrow.onnx.graphs.TRACKER_INPUTS`
+        and outputs :data:`~torchrow.onnx.graphs.TRACKER_OUTPUTS`.
     """
     import json
     import warnings
 
     import onnx
 
-    from torchrow.functional import static
+    from torchrow.onnx import graphs as static
 
     _check_shape(height, width, batch, opset)
     params = params or Params()
@@ -674,7 +674,7 @@ class OnnxDetector:
 
     def _result(self, outs: list[torch.Tensor], color: torch.Tensor) -> BatchResult:
         from torchrow.functional import ransac as fransac
-        from torchrow.functional.static import GRAPH_OUTPUTS, finish_rows
+        from torchrow.onnx.graphs import GRAPH_OUTPUTS, finish_rows
 
         o = dict(zip(GRAPH_OUTPUTS, outs))
         p = self.params
@@ -828,8 +828,8 @@ class OnnxTracker:
         from torchrow.functional import color as fcolor
         from torchrow.functional import sky as fsky
         from torchrow.functional._checks import check_images
-        from torchrow.functional.static import TRACKER_STATE, TRACKER_STEP
         from torchrow.functional.tracker import TrackerState, TrackStep
+        from torchrow.onnx.graphs import TRACKER_STATE, TRACKER_STEP
 
         check_images(frames, "frames")
         b, _, h, w = frames.shape
@@ -955,20 +955,20 @@ def step_differences(ref, got, tol: float = 1e-9) -> list[str]:
 class _Lab(torch.nn.Module):
     def __init__(self) -> None:
         super().__init__()
-        from torchrow.functional.static import _linear_lut
+        from torchrow.functional.cielab import linear_lut
 
-        self.register_buffer("lut", torch.from_numpy(_linear_lut().copy()), persistent=False)
+        self.register_buffer("lut", torch.from_numpy(linear_lut().copy()), persistent=False)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        from torchrow.functional.static import lab
+        from torchrow.functional.cielab import lab_formula
 
-        return lab(images, self.lut)
+        return lab_formula(images, self.lut)
 
 
 def check_lab(k: Sequence[float] | None = None, params: Params | None = None, progress: bool = False) -> dict:
     """Exhaustive check of the graph's LAB against the shared table, all 2**24 colours.
 
-    Exports the graph's LAB (:func:`torchrow.functional.static.lab`) alone, runs every
+    Exports the graph's LAB (:func:`torchrow.functional.cielab.lab_formula`) alone, runs every
     8-bit colour through onnxruntime (256 slabs of 65536 colours) and compares with
     :func:`torchrow.core.tables.lab_table` bit for bit. For every colour whose value differs in a
     channel, it then checks whether any vegetation box bound ``c - k`` or ``c + k`` (``c`` any

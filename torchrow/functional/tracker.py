@@ -248,7 +248,7 @@ def _where(mask: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor
 @dataclass(frozen=True)
 class Stages:
     """The stages :func:`advance` composes, so that the eager tracker and the exportable
-    tracker step (:class:`torchrow.functional.static.StaticTrackerStep`) share one set of rules.
+    tracker step (:class:`torchrow.onnx.graphs.StaticTrackerStep`) share one set of rules.
 
     ``find_lines(hin bool (B, H, W)) -> LineSearch`` (sections 5-6);
     ``fit_rows(veg, theta, rho, present, vp, band, track=None) ->``
