@@ -85,11 +85,7 @@ def private_imports(package: Path = ROOT / "torchrow") -> list[str]:
 
 def test_no_private_imports_across_modules():
     """A private name is its module's own: another module that needs it needs a public name."""
-    known = {             "torchrow/engines/detector.py:208: _table of torchrow.functional.ransac",
-             "torchrow/engines/export.py:722: _cache_dir from torchrow.core.tables",
-             "torchrow/engines/export.py:647: _color_override from torchrow.engines.detector",
-             "torchrow/engines/tracker.py:143: _table of torchrow.functional.ransac"}  # being made public
-    assert set(private_imports()) - known == set()
+    assert private_imports() == []
 
 
 def test_private_import_check_sees_both_forms(tmp_path):

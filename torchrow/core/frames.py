@@ -18,7 +18,8 @@ import numpy as np
 
 from torchrow.core.io import IMAGE_EXTENSIONS, ImageError, header_size, load_image, resize_to_width, to_rgb8, working_size
 
-__all__ = ["LoadedFrame", "load_item", "load_items", "READ_AHEAD", "VIDEO_EXTENSIONS", "FrameSource", "open_source"]
+__all__ = ["prepare_frame", "LoadedFrame", "load_item", "load_items", "READ_AHEAD", "VIDEO_EXTENSIONS", "FrameSource",
+           "open_source"]
 
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
 
@@ -30,6 +31,14 @@ class LoadedFrame:
     name: str | None
     rgb: np.ndarray | None
     error: str | None = None
+
+
+def prepare_frame(frame: np.ndarray | str | Path, width: int, max_pixels: int | None = None) -> np.ndarray:
+    """A frame at working size: a path is loaded (:func:`~torchrow.core.io.load_image`), an
+    array converted to RGB8; either resized to ``width`` (within ``max_pixels``)."""
+    if isinstance(frame, (str, Path)):
+        return load_image(frame, width, max_pixels)
+    return resize_to_width(to_rgb8(frame), width, max_pixels)
 
 
 def load_item(item: object, width: int, max_pixels: int | None = None) -> LoadedFrame:

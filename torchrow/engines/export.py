@@ -44,9 +44,9 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from torchrow.core.batch import BatchResult
 from torchrow.core.params import Params
 from torchrow.core.results import concat_batches
-from torchrow.engines.detector import BatchResult
 
 __all__ = ["to_onnx", "OnnxDetector", "OnnxTracker", "step_differences", "float64_python_constants", "legalize",
            "op_counts", "model_info", "model_meta", "ort_optimized",
@@ -644,7 +644,6 @@ class OnnxDetector:
         model's ``B``, the last one padded). ``veg_color`` ``uint8 (N, 3)`` or ``(3,)``
         replaces the per-image colour clustering, as for :class:`CropRowDetector`."""
         from torchrow.core.tables import lab_table_torch, pack_rgb
-        from torchrow.engines.detector import _color_override
         from torchrow.functional import color as fcolor
         from torchrow.functional._checks import check_images
 
@@ -657,7 +656,7 @@ class OnnxDetector:
         if veg_color is None:
             color = fcolor.vegetation_color(images, self.params) if n else torch.zeros((0, 3), dtype=torch.uint8)
         else:
-            color = _color_override(veg_color, n, torch.device("cpu"))
+            color = fcolor.color_override(veg_color, n, torch.device("cpu"))
         lab = lab_table_torch("cpu")[torch.from_numpy(pack_rgb(color.numpy()))].clone()
         parts = []
         for s0 in range(0, max(n, 1), self.batch):
@@ -719,11 +718,11 @@ def ort_optimized(path: str | Path) -> Path | None:
     if os.environ.get("TORCHROW_ORT_CACHE", "1") == "0":
         return None
     ort = _ort()
-    from torchrow.core.tables import _cache_dir
+    from torchrow.core.tables import cache_dir
 
     digest = hashlib.sha256(Path(path).read_bytes())
     digest.update(ort.__version__.encode())
-    folder = _cache_dir() / "ort"
+    folder = cache_dir() / "ort"
     out = folder / f"{digest.hexdigest()[:32]}.onnx"
     if out.is_file():
         os.utime(out)  # recently used: kept by the pruning below
@@ -799,13 +798,11 @@ class OnnxTracker:
 
     def __init__(self, model_path: str | Path, hfov_deg: float | None = None, threads: int | None = None,
                  cache: bool = True) -> None:
-        from torchrow.engines.tracker import Tracker
-
         _open(self, model_path, "tracker", threads, cache)
         if self.session.get_inputs()[1].name != "k_table":
             raise ValueError(f"{self.path.name} is a tracker model of an older torchrow (it takes veg_lab, not "
                              "k_table); export it again with `torchrow export onnx --tracker`")
-        self._records = Tracker(self.params, hfov_deg=hfov_deg)  # records and frame loading only
+        self.hfov_deg = hfov_deg
         n_k = self.params.video_k_max - self.params.video_k_min + 1
         self._table = np.full((self.batch, 1 << 24), n_k, dtype=np.uint8)  # the graph's k_table feed
         self._table_color: list = [None] * self.batch  # the colour each slot's table row holds
@@ -863,9 +860,14 @@ class OnnxTracker:
         if isinstance(frames, torch.Tensor):
             x = frames
         else:
-            x = torch.from_numpy(np.stack([self._records.prepare(f) for f in frames])).permute(0, 3, 1, 2)
+            from torchrow.core.frames import prepare_frame
+
+            x = torch.from_numpy(np.stack([prepare_frame(f, self.params.video_width, self.params.max_pixels)
+                                           for f in frames])).permute(0, 3, 1, 2)
         stepped, new = self.forward(x.contiguous(), state)
-        return self._records.results(stepped, new, x.shape[3], x.shape[2], names), new
+        from torchrow.functional.tracker import records
+
+        return records(stepped, new, x.shape[3], x.shape[2], self.params, self.hfov_deg, names), new
 
 
     def track_iter(self, sequences, sources=None):
@@ -876,6 +878,7 @@ class OnnxTracker:
         or has no readable frame now, are fed as inactive (they keep their state)."""
         from torchrow.core.frames import load_items
         from torchrow.core.steering import FrameResult
+        from torchrow.functional.tracker import records
 
         n = len(sequences)
         if n > self.batch:
@@ -911,7 +914,8 @@ class OnnxTracker:
                 stepped, state = self.forward(x, state, torch.from_numpy(act))
                 names = [g[1].name if g is not None else None for g in got] + [None] * (self.batch - n)
                 idxs = [g[0] if g is not None else 0 for g in got] + [0] * (self.batch - n)
-                recs = self._records.results(stepped, state, w, h, names, srcs + [None] * (self.batch - n), idxs)
+                recs = records(stepped, state, w, h, self.params, self.hfov_deg, names,
+                               srcs + [None] * (self.batch - n), idxs)
             for b in range(n):
                 if got[b] is None:
                     continue
