@@ -16,8 +16,8 @@ sys.path.insert(0, 'tests')
 from test_export import _same  # noqa: E402
 
 from torchrow.engines.detector import CropRowDetector  # noqa: E402
-from torchrow.engines.export import OnnxDetector  # noqa: E402
 from torchrow.evaluation.datasets import CRBD  # noqa: E402
+from torchrow.onnx.runtime import OnnxDetector  # noqa: E402
 
 ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 ap.add_argument("model")

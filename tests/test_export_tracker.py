@@ -1,7 +1,7 @@
 """ONNX export of the tracker step: one graph, frame + state -> rows + new state.
 
 The exported graph (:class:`torchrow.onnx.graphs.StaticTrackerStep`) runs in
-onnxruntime through :class:`torchrow.engines.export.OnnxTracker` and is compared, frame by frame and
+onnxruntime through :class:`torchrow.onnx.runtime.OnnxTracker` and is compared, frame by frame and
 field by field, with the eager :class:`torchrow.Tracker`: discrete outputs identical, rows,
 vanishing points and confidences within 1e-9 (the issue asks for 1e-4 px). A small working
 size (160 px wide) and ``n_rows=3, max_outliers=2`` keep the export near a minute; the
@@ -26,10 +26,14 @@ import torchrow  # noqa: E402
 from torchrow import Params  # noqa: E402
 from torchrow.apps.cli import main  # noqa: E402
 from torchrow.core.io import resize_to_width  # noqa: E402
-from torchrow.engines.export import OnnxDetector, OnnxTracker, model_info, op_counts, step_differences, to_onnx  # noqa: E402
 from torchrow.evaluation.synthetic import FieldSpec, sequence  # noqa: E402
-from torchrow.functional.tracker import TrackerState  # noqa: E402
+from torchrow.functional.tracking import TrackerState  # noqa: E402
+from torchrow.onnx.checks import step_differences  # noqa: E402
+from torchrow.onnx.export import to_onnx  # noqa: E402
 from torchrow.onnx.graphs import TRACKER_INPUTS, TRACKER_OUTPUTS  # noqa: E402
+from torchrow.onnx.metadata import model_info  # noqa: E402
+from torchrow.onnx.passes import op_counts  # noqa: E402
+from torchrow.onnx.runtime import OnnxDetector, OnnxTracker  # noqa: E402
 
 SMALL = Params(n_rows=3, max_outliers=2, video_width=160)
 BATCH = 2

@@ -20,15 +20,15 @@ from test_tensor_lines import _adversarial_masks
 import torchrow
 from torchrow import Params
 from torchrow.core.tables import lab_table_torch, pack_rgb
-from torchrow.engines.export import step_differences
 from torchrow.evaluation.synthetic import FieldSpec, sequence
 from torchrow.functional import hough as fhough
 from torchrow.functional import ransac as fransac
 from torchrow.functional import sky as fsky
 from torchrow.functional import vanishing as fvan
 from torchrow.functional import vegetation as fveg
-from torchrow.functional.tracker import TrackerState
+from torchrow.functional.tracking import TrackerState
 from torchrow.onnx import graphs as static
+from torchrow.onnx.checks import step_differences
 
 P = Params()
 
@@ -143,7 +143,7 @@ def test_static_adaptive_k_equals_eager() -> None:
     seq = sequence(FieldSpec.at_size(160, 90, n_rows=5, seed=6), 3, drift_px_per_frame=2.0)
     x = torch.from_numpy(np.stack([f.image for f in seq])).permute(0, 3, 1, 2).contiguous()
     pv = Params(video_width=160)
-    from torchrow.functional import tracker as ftrack
+    from torchrow.functional import tracking as ftrack
 
     st0 = ftrack.init_state(x[:1].expand(3, -1, -1, -1).contiguous(), pv)
     info0 = st0.info0 * torch.tensor([1.0, 0.3, 3.0], dtype=torch.float64)  # grow, shrink and stay
@@ -189,7 +189,7 @@ def test_static_tracker_step_equals_tracker(control_flow: bool) -> None:
 
 
 def ftrack_step(o: dict, active: torch.Tensor):
-    from torchrow.functional.tracker import TrackStep
+    from torchrow.functional.tracking import TrackStep
 
     return TrackStep(**{f: o[f] for f in static.TRACKER_STEP}, active=active)
 

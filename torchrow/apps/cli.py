@@ -213,7 +213,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     others, bags = _split_bags(args.inputs, args.topic)
     paths = _collect_images(others) if others else []
     if model is not None and paths:
-        from torchrow.engines.export import model_meta
+        from torchrow.onnx.metadata import model_meta
 
         info = model_meta(model)
         params = info["params"]
@@ -301,7 +301,7 @@ def _check_model(args: argparse.Namespace) -> str | None:
     try:
         import onnxruntime  # noqa: F401
 
-        from torchrow.engines.export import model_meta
+        from torchrow.onnx.metadata import model_meta
 
         info = model_meta(model)
     except ImportError:
@@ -338,7 +338,8 @@ def cmd_export(args: argparse.Namespace) -> int:
         import onnxscript  # noqa: F401
     except ImportError:
         raise CLIError("export needs onnx and onnxscript: pip install 'torchrow[onnx]'") from None
-    from torchrow.engines.export import model_info, to_onnx
+    from torchrow.onnx.export import to_onnx
+    from torchrow.onnx.metadata import model_info
 
     params = _parse_params(args.param)
     if args.tracker:
@@ -597,8 +598,8 @@ def cmd_video(args: argparse.Namespace) -> int:
     if model is not None:
         if args.engine == "ray":
             raise CLIError("--impl onnx runs with --engine local")
-        from torchrow.engines.export import OnnxTracker
         from torchrow.engines.runner import source_size
+        from torchrow.onnx.runtime import OnnxTracker
 
         onnx = OnnxTracker(model, hfov_deg=args.fov)
         params = onnx.params

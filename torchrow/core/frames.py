@@ -8,6 +8,7 @@ callable returning one (it may raise :class:`~torchrow.core.io.ImageError` or ``
 
 from __future__ import annotations
 
+import functools
 import queue
 import threading
 from dataclasses import dataclass
@@ -144,7 +145,7 @@ class FrameSource:
         fails; with an unknown count (0), at the first failed read."""
         if self.kind == "folder":
             for f in self.files:
-                yield f.name, (lambda f=f: load_image(f))
+                yield f.name, functools.partial(load_image, f)
             return
         import cv2
 
@@ -164,7 +165,7 @@ class FrameSource:
                     yield f"{i:06d}", unreadable(i)
                 else:
                     rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-                    yield f"{i:06d}", (lambda rgb=rgb: rgb)
+                    yield f"{i:06d}", functools.partial(np.asarray, rgb)
                 i += 1
         finally:
             cap.release()

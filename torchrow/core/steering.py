@@ -1,6 +1,6 @@
 """Video-mode outputs shared by both trackers: steering signals, confidence, per-frame result.
 
-Definitions (one place; :mod:`torchrow.reference.tracker` and :mod:`torchrow.functional.tracker`
+Definitions (one place; :mod:`torchrow.reference.tracking` and :mod:`torchrow.functional.tracking`
 both use them). Pixel coordinates are those of the working image (``x`` = column, ``y`` =
 row, origin at the top-left pixel); ``W``, ``H`` = working size; the image centre is
 ``x = W/2``, the convention of CRBD's ground truth and of :mod:`torchrow.evaluation.synthetic`.

@@ -89,7 +89,7 @@ class _Detect:
 
             self.det = CropRowDetector(params, device=device, workers=threads)
         elif impl == "onnx":
-            from torchrow.engines.export import OnnxDetector
+            from torchrow.onnx.runtime import OnnxDetector
 
             self.det = OnnxDetector(model)
 

@@ -60,7 +60,7 @@ def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Param
     ``items`` may be a lazy iterable (read one item at a time; ``total`` sizes the progress
     bar when it has no ``len``). Results come back in input order, each as soon as every
     earlier input's result is out; ``window`` bounds the images held (module docstring). ``impl="onnx"`` runs the exported
-    model ``model`` (:mod:`torchrow.engines.export`) in onnxruntime, in batches of the model's static
+    model ``model`` (:mod:`torchrow.onnx`) in onnxruntime, in batches of the model's static
     batch size (the last one padded; ``batch_size`` is ignored) with the model's parameters;
     images of another working size than the model's get an ``error`` record. ``detector``: an
     already built :class:`~torchrow.engines.detector.CropRowDetector` (or ``OnnxDetector``) to use
@@ -80,8 +80,8 @@ def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Param
         total = len(items)  # type: ignore[arg-type]
     if impl == "onnx":
         if model is None:
-            raise ValueError("impl='onnx' needs model= (an ONNX file written by torchrow.engines.export.to_onnx)")
-        from torchrow.engines.export import OnnxDetector
+            raise ValueError("impl='onnx' needs model= (an ONNX file written by torchrow.onnx.export.to_onnx)")
+        from torchrow.onnx.runtime import OnnxDetector
 
         if workers is None:
             workers = 1 if detector is not None else onnx_workers()
@@ -252,7 +252,7 @@ def track(sources: Sequence, names: Sequence[str], impl: str = "tensor", params:
     Frames that carry a ``stamp_ns`` (ROS bag messages) pass it to their result. Results
     stream as the trackers make them. ``workers``: :class:`~torchrow.engines.tracker.Tracker`'s
     (default: torch's thread count on a CPU). ``impl="onnx"`` runs ``onnx``, an
-    :class:`~torchrow.engines.export.OnnxTracker`, on batches of its model's batch size.
+    :class:`~torchrow.onnx.runtime.OnnxTracker`, on batches of its model's batch size.
     """
     params = params or Params()
     stamps: dict[tuple[int, int], int] = {}

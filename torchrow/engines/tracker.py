@@ -1,6 +1,6 @@
 """The batched video-mode tracker: ``torchrow.Tracker`` (ALGORITHM.md section 8).
 
-A thin :class:`torch.nn.Module` over :mod:`torchrow.functional.tracker`. ``B`` independent
+A thin :class:`torch.nn.Module` over :mod:`torchrow.functional.tracking`. ``B`` independent
 sequences advance in lock-step; :meth:`Tracker.track_iter` segments a chunk of frames of
 every sequence in one batched call, then advances the RANSAC/Hough steps frame by frame,
 masking sequences that have ended or whose frame is unreadable. Results equal
@@ -22,9 +22,9 @@ from torchrow.core.io import check_working_size
 from torchrow.core.params import Params
 from torchrow.core.results import concat_batches
 from torchrow.core.steering import FrameResult
-from torchrow.functional import tracker as ftrack
+from torchrow.functional import tracking as ftrack
 from torchrow.functional._checks import check_device, check_images
-from torchrow.functional.tracker import TrackerState, TrackStep
+from torchrow.functional.tracking import TrackerState, TrackStep
 
 __all__ = ["Tracker", "TrackerState", "TrackStep"]
 
@@ -156,14 +156,14 @@ class Tracker(nn.Module):
             torch.set_num_threads(threads)
 
     def _segment(self, x: torch.Tensor, sky: torch.Tensor, color: torch.Tensor, info0: torch.Tensor):
-        """:func:`torchrow.functional.tracker.segment` over groups of frames."""
+        """:func:`torchrow.functional.tracking.segment` over groups of frames."""
         parts = self._parallel(lambda g: ftrack.segment(x[g], sky[g], color[g], info0[g], self.params),
                                self._groups(x.shape[0]))
         return tuple(torch.cat(t) for t in zip(*parts)) if len(parts) > 1 else parts[0]
 
     def _advance(self, veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, act: torch.Tensor,
                  state: TrackerState) -> tuple[TrackStep, TrackerState]:
-        """:func:`torchrow.functional.tracker.advance` over groups of sequences."""
+        """:func:`torchrow.functional.tracking.advance` over groups of sequences."""
         groups = self._groups(veg.shape[0])
         if veg.shape[0] >= 2 and len(groups) > 1:
             # rho_table is per working size: build it once, outside the threads
@@ -190,7 +190,7 @@ class Tracker(nn.Module):
                 names: Sequence[str | None] | None = None, sources: Sequence[str | None] | None = None,
                 indices: Sequence[int] | None = None) -> list[FrameResult | None]:
         """Per-sequence :class:`FrameResult` of a step (``None`` for inactive sequences):
-        :func:`torchrow.functional.tracker.records` with this tracker's parameters and field of view."""
+        :func:`torchrow.functional.tracking.records` with this tracker's parameters and field of view."""
         return ftrack.records(step, state, width, height, self.params, self.hfov_deg, names, sources, indices)
 
     # -- arrays in, records out -------------------------------------------------------------

@@ -45,7 +45,7 @@ from torchrow.core.params import Params
 from torchrow.core.tables import hypothesis_table
 from torchrow.functional import ransac as fransac
 from torchrow.functional import sky as fsky
-from torchrow.functional import tracker as ftrack
+from torchrow.functional import tracking as ftrack
 from torchrow.functional import vegetation as fveg
 from torchrow.functional._flow import check_flow, choose
 from torchrow.functional.cielab import lab_formula, linear_lut
@@ -218,7 +218,7 @@ TRACKER_STATE = ("sky", "info0", "ready", "frames", "age", "prev_valid", "vp", "
 #: Inputs of the exported tracker step, in order (see :class:`StaticTrackerStep`): the frames,
 #: each sequence's ``k`` table, the active mask, then ``state_<field>`` of the state.
 TRACKER_INPUTS = ("images", "k_table", "active") + tuple("state_" + f for f in TRACKER_STATE)
-#: Fields of :class:`~torchrow.functional.tracker.TrackStep` the graph returns (all but ``active``).
+#: Fields of :class:`~torchrow.functional.tracking.TrackStep` the graph returns (all but ``active``).
 TRACKER_STEP = tuple(f for f in ftrack.TrackStep.__dataclass_fields__ if f != "active")
 #: Outputs of the exported tracker step: the step's fields, then ``next_<field>`` of the new state.
 TRACKER_OUTPUTS = TRACKER_STEP + tuple("next_" + f for f in TRACKER_STATE)
@@ -227,7 +227,7 @@ TRACKER_OUTPUTS = TRACKER_STEP + tuple("next_" + f for f in TRACKER_STATE)
 class StaticTrackerStep(nn.Module):
     """The exportable tracker step: one frame of ``B`` sequences + their state -> rows + new state.
 
-    The rules are :func:`torchrow.functional.tracker.advance` itself, composed from the
+    The rules are :func:`torchrow.functional.tracking.advance` itself, composed from the
     static stages of :class:`StaticDetector`. With ``control_flow=True`` (default) the
     tracked fit and the Hough stage each sit in a ``torch.cond`` (an ONNX ``If``) that skips
     them when no sequence of the batch needs them: a tracked frame of one camera then costs
@@ -260,7 +260,7 @@ class StaticTrackerStep(nn.Module):
 
     ``forward(images uint8 (B, 3, H, W), k_table uint8 (B, 2**24), active bool (B,), *state)``
     with the state fields :data:`TRACKER_STATE` (dtypes and shapes of
-    :class:`~torchrow.functional.tracker.TrackerState`) returns the tuple
+    :class:`~torchrow.functional.tracking.TrackerState`) returns the tuple
     :data:`TRACKER_OUTPUTS`. Inactive sequences keep their state.
 
     Memory: the detector's (the vote gathers ``(B, A, H*W)`` int32, band temporaries

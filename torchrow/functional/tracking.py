@@ -1,6 +1,6 @@
 """Batched video-mode row tracker (ALGORITHM.md section 8): B sequences in lock-step.
 
-The rules are those of :mod:`torchrow.reference.tracker` (read its docstring); this module
+The rules are those of :mod:`torchrow.reference.tracking` (read its docstring); this module
 runs them on ``B`` independent sequences at once:
 
 * :func:`init_state` fixes sky, vegetation colour and ``info0`` from each sequence's frame 0;
