@@ -11,8 +11,8 @@ import dataclasses
 import json
 import os
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 from torchrow import __version__
 from torchrow.core.io import IMAGE_EXTENSIONS

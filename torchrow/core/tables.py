@@ -213,7 +213,7 @@ def lab_table() -> np.ndarray:
 _TORCH_TABLES: dict = {}
 
 
-def lab_table_torch(device: "str | torch.device" = "cpu"):
+def lab_table_torch(device: str | torch.device = "cpu"):
     """The LAB table as a torch ``(2**24, 3)`` float64 tensor on ``device`` (cached per device).
 
     On the CPU it shares memory with the memory map (no copy); elsewhere it is copied once.

@@ -9,9 +9,9 @@ turns it into the same per-image :class:`~torchrow.core.results.ImageResult` rec
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch

@@ -30,8 +30,8 @@ from __future__ import annotations
 
 import os
 import pickle
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 

@@ -229,7 +229,7 @@ class HoughState:
     table: torch.Tensor
 
     @classmethod
-    def start(cls, mask: torch.Tensor, params: Params) -> "HoughState":
+    def start(cls, mask: torch.Tensor, params: Params) -> HoughState:
         check_masks(mask, "hough input")
         b, h, w = mask.shape
         d = rho_offset(h, w)

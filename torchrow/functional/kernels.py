@@ -318,7 +318,7 @@ def _merge_pairs(n_blocks: int, block: int) -> list[tuple[int, int]]:
     return _batcher_pairs(n_blocks * block, min_block=block)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _median_programs(k: int) -> tuple:
     """Selection programs for the median of a ``k x k`` window (``k`` odd, ``>= 3``).
 

@@ -22,8 +22,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence
 
 import torch
 
@@ -87,7 +87,7 @@ class TrackerState:
     row_present: torch.Tensor
 
     @classmethod
-    def empty(cls, batch: int, params: Params, device: torch.device | str = "cpu") -> "TrackerState":
+    def empty(cls, batch: int, params: Params, device: torch.device | str = "cpu") -> TrackerState:
         """State of ``batch`` sequences that have not seen a frame yet."""
         dev = torch.device(device)
         i64 = dict(dtype=torch.int64, device=dev)
@@ -104,7 +104,7 @@ class TrackerState:
     def __len__(self) -> int:
         return int(self.sky.shape[0])
 
-    def select(self, index: torch.Tensor | slice) -> "TrackerState":
+    def select(self, index: torch.Tensor | slice) -> TrackerState:
         """The state of some sequences (index along the batch dimension)."""
         return TrackerState(**{f.name: getattr(self, f.name)[index] for f in dataclasses.fields(self)})
 

@@ -28,8 +28,8 @@ hard masks of CRBD's training images cover 0-11%, median about 2.5%) it costs up
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 import torch

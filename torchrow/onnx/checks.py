@@ -4,8 +4,8 @@ steps and states field by field) and :func:`check_lab` (the graph's LAB on all 2
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch

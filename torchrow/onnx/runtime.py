@@ -20,8 +20,8 @@ For the tracker step see :class:`torchrow.onnx.graphs.StaticTrackerStep`.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch

@@ -29,8 +29,8 @@ State is an immutable :class:`SequenceState`; :meth:`Tracker.step` returns a new
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
-from typing import Iterable, Iterator
 
 import numpy as np
 
