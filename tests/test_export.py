@@ -21,17 +21,17 @@ pytest.importorskip("onnxruntime")
 pytest.importorskip("onnx")
 pytest.importorskip("onnxscript")
 
-from onnx_models import ALLOWED_OPS  # noqa: E402
+from onnx_models import ALLOWED_OPS
 from onnx_models import exported as _exported
 
-from torchrow import Params  # noqa: E402
-from torchrow.apps.cli import main  # noqa: E402
-from torchrow.engines.detector import CropRowDetector  # noqa: E402
-from torchrow.evaluation.synthetic import FieldSpec, sequence  # noqa: E402
-from torchrow.onnx.export import to_onnx  # noqa: E402
-from torchrow.onnx.metadata import model_info  # noqa: E402
-from torchrow.onnx.passes import FORBIDDEN_OPS, op_counts  # noqa: E402
-from torchrow.onnx.runtime import OnnxDetector  # noqa: E402
+from torchrow import Params
+from torchrow.apps.cli import main
+from torchrow.engines.detector import CropRowDetector
+from torchrow.evaluation.synthetic import FieldSpec, sequence
+from torchrow.onnx.export import to_onnx
+from torchrow.onnx.metadata import model_info
+from torchrow.onnx.passes import FORBIDDEN_OPS, op_counts
+from torchrow.onnx.runtime import OnnxDetector
 
 SMALL = Params(n_rows=3, max_outliers=2)
 BATCH = 2

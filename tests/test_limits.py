@@ -144,7 +144,7 @@ def test_veg_color_one_rule_in_both_paths() -> None:
 def test_missing_cuda_is_a_clear_error_at_construction() -> None:
     """Reproducer 10: `CropRowDetector(device="cuda")` failed later with an AssertionError."""
     for cls in (CropRowDetector, Tracker):
-        with pytest.raises(ValueError, match="device: 'cuda'.*no CUDA"):
+        with pytest.raises(ValueError, match=r"device: 'cuda'.*no CUDA"):
             cls(device="cuda")
     with pytest.raises(ValueError, match="device"):
         CropRowDetector(device="warp9")

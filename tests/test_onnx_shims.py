@@ -8,7 +8,7 @@ import pytest
 pytest.importorskip("onnxscript")
 pytest.importorskip("onnx_ir")
 
-from torchrow.onnx import shims  # noqa: E402
+from torchrow.onnx import shims
 
 
 def test_every_shim_fits_the_installed_internals():

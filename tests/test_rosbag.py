@@ -12,11 +12,11 @@ import pytest
 
 pytest.importorskip("rosbags")
 
-from bags import encode, write_bag  # noqa: E402
+from bags import encode, write_bag
 
-from torchrow.apps.cli import main  # noqa: E402
-from torchrow.core.rosbag import BagError, is_bag, open_bag  # noqa: E402
-from torchrow.evaluation.synthetic import FieldSpec, render, sequence  # noqa: E402
+from torchrow.apps.cli import main
+from torchrow.core.rosbag import BagError, is_bag, open_bag
+from torchrow.evaluation.synthetic import FieldSpec, render, sequence
 
 STORAGES = ("sqlite3", "mcap", "ros1")
 T0 = 1_700_000_000_123_456_789
@@ -173,7 +173,7 @@ def test_video_on_synthetic_bags_equals_the_folder(tmp_path: Path) -> None:
 
 
 @pytest.mark.data
-@pytest.mark.parametrize("storage,n", [("sqlite3", 20), ("mcap", 20),
+@pytest.mark.parametrize(("storage", "n"), [("sqlite3", 20), ("mcap", 20),
                                        pytest.param("mcap", 100, marks=pytest.mark.heavy)])
 def test_caterra_compressed_bag_equals_the_folder_frame_by_frame(data_dir: Path, tmp_path: Path,
                                                                   storage: str, n: int) -> None:

@@ -194,7 +194,7 @@ def ftrack_step(o: dict, active: torch.Tensor):
     return TrackStep(**{f: o[f] for f in static.TRACKER_STEP}, active=active)
 
 
-@pytest.mark.parametrize("scatter_free, flow, tier", [(False, "always", None), (False, "sync", 2000),
+@pytest.mark.parametrize(("scatter_free", "flow", "tier"), [(False, "always", None), (False, "sync", 2000),
                                                       (False, "sync", 100000), (True, "sync", None)])
 def test_static_voter_line_search_equals_eager(scatter_free: bool, flow: str, tier: int | None) -> None:
     """find_lines with the static voter (one vote, band-only updates in chunks, or the

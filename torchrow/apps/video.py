@@ -4,6 +4,7 @@ tracks plot. Frame sources (folders, video files, bags) are :mod:`torchrow.core.
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 from typing import Any
 
@@ -117,7 +118,7 @@ def central_jumps(records: list[dict]) -> dict[str, list[float]]:
       central row to its neighbour when the camera is about half a row spacing off.
     """
     out: dict[str, list[float]] = {"tracked": [], "hough": [], "lateral": []}
-    for prev, cur in zip(records, records[1:]):
+    for prev, cur in itertools.pairwise(records):
         if cur.get("frame") != prev.get("frame", -2) + 1:
             continue
         if prev.get("lateral_px") is not None and cur.get("lateral_px") is not None:

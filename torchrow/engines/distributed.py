@@ -47,7 +47,7 @@ RECORDS_PER_CHUNK = 16
 def _ray():
     try:
         import ray
-        import ray.data  # noqa: F401
+        import ray.data
     except ImportError:
         raise ImportError("the Ray engine needs Ray Data: pip install 'torchrow[ray]'") from None
     return ray

@@ -12,6 +12,7 @@ NumPy as the reference computes it), so no float arithmetic decides a vote here.
 from __future__ import annotations
 
 import functools
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -417,7 +418,7 @@ class StaticVoter(nn.Module):
         chunk = chunk or self.chunk
         fine = k if fine is None else min(k, fine)
         edges = list(range(0, fine, chunk)) + list(range(fine, k, 4 * chunk)) + [k]
-        spans = list(zip(edges[:-1], edges[1:]))
+        spans = list(itertools.pairwise(edges))
 
         def chunks(acc, i0: int, i1: int):
             for i in range(i0, i1):

@@ -62,7 +62,7 @@ from torchrow.core.params import Params
 from torchrow.core.tables import lab_table_torch
 from torchrow.functional._checks import as_u8, below_horizon, check_images, check_masks, check_params, check_rows, clamp_sky
 from torchrow.functional.cielab import lab_f, linear_lut
-from torchrow.functional.kernels import CANNY_SHIFT, TG22, canny_binary  # noqa: F401  (re-exported: stage modules keep their names)
+from torchrow.functional.kernels import CANNY_SHIFT, TG22, canny_binary
 
 __all__ = [
     "CANNY_SHIFT",

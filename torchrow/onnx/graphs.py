@@ -178,7 +178,7 @@ class StaticDetector(nn.Module):
 
     def forward(self, images: torch.Tensor, veg_lab: torch.Tensor):
         p = self.params
-        bsz, _, h, w = images.shape
+        _bsz, _, h, w = images.shape
         if (h, w) != (self.height, self.width):
             raise ValueError(f"StaticDetector built for {self.width}x{self.height}, got images {w}x{h}")
         sky = fsky.sky_row(images, p)
