@@ -12,6 +12,7 @@ import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -139,7 +140,7 @@ class CropRowDetector(nn.Module):
                 timings[name] = now - clock[0]
                 clock[0] = now
 
-        i64 = dict(dtype=torch.int64, device=x.device)
+        i64: dict[str, Any] = dict(dtype=torch.int64, device=x.device)
         sky = fsky.sky_row(x, p)
         lap("sky")
         if veg_color is None:
@@ -156,7 +157,7 @@ class CropRowDetector(nn.Module):
         lap("vegetation")
         band = fransac.ransac_band(bushy, w, p)
         step = self.chunk or max(bsz, 1)
-        parts = []
+        parts: list[tuple[fvan.LineSearch, fransac.Rows | flattice.LatticeRows]] = []
         for s0 in range(0, max(bsz, 1), step):  # chunks of images: memory and cache, never results
             sl = slice(s0, s0 + step)
             ls = fvan.find_lines(hin[sl], p)

@@ -321,8 +321,9 @@ class Tracker(nn.Module):
                     if t >= len(got[b]):
                         continue
                     i, fr = got[b][t]
-                    if recs[b] is not None:
-                        yield b, recs[b], fr.rgb
+                    rec = recs[b]
+                    if rec is not None:
+                        yield b, rec, fr.rgb
                     else:
                         yield b, FrameResult.failed_frame(srcs[b], i, fr.name, fr.error or "unreadable frame"), None
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -49,6 +50,7 @@ def step_differences(ref, got, tol: float = 1e-9) -> list[str]:
 
 
 class _Lab(torch.nn.Module):
+    lut: torch.Tensor
     def __init__(self) -> None:
         super().__init__()
         from torchrow.functional.cielab import linear_lut
@@ -98,6 +100,8 @@ def check_lab(k: Sequence[float] | None = None, params: Params | None = None, pr
                                          input_names=["images"], verbose=False)
         import onnx
 
+        if prog is None:
+            raise RuntimeError("torch.onnx.export returned no program for the LAB graph")
         onnx.save(legalize(prog.model_proto), str(path))
         so = ort.SessionOptions()
         so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_BASIC
@@ -118,7 +122,7 @@ def check_lab(k: Sequence[float] | None = None, params: Params | None = None, pr
     idx = np.concatenate(bad_idx) if bad_idx else np.zeros(0, np.int64)
     got = np.concatenate(bad_graph) if bad_graph else np.zeros((0, 3))
     want = np.asarray(table[idx]) if idx.size else np.zeros((0, 3))
-    res = {"colors": 1 << 24, "mismatched_colors": int(idx.size), "k": ks,
+    res: dict[str, Any] = {"colors": 1 << 24, "mismatched_colors": int(idx.size), "k": ks,
            "mismatched_values": [int((got[:, c] != want[:, c]).sum()) for c in range(3)],
            "max_abs_diff": float(np.abs(got - want).max()) if idx.size else 0.0,
            "max_ulps": int(np.max(np.abs(got - want) / np.spacing(np.maximum(np.abs(want), 1.0)))) if idx.size else 0,

@@ -104,6 +104,9 @@ class StaticDetector(nn.Module):
         scatter-add vote updated by the erased bands (:class:`~torchrow.functional.hough.StaticVoter`).
     """
 
+    lut: torch.Tensor  # buffers: the linearisation table and the RANSAC hypotheses
+    u: torch.Tensor
+
     def __init__(self, height: int = 240, width: int = 320, params: Params | None = None,
                  score_chunks: int = 4, flow: str = "loop", scatter_free: bool = False) -> None:
         super().__init__()
