@@ -32,7 +32,7 @@ from torchrow.evaluation.crdld import CRDLDScore, format_table, match_records, s
 from torchrow.evaluation.datasets import CRDLD
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import data_root  # noqa: E402
+from _common import data_root
 
 
 def _records(path: Path) -> list[dict]:

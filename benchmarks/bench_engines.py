@@ -115,7 +115,7 @@ def main() -> int:
                 for f in frames[25 * k:25 * (k + 1)]:
                     os.symlink(f, d / f.name)
                 srcs.append(str(d))
-            from torchrow.apps.video import open_source
+            from torchrow.core.frames import open_source
             from torchrow.engines.runner import track
 
             torch.set_num_threads(os.cpu_count() or 1)

@@ -22,8 +22,10 @@ from _common import append_results, data_root  # type: ignore[import-not-found]
 
 from torchrow import Params
 from torchrow.engines.detector import CropRowDetector
-from torchrow.engines.export import OnnxDetector, model_info, to_onnx
 from torchrow.evaluation.datasets import CRBD
+from torchrow.onnx.export import to_onnx
+from torchrow.onnx.metadata import model_info
+from torchrow.onnx.runtime import OnnxDetector
 
 
 def to_batch(imgs: list[np.ndarray]) -> torch.Tensor:

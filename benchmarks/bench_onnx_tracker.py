@@ -2,8 +2,8 @@
 
 Exports the tracker step (default parameters, the Caterra working size 500x281, batch 1)
 unless ``--model`` is given, then steps :class:`torchrow.Tracker` and
-:class:`torchrow.engines.export.OnnxTracker` through the same Caterra frames, compares every field of
-every step and state (:func:`torchrow.engines.export.step_differences`: discrete fields equal,
+:class:`torchrow.onnx.runtime.OnnxTracker` through the same Caterra frames, compares every field of
+every step and state (:func:`torchrow.onnx.checks.step_differences`: discrete fields equal,
 floats within 1e-9) and times both. Appends model size, export time, frames/s and the parity
 count to RESULTS.md.
 
@@ -24,7 +24,10 @@ from _common import append_results, data_root  # type: ignore[import-not-found]
 import torchrow
 from torchrow import Params
 from torchrow.core.io import load_image
-from torchrow.engines.export import OnnxTracker, model_info, step_differences, to_onnx
+from torchrow.onnx.checks import step_differences
+from torchrow.onnx.export import to_onnx
+from torchrow.onnx.metadata import model_info
+from torchrow.onnx.runtime import OnnxTracker
 
 
 def main() -> None:

@@ -26,12 +26,12 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import append_results, data_root  # noqa: E402
+from _common import append_results, data_root
 
-from torchrow.core.io import load_image  # noqa: E402
-from torchrow.core.params import Params  # noqa: E402
-from torchrow.engines.detector import CropRowDetector  # noqa: E402
-from torchrow.evaluation.datasets import CRBD  # noqa: E402
+from torchrow.core.io import load_image
+from torchrow.core.params import Params
+from torchrow.engines.detector import CropRowDetector
+from torchrow.evaluation.datasets import CRBD
 
 TOL = 1e-6
 

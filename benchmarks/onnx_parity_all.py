@@ -13,11 +13,11 @@ import numpy as np
 import torch
 
 sys.path.insert(0, 'tests')
-from test_export import _same  # noqa: E402
+from test_export import _same
 
-from torchrow.engines.detector import CropRowDetector  # noqa: E402
-from torchrow.engines.export import OnnxDetector  # noqa: E402
-from torchrow.evaluation.datasets import CRBD  # noqa: E402
+from torchrow.engines.detector import CropRowDetector
+from torchrow.evaluation.datasets import CRBD
+from torchrow.onnx.runtime import OnnxDetector
 
 ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 ap.add_argument("model")

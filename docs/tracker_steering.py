@@ -16,10 +16,10 @@ import math
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.pyplot as plt
 
-import torchrow  # noqa: E402
-from torchrow.evaluation.synthetic import FieldSpec, sequence  # noqa: E402
+import torchrow
+from torchrow.evaluation.synthetic import FieldSpec, sequence
 
 
 def main() -> None:

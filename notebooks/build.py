@@ -128,7 +128,8 @@ field (so it cannot shrink to a few perfect pixels). Colour (RGB through a sigmo
 temperature (log) are fitted with Adam on 8 training images, starting from the median of the
 colours that the clustering picks on them."""),
     new_code_cell("""\
-from torchrow.nn.calibrate import compare_colors, fit_vegetation_color, load_training_set
+from torchrow.apps.evaluate import compare_colors
+from torchrow.nn.calibrate import fit_vegetation_color, load_training_set
 
 train = crbd.indices("train")[::7][:8]                      # 8 of the 56 training images
 data = load_training_set(crbd, train)

@@ -17,7 +17,8 @@ as a table); everything else (``Params``, numbers) is passed through unchanged.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 

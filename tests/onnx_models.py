@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 from torchrow import Params
-from torchrow.engines.export import to_onnx
+from torchrow.onnx.export import to_onnx
 
 #: Op types the graph may contain: all supported by TensorRT's ONNX parser (CumSum, TopK with
 #: k <= 3840, GatherElements, ScatterND without reduction, BitShift/Bitwise ops on ints, MatMul
@@ -40,8 +40,9 @@ def _cache_dir() -> Path:
 def _source_key() -> str:
     root = Path(__file__).resolve().parents[1] / "torchrow"
     h = hashlib.sha256()
-    for p in sorted([root / "engines" / "export.py", root / "core" / "params.py", root / "core" / "tables.py",
-                     *(root / "functional").glob("*.py")]):
+    for p in sorted([root / "core" / "params.py", root / "core" / "tables.py", *(root / "functional").glob("*.py"),
+                     root / "onnx" / "graphs.py", root / "onnx" / "export.py", root / "onnx" / "passes.py",
+                     root / "onnx" / "shims.py"]):
         h.update(p.read_bytes())
     h.update(torch.__version__.encode())
     return h.hexdigest()[:16]

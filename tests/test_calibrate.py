@@ -7,11 +7,11 @@ import pytest
 import torch
 
 from torchrow import Params
+from torchrow.apps.evaluate import compare_colors
 from torchrow.evaluation.datasets import GroundTruth
 from torchrow.evaluation.synthetic import FieldSpec, render
 from torchrow.nn.calibrate import (
     band_loss,
-    compare_colors,
     fit_vegetation_color,
     load_training_set,
     mask_precision,

@@ -82,7 +82,7 @@ def test_record_row_geometry(tmp_path: Path) -> None:
             assert min(abs(x - t) for t in true_bottom) < 6.0
 
 
-@pytest.mark.parametrize("argv, msg", [
+@pytest.mark.parametrize(("argv", "msg"), [
     (["detect", "/no/such/path.jpg", "--out", "x.jsonl"], "no such file or folder"),
     (["detect", ".", "--out", "/no/such/dir/x.jsonl"], None),
     (["eval", "--data", "/no/such/crbd"], "crbd"),

@@ -107,11 +107,11 @@ def test_fake_missing_optional_files_only_fail_when_asked(tmp_path):
     assert ds.ground_truth(1).v0 == 8
     assert ds.image(1).shape == (48, 64, 3)
     assert ds.indices("all") == [0, 1, 2]
-    with pytest.raises(FileNotFoundError, match="imageClassification.txt"):
+    with pytest.raises(FileNotFoundError, match=r"imageClassification\.txt"):
         ds.row_set(0)
-    with pytest.raises(FileNotFoundError, match="imageClassificationTMGEM.txt"):
+    with pytest.raises(FileNotFoundError, match=r"imageClassificationTMGEM\.txt"):
         ds.indices("train")
-    with pytest.raises(FileNotFoundError, match="crop_row_001.tmg"):
+    with pytest.raises(FileNotFoundError, match=r"crop_row_001\.tmg"):
         ds.tmgem(0)
 
 

@@ -1,4 +1,4 @@
-"""ONNX export (torchrow.engines.export): op list, onnxruntime parity with the tensor path, CLI.
+"""ONNX export (torchrow.onnx): op list, onnxruntime parity with the tensor path, CLI.
 
 The exported graph takes minutes to build on a small CPU, so the model of these tests is
 exported once and cached on disk (``TORCHROW_CACHE`` or ``~/.cache/torchrow``), keyed by
@@ -21,14 +21,17 @@ pytest.importorskip("onnxruntime")
 pytest.importorskip("onnx")
 pytest.importorskip("onnxscript")
 
-from onnx_models import ALLOWED_OPS  # noqa: E402
+from onnx_models import ALLOWED_OPS
 from onnx_models import exported as _exported
 
-from torchrow import Params  # noqa: E402
-from torchrow.apps.cli import main  # noqa: E402
-from torchrow.engines.detector import CropRowDetector  # noqa: E402
-from torchrow.engines.export import FORBIDDEN_OPS, OnnxDetector, model_info, op_counts, to_onnx  # noqa: E402
-from torchrow.evaluation.synthetic import FieldSpec, sequence  # noqa: E402
+from torchrow import Params
+from torchrow.apps.cli import main
+from torchrow.engines.detector import CropRowDetector
+from torchrow.evaluation.synthetic import FieldSpec, sequence
+from torchrow.onnx.export import to_onnx
+from torchrow.onnx.metadata import model_info
+from torchrow.onnx.passes import FORBIDDEN_OPS, op_counts
+from torchrow.onnx.runtime import OnnxDetector
 
 SMALL = Params(n_rows=3, max_outliers=2)
 BATCH = 2
@@ -113,7 +116,7 @@ def test_ort_native_small_integer_ops_run_and_agree_with_int32():
     import onnxruntime as ort
     from onnx import TensorProto, helper
 
-    from torchrow.engines.export import ORT_NATIVE
+    from torchrow.onnx.passes import ORT_NATIVE
 
     unary = {"Abs", "BitwiseNot", "Neg", "ReduceMax", "ReduceMin", "ArgMax", "Clip"}
     compare = {"Equal", "Greater", "GreaterOrEqual", "Less", "LessOrEqual"}
@@ -196,7 +199,7 @@ def test_ort_optimized_copy_is_cached_reused_and_equal(model_path: Path, tmp_pat
     """The session opens onnxruntime's pre-optimised copy: written once, reused after, the
     same results as the original opened with basic optimisations; disabled by
     TORCHROW_ORT_CACHE=0; an unwritable cache folder falls back to the original."""
-    from torchrow.engines import export
+    from torchrow.onnx import runtime as export
 
     monkeypatch.setenv("TORCHROW_CACHE", str(tmp_path / "cache"))
     x = _synthetic_batch()
@@ -243,7 +246,7 @@ def test_export_argument_errors(tmp_path: Path):
         to_onnx(tmp_path / "missing" / "m.onnx")
 
 
-@pytest.mark.parametrize("argv,words", [
+@pytest.mark.parametrize(("argv", "words"), [
     (["--batch", "100000"], "batch of a detector export must be <= 256"),
     (["--tracker", "--height", "281", "--batch", "1000"], "batch of a tracker export must be <= 64"),
     (["--width", "5000"], "--width: Params.image_width"),
@@ -371,7 +374,7 @@ def test_lab_box_decisions_exhaustive():
     """All 2**24 colours through the graph's LAB in onnxruntime: no box decision of any
     vegetation colour can differ from the shared table's, for image mode's k and every
     adaptive k of video mode (about 30 s)."""
-    from torchrow.engines.export import check_lab
+    from torchrow.onnx.checks import check_lab
 
     p = Params()
     res = check_lab(k=[p.veg_tol, *range(p.video_k_min, p.video_k_max + 1)])
@@ -386,7 +389,7 @@ def test_python_float_constants_stay_float64():
 
     import onnxruntime as ort
 
-    from torchrow.engines.export import float64_python_constants
+    from torchrow.onnx.shims import float64_python_constants
 
     class M(torch.nn.Module):
         def forward(self, x):

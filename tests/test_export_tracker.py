@@ -1,7 +1,7 @@
 """ONNX export of the tracker step: one graph, frame + state -> rows + new state.
 
-The exported graph (:class:`torchrow.functional.static.StaticTrackerStep`) runs in
-onnxruntime through :class:`torchrow.engines.export.OnnxTracker` and is compared, frame by frame and
+The exported graph (:class:`torchrow.onnx.graphs.StaticTrackerStep`) runs in
+onnxruntime through :class:`torchrow.onnx.runtime.OnnxTracker` and is compared, frame by frame and
 field by field, with the eager :class:`torchrow.Tracker`: discrete outputs identical, rows,
 vanishing points and confidences within 1e-9 (the issue asks for 1e-4 px). A small working
 size (160 px wide) and ``n_rows=3, max_outliers=2`` keep the export near a minute; the
@@ -20,16 +20,20 @@ pytest.importorskip("onnxruntime")
 pytest.importorskip("onnx")
 pytest.importorskip("onnxscript")
 
-from onnx_models import ALLOWED_OPS, exported  # noqa: E402
+from onnx_models import ALLOWED_OPS, exported
 
-import torchrow  # noqa: E402
-from torchrow import Params  # noqa: E402
-from torchrow.apps.cli import main  # noqa: E402
-from torchrow.core.io import resize_to_width  # noqa: E402
-from torchrow.engines.export import OnnxDetector, OnnxTracker, model_info, op_counts, step_differences, to_onnx  # noqa: E402
-from torchrow.evaluation.synthetic import FieldSpec, sequence  # noqa: E402
-from torchrow.functional.static import TRACKER_INPUTS, TRACKER_OUTPUTS  # noqa: E402
-from torchrow.functional.tracker import TrackerState  # noqa: E402
+import torchrow
+from torchrow import Params
+from torchrow.apps.cli import main
+from torchrow.core.io import resize_to_width
+from torchrow.evaluation.synthetic import FieldSpec, sequence
+from torchrow.functional.tracking import TrackerState
+from torchrow.onnx.checks import step_differences
+from torchrow.onnx.export import to_onnx
+from torchrow.onnx.graphs import TRACKER_INPUTS, TRACKER_OUTPUTS
+from torchrow.onnx.metadata import model_info
+from torchrow.onnx.passes import op_counts
+from torchrow.onnx.runtime import OnnxDetector, OnnxTracker
 
 SMALL = Params(n_rows=3, max_outliers=2, video_width=160)
 BATCH = 2
@@ -123,7 +127,7 @@ def test_graph_without_control_flow_equals_the_eager_tracker(masked_path: Path):
     """The ``If``-free export gives the same steps (here on a drifting synthetic pair)."""
     a = sequence(FieldSpec.at_size(320, 180, n_rows=5, seed=4), 7, drift_px_per_frame=2.0, gap=(2, 4))
     b = sequence(FieldSpec.at_size(320, 180, n_rows=5, seed=7), 7, heading_rad_per_frame=-0.008)
-    steps, problems = _run_both(OnnxTracker(masked_path), [_frames([fa.image, fb.image]) for fa, fb in zip(a, b)])
+    _steps, problems = _run_both(OnnxTracker(masked_path), [_frames([fa.image, fb.image]) for fa, fb in zip(a, b)])
     assert not problems, "\n".join(problems[:20])
 
 
@@ -233,7 +237,7 @@ def test_cli_video_onnx_equals_tensor(model_path: Path, tmp_path: Path, capsys):
     params = [f"{k}={v}" for k, v in (("n_rows", 3), ("max_outliers", 2), ("video_width", 160))]
     ref, got = tmp_path / "t.jsonl", tmp_path / "o.jsonl"
     args = ["video", *dirs, "--quiet"]
-    assert main([*args, "--out", str(ref), *sum((["--param", p] for p in params), []), "--batch-size", "2"]) == 0
+    assert main([*args, "--out", str(ref), *[a for p in params for a in ("--param", p)], "--batch-size", "2"]) == 0
     assert main([*args, "--out", str(got), "--impl", "onnx", "--model", str(model_path)]) == 0
     capsys.readouterr()
 

@@ -24,13 +24,13 @@ pytest.importorskip("foxglove")
 pytest.importorskip("mcap")
 pytest.importorskip("google.protobuf")
 
-from bags import encode  # noqa: E402
+from bags import encode
 
-from torchrow.apps.annotate import HORIZON, VALID, row_top  # noqa: E402
-from torchrow.apps.cli import main  # noqa: E402
-from torchrow.apps.foxglove import POLYLINE_POINTS, read_mcap, topic_prefixes  # noqa: E402
-from torchrow.core.results import ImageResult  # noqa: E402
-from torchrow.evaluation.synthetic import FieldSpec, sequence  # noqa: E402
+from torchrow.apps.annotate import HORIZON, VALID, row_top
+from torchrow.apps.cli import main
+from torchrow.apps.foxglove import POLYLINE_POINTS, read_mcap, topic_prefixes
+from torchrow.core.results import ImageResult
+from torchrow.evaluation.synthetic import FieldSpec, sequence
 
 T0 = 1_700_000_000_123_456_789
 REPO = Path(__file__).resolve().parents[1]

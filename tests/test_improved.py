@@ -55,7 +55,7 @@ def _records_equal(a: ImageResult, b: ImageResult) -> None:
 
 # --- Params -----------------------------------------------------------------------------
 
-@pytest.mark.parametrize("change, field", [
+@pytest.mark.parametrize(("change", "field"), [
     ({"mode": "fast"}, "mode"),
     ({"lattice_min_spacing": 100, "lattice_max_spacing": 50}, "lattice_max_spacing"),
     ({"lattice_tolerance": 0.5}, "lattice_tolerance"), ({"lattice_window": 0.0}, "lattice_window"),
@@ -74,7 +74,7 @@ def test_params_validate_improved_fields(change, field) -> None:
 
 
 def test_params_mode_of_the_wrong_kind_is_a_type_error() -> None:
-    with pytest.raises(TypeError, match="Params.mode must be a str"):
+    with pytest.raises(TypeError, match=r"Params\.mode must be a str"):
         Params(mode=1)  # type: ignore[arg-type]
 
 
@@ -109,7 +109,7 @@ def test_solve_normal_pivots_are_relative_to_their_own_diagonal() -> None:
 
 def _cells_by_pixel(mask: np.ndarray, coef: np.ndarray, params: Params) -> tuple[np.ndarray, np.ndarray]:
     """Section 11.3's cells, the rule applied pixel by pixel (the spec's words, not prefix sums)."""
-    h, w = mask.shape
+    h, _w = mask.shape
     cnt = np.zeros((2 * params.lattice_half + 1, h), np.int64)
     sx = np.zeros_like(cnt)
     cc, dd = rlat.centre_spacing(np.arange(h, dtype=np.float64) - (h - 1), coef)
@@ -149,7 +149,7 @@ def _refit_every_iteration(mask: np.ndarray, params: Params) -> np.ndarray:
     """Sections 11.3 and 11.3.1 without the fixed-point stop: every iteration runs unless the
     inliers are too few or the system is singular; ``"auto"`` keeps the curved refit where it
     holds more than ``1 + lattice_curve_gain`` times the straight lattice's inlier pixels."""
-    h, w = mask.shape
+    h, _w = mask.shape
     xv, yv = rlat.vp_search(mask, params)
     d, phase, _, _ = rlat.comb_search(mask, (xv, yv), params)
     den = np.float64(h - 1 - yv)
@@ -177,7 +177,7 @@ def _refit_every_iteration(mask: np.ndarray, params: Params) -> np.ndarray:
     return bent if n_b > (1 + params.lattice_curve_gain) * n_s else coef
 
 
-@pytest.mark.parametrize("iterations, model", [(2, "curved"), (40, "curved"), (40, "auto"), (3, "straight")])
+@pytest.mark.parametrize(("iterations", "model"), [(2, "curved"), (40, "curved"), (40, "auto"), (3, "straight")])
 def test_fixed_point_stop_gives_the_result_of_every_iteration(iterations: int, model: str) -> None:
     params = IMPROVED.replace(lattice_iterations=iterations, lattice_model=model)
     images = [_s_field(), _field(curve=0.001, seed=7), _field(spacing=45.0, shift=100.0, seed=3)]
@@ -217,7 +217,7 @@ def test_otsu_separates_two_populations() -> None:
     assert rlat.otsu_threshold(exg, 0, IMPROVED.replace(green_floor=95)) == 95
 
 
-@pytest.mark.parametrize("spacing, shift", [(90.0, 0.0), (70.0, 25.0), (120.0, -40.0)])
+@pytest.mark.parametrize(("spacing", "shift"), [(90.0, 0.0), (70.0, 25.0), (120.0, -40.0)])
 def test_comb_and_fit_recover_a_synthetic_lattice(spacing: float, shift: float) -> None:
     img = _field(spacing=spacing, shift=shift)
     mask = rlat.green_mask(img, 0, IMPROVED)
@@ -225,7 +225,7 @@ def test_comb_and_fit_recover_a_synthetic_lattice(spacing: float, shift: float) 
     d, phase, found, _ = rlat.comb_search(mask, (int(vp[0]), -60), IMPROVED)
     assert found and abs(d - spacing) <= 2
     assert abs(phase - (160 + shift)) <= 0.1 * spacing  # the refit below makes it exact
-    rows, conf, fit = rlat.improved_rows(img, 0, vp, IMPROVED)
+    rows, conf, _fit = rlat.improved_rows(img, 0, vp, IMPROVED)
     assert [r.valid for r in rows] == [True] * 3 and conf > 0.75  # the far rows are 14 px apart
     xb = sorted(r.x_at(239.0) for r in rows)
     np.testing.assert_allclose(xb, [160 + shift - spacing, 160 + shift, 160 + shift + spacing], atol=1.5)
@@ -234,7 +234,7 @@ def test_comb_and_fit_recover_a_synthetic_lattice(spacing: float, shift: float) 
 def test_curved_lattice_gets_its_curvature() -> None:
     # the rows bend 17 px by the top row, where they are 18 px apart (more would alias)
     img = _field(curve=0.0003)
-    rows, _, fit = rlat.improved_rows(img, 0, (160.0, -60.0), IMPROVED)
+    rows, _, _fit = rlat.improved_rows(img, 0, (160.0, -60.0), IMPROVED)
     assert all(r.valid for r in rows)
     assert all(abs(r.c - 0.0003) < 3e-5 for r in rows)
     y = np.arange(240.0)
@@ -356,7 +356,7 @@ def test_tensor_equals_reference_on_adversarial_and_shuffled_batches() -> None:
         assert shuffled[j].to_record() == out[i].to_record()
 
 
-@pytest.mark.parametrize("green, comb", [("row_mean", "contrast"), ("otsu", "uniform"), ("otsu", "contrast")])
+@pytest.mark.parametrize(("green", "comb"), [("row_mean", "contrast"), ("otsu", "uniform"), ("otsu", "contrast")])
 def test_tensor_stages_equal_reference_stages(green: str, comb: str) -> None:
     params = IMPROVED.replace(lattice_green=green, lattice_comb=comb)
     images = _adversarial()
@@ -476,8 +476,8 @@ def test_lattice_horizon_image_uses_rows_above_section_2_sky() -> None:
     got = flat.horizon_row(torch.tensor([sky, -1, 0]), IMPROVED)
     assert got.tolist() == [0, 0, 0] and got.dtype == torch.int64
     assert flat.horizon_row(torch.tensor([sky, -1]), old).tolist() == [sky, -1]
-    rows, conf, fit = rlat.improved_rows(img, sky, (160.0, -60.0), IMPROVED)
-    rows_sky, conf_sky, fit_sky = rlat.improved_rows(img, sky, (160.0, -60.0), old)
+    rows, _conf, fit = rlat.improved_rows(img, sky, (160.0, -60.0), IMPROVED)
+    rows_sky, _conf_sky, fit_sky = rlat.improved_rows(img, sky, (160.0, -60.0), old)
     assert fit.span == 240 and fit_sky.span == 240 - sky
     assert min(fit.support) > 240 - sky  # rows above section 2's horizon support the rows
     # the far rows keep their spacing: at the top row the fitted rows are as far apart as drawn

@@ -145,7 +145,7 @@ def test_veg_color_one_rule_in_both_paths() -> None:
 def test_missing_cuda_is_a_clear_error_at_construction() -> None:
     """Reproducer 10: `CropRowDetector(device="cuda")` failed later with an AssertionError."""
     for cls in (CropRowDetector, Tracker):
-        with pytest.raises(ValueError, match="device: 'cuda'.*no CUDA"):
+        with pytest.raises(ValueError, match=r"device: 'cuda'.*no CUDA"):
             cls(device="cuda")
     with pytest.raises(ValueError, match="device"):
         CropRowDetector(device="warp9")
@@ -212,7 +212,7 @@ def test_file_size_bound_before_reading_the_bytes(tmp_path: Path) -> None:
 
     folder = tmp_path / "imgs"
     folder.mkdir()
-    ok, buf = cv2.imencode(".jpg", render(FieldSpec(seed=1, width=64, height=48)).image)
+    _ok, buf = cv2.imencode(".jpg", render(FieldSpec(seed=1, width=64, height=48)).image)
     for name, size in (("a_just_over.jpg", MAX_FILE_BYTES + 1), ("b_4gib.jpg", 4 * GIB)):
         (folder / name).write_bytes(buf.tobytes())
         os.truncate(folder / name, size)  # a valid JPEG, then zeros: it would decode

@@ -154,7 +154,7 @@ def test_soft_mask_extreme_colors_round_back():
         assert tuple(SoftVegetationMask(c).color_uint8().tolist()) == c
 
 
-@pytest.mark.parametrize("bad, match", [
+@pytest.mark.parametrize(("bad", "match"), [
     (torch.zeros(2, 3, 4, 4, dtype=torch.uint8), "floating-point tensor \\(B, 3, H, W\\).*uint8"),
     (torch.zeros(3, 4, 4), "\\(B, 3, H, W\\).*\\(3, 4, 4\\)"),
     (torch.zeros(1, 4, 4, 4), "\\(B, 3, H, W\\).*\\(1, 4, 4, 4\\)"),
@@ -180,7 +180,7 @@ def test_soft_mask_bad_arguments():
 
 
 # --- Hough voting ----------------------------------------------------------------------------
-@pytest.mark.parametrize("h, w, step", [(9, 13, 1), (20, 16, 5), (1, 1, 1)])
+@pytest.mark.parametrize(("h", "w", "step"), [(9, 13, 1), (20, 16, 5), (1, 1, 1)])
 def test_hough_voting_equals_hard_votes(h, w, step):
     params = Params(theta_step=step)
     g = torch.Generator().manual_seed(h * w)
@@ -226,9 +226,9 @@ def test_hough_voting_axes():
 
 def test_hough_voting_bad_input():
     hv = HoughVoting(5, 6)
-    with pytest.raises(ValueError, match="expected a floating-point tensor \\(B, 5, 6\\), got torch.float32 \\(1, 6, 5\\)"):
+    with pytest.raises(ValueError, match=r"expected a floating-point tensor \(B, 5, 6\), got torch\.float32 \(1, 6, 5\)"):
         hv(torch.zeros(1, 6, 5))
-    with pytest.raises(ValueError, match="got torch.bool"):
+    with pytest.raises(ValueError, match=r"got torch\.bool"):
         hv(torch.zeros(1, 5, 6, dtype=torch.bool))
     with pytest.raises(ValueError, match="height, width"):
         HoughVoting(0, 5)

@@ -85,7 +85,7 @@ def test_derived_bands():
     assert q.hough_band_px(320) == 7 and q.ransac_band_px(320, False) == 3 and q.ransac_band_px(320, True) == 9
 
 
-@pytest.mark.parametrize("field,value", [
+@pytest.mark.parametrize(("field", "value"), [
     ("n_rows", 0),
     ("n_rows", -3),
     ("veg_tol", -1),
@@ -143,7 +143,7 @@ def test_invalid_values_raise_naming_the_field(field, value):
     assert "\n" not in msg
 
 
-@pytest.mark.parametrize("field,value", [
+@pytest.mark.parametrize(("field", "value"), [
     ("n_rows", 2.5),
     ("n_rows", True),
     ("veg_tol", True),
@@ -257,7 +257,7 @@ def test_to_rgb8_rejects(bad):
 # Resizing
 # ----------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("w0,h0", [(640, 480), (333, 257), (1280, 720), (100, 77), (321, 999)])
+@pytest.mark.parametrize(("w0", "h0"), [(640, 480), (333, 257), (1280, 720), (100, 77), (321, 999)])
 def test_resize_rule(w0, h0):
     rgb = np.random.default_rng(w0).integers(0, 256, (h0, w0, 3), dtype=np.uint8)
     h = int(h0 * 320 / w0)

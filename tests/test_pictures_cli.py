@@ -109,7 +109,7 @@ def test_eval_without_out_leaves_its_report(crbd_dir, monkeypatch, tmp_path: Pat
 def test_progress_plain_lines_when_not_a_terminal():
     import io
 
-    from torchrow.apps.progress import PlainProgress, progress
+    from torchrow.core.progress import PlainProgress, progress
 
     buf = io.StringIO()  # not a terminal
     bar = progress(100, "detect", unit="image", file=buf)

@@ -12,7 +12,7 @@ import pytest
 
 pytest.importorskip("ray.data")
 
-from torchrow.apps.cli import main  # noqa: E402
+from torchrow.apps.cli import main
 
 
 @pytest.mark.parametrize("address", ["127.0.0.1:1", "ray://127.0.0.1:1"])

@@ -39,7 +39,7 @@ def _params():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name, code, expected", _params())
+@pytest.mark.parametrize(("name", "code", "expected"), _params())
 def test_readme_block_runs(name, code, expected, tmp_path, request):
     env = dict(os.environ, PYTHONWARNINGS="ignore")
     if any(k in code for k in NEEDS_DATA):

@@ -437,7 +437,7 @@ def _near_colour_image(c, shape=(40, 50), spread=6, seed=0) -> np.ndarray:
     return np.clip(np.array(c) + rng.integers(-spread, spread + 1, shape + (3,)), 0, 255).astype(np.uint8)
 
 
-@pytest.mark.parametrize("k,sky_rows", [(4, 0), (4, 7), (2, 0), (3.5, 12), (13, 3)])
+@pytest.mark.parametrize(("k", "sky_rows"), [(4, 0), (4, 7), (2, 0), (3.5, 12), (13, 3)])
 def test_raw_mask_equals_cv2_inrange_on_lab(k, sky_rows):
     c = (60, 140, 50)
     rgb = _near_colour_image(c, seed=int(k * 10) + sky_rows)
@@ -856,7 +856,7 @@ def _hash(x: int, y: int, w: int) -> int:
     return ((y * w + x) * 2654435761) % 2**32
 
 
-@pytest.mark.parametrize("n,subsampled", [(466, False), (467, False), (468, True), (600, True), (2000, True)])
+@pytest.mark.parametrize(("n", "subsampled"), [(466, False), (467, False), (468, True), (600, True), (2000, True)])
 def test_subsample_counts_and_smallest_keys(n, subsampled):
     rng = np.random.default_rng(n)
     w = 320
@@ -902,7 +902,7 @@ def test_hypothesis_table_is_default_rng():
     assert np.array_equal(hypothesis_table(7, 20), np.random.default_rng(7).random((20, 2)))
 
 
-@pytest.mark.parametrize("n_pix,v", [(3, 1), (4, 2), (12, 6)])
+@pytest.mark.parametrize(("n_pix", "v"), [(3, 1), (4, 2), (12, 6)])
 def test_score_hypotheses_equals_naive_and_degenerate_rules(n_pix, v):
     rng = np.random.default_rng(n_pix)
     lin = rng.choice(900, n_pix, replace=False)  # distinct pixels

@@ -12,11 +12,11 @@ import pytest
 
 pytest.importorskip("rosbags")
 
-from bags import encode, write_bag  # noqa: E402
+from bags import encode, write_bag
 
-from torchrow.apps.cli import _annotation_names, main  # noqa: E402
-from torchrow.apps.rosbag import BagError, is_bag, open_bag  # noqa: E402
-from torchrow.evaluation.synthetic import FieldSpec, render, sequence  # noqa: E402
+from torchrow.apps.cli import _annotation_names, main
+from torchrow.core.rosbag import BagError, is_bag, open_bag
+from torchrow.evaluation.synthetic import FieldSpec, render, sequence
 
 STORAGES = ("sqlite3", "mcap", "ros1")
 T0 = 1_700_000_000_123_456_789
@@ -173,7 +173,7 @@ def test_video_on_synthetic_bags_equals_the_folder(tmp_path: Path) -> None:
 
 
 @pytest.mark.data
-@pytest.mark.parametrize("storage,n", [("sqlite3", 20), ("mcap", 20),
+@pytest.mark.parametrize(("storage", "n"), [("sqlite3", 20), ("mcap", 20),
                                        pytest.param("mcap", 100, marks=pytest.mark.heavy)])
 def test_caterra_compressed_bag_equals_the_folder_frame_by_frame(data_dir: Path, tmp_path: Path,
                                                                   storage: str, n: int) -> None:
@@ -210,7 +210,7 @@ def _flat(n: int, seed: int = 0, size: tuple[int, int] = (48, 64)) -> list[np.nd
 def test_bag_frames_get_the_max_pixels_bound_before_decoding(tmp_path: Path, monkeypatch) -> None:
     """Issue 26.1: a 1x5000 mono8 Image was resized to 320x1,600,000 (4.9 GB) and a 2x8000 PNG
     decoded and resized (4.0 GB); as files the same pixels were an error record at once."""
-    from torchrow.apps.rosbag import BagFrame
+    from torchrow.core.rosbag import BagFrame
 
     ok = _flat(1)[0]
     msgs = [(T0, "rgb8", ok), (T0 + 1, "mono8", np.zeros((400, 4), np.uint8)), (T0 + 2, "rgb8", ok)]

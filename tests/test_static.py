@@ -1,4 +1,4 @@
-"""The exportable formulations (torchrow.functional.static) run eagerly in torch, against
+"""The exportable formulations (torchrow.onnx.graphs) run eagerly in torch, against
 the eager stages: no onnx needed, no export, seconds per test.
 
 The ONNX tests (test_export*.py) check that onnxruntime runs these graphs to the same
@@ -20,15 +20,15 @@ from test_tensor_lines import _adversarial_masks
 import torchrow
 from torchrow import Params
 from torchrow.core.tables import lab_table_torch, pack_rgb
-from torchrow.engines.export import step_differences
 from torchrow.evaluation.synthetic import FieldSpec, sequence
 from torchrow.functional import hough as fhough
 from torchrow.functional import ransac as fransac
 from torchrow.functional import sky as fsky
-from torchrow.functional import static
 from torchrow.functional import vanishing as fvan
 from torchrow.functional import vegetation as fveg
-from torchrow.functional.tracker import TrackerState
+from torchrow.functional.tracking import TrackerState
+from torchrow.onnx import graphs as static
+from torchrow.onnx.checks import step_differences
 
 P = Params()
 
@@ -37,8 +37,8 @@ def test_scatter_free_votes_equal_scatter_votes() -> None:
     """Prefix sums gathered at constant run ends == scatter-add votes, on the pickable angles."""
     for h, w in ((240, 320), (37, 53)):
         masks = torch.from_numpy(np.stack([m[:h, :w] for m in _adversarial_masks()]))
-        tables = static.vote_tables(h, w, P)
-        got = static.votes(masks.reshape(len(masks), -1), tables)  # (B, A, 2D+1)
+        tables = fhough.vote_tables(h, w, P)
+        got = fhough.prefix_votes(masks.reshape(len(masks), -1), tables)  # (B, A, 2D+1)
         ref = fhough.votes(masks, P)  # (B, n_theta, 2D+1)
         assert torch.equal(got.to(torch.int64), ref.index_select(1, tables.angles).to(torch.int64))
 
@@ -143,7 +143,7 @@ def test_static_adaptive_k_equals_eager() -> None:
     seq = sequence(FieldSpec.at_size(160, 90, n_rows=5, seed=6), 3, drift_px_per_frame=2.0)
     x = torch.from_numpy(np.stack([f.image for f in seq])).permute(0, 3, 1, 2).contiguous()
     pv = Params(video_width=160)
-    from torchrow.functional import tracker as ftrack
+    from torchrow.functional import tracking as ftrack
 
     st0 = ftrack.init_state(x[:1].expand(3, -1, -1, -1).contiguous(), pv)
     info0 = st0.info0 * torch.tensor([1.0, 0.3, 3.0], dtype=torch.float64)  # grow, shrink and stay
@@ -189,12 +189,12 @@ def test_static_tracker_step_equals_tracker(control_flow: bool) -> None:
 
 
 def ftrack_step(o: dict, active: torch.Tensor):
-    from torchrow.functional.tracker import TrackStep
+    from torchrow.functional.tracking import TrackStep
 
     return TrackStep(**{f: o[f] for f in static.TRACKER_STEP}, active=active)
 
 
-@pytest.mark.parametrize("scatter_free, flow, tier", [(False, "always", None), (False, "sync", 2000),
+@pytest.mark.parametrize(("scatter_free", "flow", "tier"), [(False, "always", None), (False, "sync", 2000),
                                                       (False, "sync", 100000), (True, "sync", None)])
 def test_static_voter_line_search_equals_eager(scatter_free: bool, flow: str, tier: int | None) -> None:
     """find_lines with the static voter (one vote, band-only updates in chunks, or the

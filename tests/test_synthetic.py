@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import re
 
@@ -272,7 +273,7 @@ def test_sequence_ground_truth_follows_motion():
         ys, xs = near_samples(f, f.row_ids.index(0))
         g = green(f.image, ys, xs).mean()
         assert (g <= 0.05) if 3 <= k < 5 else (g >= 0.75)
-    for a, b in zip(frames, frames[1:]):
+    for a, b in itertools.pairwise(frames):
         assert not np.array_equal(a.image, b.image)
     # heading moves the vanishing point right, drift moves the rows right
     assert frames[-1].vp[0] > frames[0].vp[0]

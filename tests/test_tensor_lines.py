@@ -212,8 +212,8 @@ def test_export_tracing_does_not_poison_constant_caches() -> None:
     class Uses(torch.nn.Module):
         def forward(self, theta: torch.Tensor) -> torch.Tensor:
             c, _ = th.trig(P, theta.device)
-            return c[theta] + tr._table(P, theta.device)[: theta.shape[0], 0]
+            return c[theta] + tr.hypotheses(P, theta.device)[: theta.shape[0], 0]
 
     torch.export.export(Uses(), (torch.zeros(3, dtype=torch.int64),), strict=False)
     c, _ = th.trig(P, torch.device("cpu"))
-    assert float(c[0]) == 1.0 and float(tr._table(P, torch.device("cpu"))[0, 0]) >= 0.0
+    assert float(c[0]) == 1.0 and float(tr.hypotheses(P, torch.device("cpu"))[0, 0]) >= 0.0

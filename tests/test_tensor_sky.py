@@ -378,7 +378,7 @@ def test_image_guards(fn):
         fn(torch.zeros((1, 3, 0, 5), dtype=torch.uint8))
     with pytest.raises(ValueError, match="uint8"):
         fn(torch.zeros((1, 3, 4, 5), dtype=torch.float32))
-    with pytest.raises(TypeError, match="torch.Tensor"):
+    with pytest.raises(TypeError, match=r"torch\.Tensor"):
         fn(np.zeros((1, 3, 4, 5), np.uint8))
 
 
@@ -394,7 +394,7 @@ def test_plane_guards():
             fn(torch.zeros((1, 4, 0), dtype=torch.uint8))
         with pytest.raises(ValueError, match="dtype"):
             fn(torch.zeros((1, 4, 5), dtype=torch.int32))
-        with pytest.raises(TypeError, match="torch.Tensor"):
+        with pytest.raises(TypeError, match=r"torch\.Tensor"):
             fn(np.zeros((1, 4, 5), np.uint8))
         fn(g)  # accepted
     for fn in (lambda x: F.box_blur(x, (9, 3)), lambda x: F.median_blur(x, 5), F.laplacian):
@@ -454,7 +454,7 @@ def test_crbd_sky_row_and_mask_equal_reference(crbd):
 
 @pytest.mark.data
 def test_crbd_mixed_batch_equals_per_image(crbd):
-    names, rgb = crbd
+    _names, rgb = crbd
     pick = rgb[[0, 7, 42, 100, 200]]
     extra = np.stack([_sky_scene(rows=70), np.full(rgb.shape[1:], (0, 0, 255), np.uint8),
                       np.zeros(rgb.shape[1:], np.uint8), np.full(rgb.shape[1:], (60, 120, 250), np.uint8)])

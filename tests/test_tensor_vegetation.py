@@ -300,7 +300,7 @@ def test_canny_binary_region_rule_vs_reference_crop(shape):
         assert not out[i, :skies[i]].any()
 
 
-@pytest.mark.parametrize("low,high", [(100, 200), (200, 100), (1, 1), (0, 0), (254, 255), (255, 510),
+@pytest.mark.parametrize(("low", "high"), [(100, 200), (200, 100), (1, 1), (0, 0), (254, 255), (255, 510),
                                       (100, 300), (100, 600), (300, 800), (500, 1200), (1000, 2000)])
 def test_canny_thresholds_and_hysteresis_equal_cv2(low, high):
     """Other thresholds, including ones where weak edges exist and hysteresis decides."""
@@ -568,7 +568,7 @@ def test_errors_on_wrong_shapes_and_dtypes():
 
 
 
-@pytest.mark.parametrize("k_min, k_max", [(3, 13), (1, 20), (0, 5)])
+@pytest.mark.parametrize(("k_min", "k_max"), [(3, 13), (1, 20), (0, 5)])
 def test_min_k_equals_the_box_test_at_every_bound(k_min: int, k_max: int):
     """The binary search's smallest admitting k equals section 3.2's box test
     ``fl(c - k) <= v <= fl(c + k)`` tried at every k, on random LAB values and on values

@@ -19,7 +19,7 @@ from test_tensor_pipeline import assert_same
 import torchrow
 from torchrow import Params
 from torchrow.apps.cli import main
-from torchrow.apps.video import load_item, load_items, open_source
+from torchrow.core.frames import load_item, load_items, open_source
 from torchrow.core.results import ImageResult, Row
 from torchrow.core.steering import FrameResult, Steering, focal_from_fov, steering
 from torchrow.evaluation.synthetic import FieldSpec, sequence
@@ -309,7 +309,7 @@ def test_single_pass_adaptive_k_equals_a_box_test_per_k() -> None:
         assert torch.equal(k1, k2) and torch.equal(r1, r2), info
 
 
-# --- frames read ahead (torchrow.apps.video.load_items) ------------------------------------
+# --- frames read ahead (torchrow.core.frames.load_items) ------------------------------------
 
 def test_load_items_reads_ahead_in_order_with_errors_in_place() -> None:
     import threading

@@ -1,3 +1,3 @@
-"""Applications on top of the engines: the command line, evaluation reports, pictures, video and
-bag I/O, output sinks, progress.
+"""Applications on top of the engines: the command line, evaluation reports, pictures, video
+writing, output sinks, notebook helpers.
 """

@@ -12,8 +12,8 @@ import dataclasses
 import json
 import os
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 from torchrow import __version__
 from torchrow.core.io import IMAGE_EXTENSIONS
@@ -176,7 +176,7 @@ def _check_engine(args: argparse.Namespace, onnx_workers: bool = False) -> None:
         return
     try:
         import ray
-        import ray.data  # noqa: F401
+        import ray.data
     except ImportError:
         raise CLIError("--engine ray needs Ray Data: pip install 'torchrow[ray]'") from None
     if getattr(args, "annotate", None):
@@ -228,7 +228,7 @@ def _open_sink(out: Path, key, resume: bool, header: dict | None = None):
 def _split_bags(inputs: Sequence[str], topic: str | None) -> tuple[list[str], list]:
     """ROS bag inputs (opened, ``topic`` chosen) apart from image files and folders; the same
     bag named twice (another spelling, a link) is one input, as for files."""
-    from torchrow.apps.rosbag import BagError, is_bag, open_bag
+    from torchrow.core.rosbag import BagError, is_bag, open_bag
 
     others, bags = [], []
     seen: set[str] = set()
@@ -300,7 +300,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     others, bags = _split_bags(args.inputs, args.topic)
     paths = _collect_images(others) if others else []
     if model is not None and paths:
-        from torchrow.engines.export import model_meta
+        from torchrow.onnx.metadata import model_meta
 
         info = model_meta(model)
         params = info["params"]
@@ -398,7 +398,7 @@ def _check_model(args: argparse.Namespace) -> str | None:
     try:
         import onnxruntime  # noqa: F401
 
-        from torchrow.engines.export import model_meta
+        from torchrow.onnx.metadata import model_meta
 
         info = model_meta(model)
     except ImportError:
@@ -435,7 +435,8 @@ def cmd_export(args: argparse.Namespace) -> int:
         import onnxscript  # noqa: F401
     except ImportError:
         raise CLIError("export needs onnx and onnxscript: pip install 'torchrow[onnx]'") from None
-    from torchrow.engines.export import model_info, to_onnx
+    from torchrow.onnx.export import to_onnx
+    from torchrow.onnx.metadata import model_info
 
     params = _parse_params(args.param)
     if args.tracker:
@@ -584,9 +585,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _open_sources(raw: Sequence[str], topic: str | None = None):
-    from torchrow.apps.rosbag import is_bag
-    from torchrow.apps.video import open_source
+    from torchrow.core.frames import open_source
     from torchrow.core.io import ImageError
+    from torchrow.core.rosbag import is_bag
 
     if topic is not None and not any(is_bag(r) for r in raw):
         raise CLIError("--topic applies to ROS bag sources only (a rosbag2 folder or a .bag file)")
@@ -691,8 +692,8 @@ def _check_plot(plot: Path) -> None:
 
 
 def cmd_video(args: argparse.Namespace) -> int:
-    from torchrow.apps.progress import progress
     from torchrow.apps.video import central_jumps, plot_tracks
+    from torchrow.core.progress import progress
 
     args.model_kind = "tracker"
     model = _check_model(args)
@@ -714,8 +715,8 @@ def cmd_video(args: argparse.Namespace) -> int:
     if model is not None:
         if args.engine == "ray":
             raise CLIError("--impl onnx runs with --engine local")
-        from torchrow.engines.export import OnnxTracker
         from torchrow.engines.runner import source_size
+        from torchrow.onnx.runtime import OnnxTracker
 
         onnx = OnnxTracker(model, hfov_deg=args.fov)
         params = onnx.params

@@ -1,5 +1,6 @@
 """Dataset evaluation on CRBD (CRDA) and CRDLD (ALGORITHM.md 10.1): detection, scores per image,
-summaries, files and a plot."""
+summaries, files and a plot; CRDA of the same CRBD images under several vegetation colours
+(:func:`compare_colors`)."""
 
 from __future__ import annotations
 
@@ -7,23 +8,24 @@ import csv
 import functools
 import json
 import sys
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
 from torchrow.apps.sink import RecordSink, read_records
 from torchrow.core.io import ImageError
 from torchrow.core.params import Params
+from torchrow.core.progress import progress as progress_bar
 from torchrow.core.results import ImageResult
-from torchrow.engines.runner import _progress, run
+from torchrow.engines.runner import run
 from torchrow.evaluation import crdld
 from torchrow.evaluation.datasets import CRBD, CRDLD
 from torchrow.evaluation.metrics import crda, crda_official, crda_thesis, summarize
 
 __all__ = ["EvalRow", "EvalReport", "evaluate", "score_tmg_files", "SUBSETS", "CRDLDRow", "CRDLDReport",
-           "evaluate_crdld"]
+           "evaluate_crdld", "ColorComparison", "compare_colors"]
 
 #: Subsets reported: CRBD's own classification (1 straight, 2 curved).
 SUBSETS = ("all", "straight", "curved")
@@ -220,7 +222,7 @@ def score_tmg_files(crbd: CRBD, results_dir: Path, ext: str = ".tmg",
     adjacent rows per image row). Returns ``(name, crda sigma 0.1, crda sigma 0.3)``; a missing
     or malformed file scores 0."""
     out = []
-    bar = _progress(len(crbd), "score", progress)
+    bar = progress_bar(len(crbd), "score", progress, unit="image")
     for i in range(len(crbd)):
         bar.update(1)
         item = crbd[i]
@@ -313,3 +315,83 @@ def evaluate_crdld(ds: CRDLD, indices: Sequence[int] | None = None, impl: str = 
         report.rows.append(CRDLDRow(ds.names[i], res.status, s.sigma01, s.sigma03, s.central_mae, seconds))
         report.records.append(rec)
     return report
+
+
+@dataclass
+class ColorComparison:
+    """CRDA of the same images under several vegetation-colour choices (:func:`compare_colors`).
+
+    ``names`` image names; ``crda01`` / ``crda03`` ``{arm: float64 (n,)}`` official CRDA at
+    sigma 0.1 / 0.3; ``precision`` / ``fraction`` ``{arm: (n,)}`` of the hard raw mask against
+    the band target; ``results`` ``{arm: [ImageResult]}``; ``colors`` ``{arm: uint8 (n, 3)}``
+    the colour each image was segmented with.
+    """
+
+    names: list[str]
+    crda01: dict[str, np.ndarray]
+    crda03: dict[str, np.ndarray]
+    precision: dict[str, np.ndarray]
+    fraction: dict[str, np.ndarray]
+    results: dict[str, list]
+    colors: dict[str, np.ndarray]
+
+    def table(self) -> str:
+        """One line per arm: official CRDA sigma 0.1 and 0.3 mean / median, mask precision."""
+        lines = [f"{'colour':<22} {'n':>4}  {'CRDA s0.1 mean/median':>22}  {'CRDA s0.3 mean/median':>22}  "
+                 f"{'mask precision':>14}  {'mask size':>9}"]
+        for arm in self.crda01:
+            a, b = self.crda01[arm], self.crda03[arm]
+            lines.append(f"{arm:<22} {len(a):>4}  {a.mean():>10.3f} / {np.median(a):<9.3f}  "
+                         f"{b.mean():>10.3f} / {np.median(b):<9.3f}  {self.precision[arm].mean():>14.3f}  "
+                         f"{self.fraction[arm].mean():>9.3f}")
+        return "\n".join(lines)
+
+
+def compare_colors(crbd: CRBD, indices: Sequence[int], colors: Mapping[str, Sequence[int] | np.ndarray | None],
+                   params: Params | None = None, band: float = 0.3, batch_size: int = 32) -> ColorComparison:
+    """Detect ``indices`` once per colour choice with the hard pipeline and score them.
+
+    Parameters
+    ----------
+    crbd : CRBD
+    indices : sequence of int
+        Images to score (e.g. held-out ``crbd.indices("test")``).
+    colors : mapping
+        ``{arm name: colour}``: ``None`` = per-image clustering (the default pipeline), or an
+        RGB ``uint8`` triple given to every image (``veg_color=``).
+    params : Params, optional
+    band : float
+        Band of :func:`torchrow.nn.calibrate.row_band_target` for the mask precision.
+    batch_size : int
+        Images per detector call.
+    """
+    import torch
+
+    from torchrow.engines.detector import CropRowDetector
+    from torchrow.functional.vegetation import raw_mask
+    from torchrow.nn.calibrate import load_training_set, mask_precision
+
+    p = params or Params()
+    det = CropRowDetector(p)
+    data = load_training_set(crbd, indices, band)
+    out = ColorComparison(data.names, {}, {}, {}, {}, {}, {})
+    for arm, color in colors.items():
+        res, used, prec, frac = [], [], [], []
+        for s0 in range(0, len(indices), batch_size):
+            imgs = data.images[s0:s0 + batch_size]
+            vc = None if color is None else torch.as_tensor(np.asarray(color), dtype=torch.uint8).reshape(3)
+            batch = det(imgs, veg_color=vc)
+            res.extend(batch.results(data.names[s0:s0 + batch_size]))
+            used.append(batch.veg_color)
+            raw = raw_mask(imgs, batch.veg_color, batch.k, batch.sky)
+            pr, fr = mask_precision(raw, data.targets[s0:s0 + batch_size], data.regions[s0:s0 + batch_size])
+            prec.append(pr)
+            frac.append(fr)
+        gts = [crbd.ground_truth(i) for i in indices]
+        out.results[arm] = res
+        out.colors[arm] = torch.cat(used).numpy()
+        out.crda01[arm] = np.array([crda_official(r, g, sigma=0.1) for r, g in zip(res, gts)])
+        out.crda03[arm] = np.array([crda_official(r, g, sigma=0.3) for r, g in zip(res, gts)])
+        out.precision[arm] = np.concatenate(prec)
+        out.fraction[arm] = np.concatenate(frac)
+    return out

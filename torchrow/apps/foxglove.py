@@ -41,9 +41,10 @@ import re
 import sys
 import threading
 import time
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator, NamedTuple, Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -184,7 +185,7 @@ def published_image(origin: object, rgb: np.ndarray | None, quality: int = JPEG_
     Parameters
     ----------
     origin : the frame's source where it has encoded bytes: a file ``Path``, or a
-        :class:`torchrow.apps.rosbag.BagFrame` (its ``data`` when ``compressed``); else ``None``.
+        :class:`torchrow.core.rosbag.BagFrame` (its ``data`` when ``compressed``); else ``None``.
     rgb : the working image ``uint8 (H, W, 3)``, or ``None`` for an unreadable frame.
 
     Returns
@@ -505,7 +506,7 @@ class Recorder:
             time.sleep(delay)
         self._period = 1.0 / self.fps[seq]
 
-    def __enter__(self) -> "Recorder":
+    def __enter__(self) -> Recorder:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:

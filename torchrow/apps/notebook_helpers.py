@@ -7,8 +7,8 @@ pipeline breaks a test rather than a notebook only.
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 

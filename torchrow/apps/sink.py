@@ -40,8 +40,9 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+from collections.abc import Callable, Hashable, Iterable, Iterator
 from pathlib import Path
-from typing import Any, Callable, Hashable, Iterable, Iterator
+from typing import Any
 
 __all__ = ["RecordSink", "SinkError", "image_key", "frame_key", "read_records", "PARQUET_ROW_GROUP",
            "journal_path", "header_path", "output_paths", "bytes_safe", "records_to_parquet",
@@ -261,7 +262,7 @@ class RecordSink:
         finally:
             self._fh.close()
 
-    def __enter__(self) -> "RecordSink":
+    def __enter__(self) -> RecordSink:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:

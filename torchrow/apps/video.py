@@ -1,262 +1,23 @@
-"""Frame sources for video mode: folders of frames, video files, and the frame-item format.
-
-A *sequence* handed to a tracker's ``track``/``track_iter`` is any iterable of *items*. An
-item is a frame or ``(name, frame)``; a frame is an ``(H, W, 3)`` uint8 RGB array, a
-callable returning one (it may raise :class:`~torchrow.core.io.ImageError` or ``OSError``), or
-``None`` (unreadable). Unreadable frames become ``error`` records and the tracker skips them.
+"""Video output of the ``video`` command: the annotated video writer, frame pictures and the
+tracks plot. Frame sources (folders, video files, bags) are :mod:`torchrow.core.frames`.
 """
 
 from __future__ import annotations
 
 import contextlib
-import os
-import queue
-import tempfile
-import threading
-from dataclasses import dataclass
+import itertools
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator
+from typing import Any
 
 import numpy as np
 
-from torchrow.core.io import IMAGE_EXTENSIONS, ImageError, header_size, load_image, resize_to_width, to_rgb8, working_size
+from torchrow.core.frames import (
+    cv2_name,
+    display_name,
+    open_source,  # noqa: F401  (the README's import path for frame sources)
+)
 
-__all__ = ["LoadedFrame", "load_item", "load_items", "READ_AHEAD", "VIDEO_EXTENSIONS", "FrameSource", "open_source",
-           "VideoWriter", "display_name"]
-
-VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
-
-
-def display_name(name: str) -> str:
-    """``name`` for text that is drawn or encoded (plot titles): a file name that is not valid
-    UTF-8 (undecodable bytes kept as surrogates, as Python keeps them) with each such byte as
-    U+FFFD."""
-    return name.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
-
-
-@contextlib.contextmanager
-def _cv2_name(path: str | Path, create: bool = False) -> Iterator[str]:
-    """A name of ``path`` that OpenCV can open: the path itself, or, for a name that is not
-    valid UTF-8 (OpenCV crashes the process on one), a symbolic link to it in a temporary
-    folder, kept while the block runs. ``create``: make the file first (a writer's target), so
-    the link is not dangling."""
-    name = str(path)
-    if display_name(name) == name:
-        yield name
-        return
-    suffix = Path(path).suffix
-    if create:
-        Path(path).touch()
-    with tempfile.TemporaryDirectory(prefix="torchrow-") as tmp:
-        link = os.path.join(tmp, "file" + (suffix if display_name(suffix) == suffix else ""))
-        os.symlink(os.path.abspath(path), link)
-        yield link
-
-
-@dataclass
-class LoadedFrame:
-    """One item after loading: working-size RGB or the reason it is missing."""
-
-    name: str | None
-    rgb: np.ndarray | None
-    error: str | None = None
-
-
-def load_item(item: object, width: int, max_pixels: int | None = None) -> LoadedFrame:
-    """Load and resize one sequence item (module docstring) to the working ``width``.
-
-    A frame whose working size exceeds ``max_pixels`` (``Params.max_pixels``) is unreadable.
-    """
-    name = None
-    if isinstance(item, tuple) and len(item) == 2 and (item[0] is None or isinstance(item[0], str)):
-        name, item = item
-    try:
-        if item is None:
-            return LoadedFrame(name, None, "unreadable frame")
-        frame = item() if callable(item) else item
-        if not isinstance(frame, np.ndarray):
-            raise ImageError(f"expected a numpy array (H, W, 3), got {type(frame).__name__}")
-        return LoadedFrame(name, resize_to_width(to_rgb8(frame), width, max_pixels))
-    except (ImageError, OSError) as exc:
-        return LoadedFrame(name, None, str(exc))
-
-
-#: Items :func:`load_items` decodes ahead of the tracker by default (about 0.4 MB each at 500 px).
-READ_AHEAD = 8
-
-_END = object()
-
-
-def load_items(items: Iterable[object], width: int, max_pixels: int | None = None,
-               ahead: int = READ_AHEAD) -> Iterator[LoadedFrame]:
-    """:func:`load_item` of every item, in order, decoded up to ``ahead`` items in advance.
-
-    Decoding and resizing a 1280x720 JPEG takes about 11 ms here (8.6 decode, 2.9 resize), a
-    quarter of a tracked frame; OpenCV, Pillow and PyAV release the GIL while they decode,
-    so a reader thread does it while the tracker works on the frames before. ``ahead=0``
-    reads in the calling thread. Only the reader thread pulls from ``items``, one item at a
-    time and in order (a live generator is read ahead by at most ``ahead + 1`` items). An
-    exception other than the unreadable-frame ones :func:`load_item` turns into records is
-    raised here, at its item's place. Closing the iterator (or dropping it) stops the reader.
-    """
-    if ahead <= 0:
-        for item in items:
-            yield load_item(item, width, max_pixels)
-        return
-    out: queue.Queue = queue.Queue(ahead)
-    stop = threading.Event()
-
-    def put(x: object) -> bool:
-        while not stop.is_set():
-            try:
-                out.put(x, timeout=0.1)
-                return True
-            except queue.Full:
-                continue
-        return False
-
-    def read() -> None:
-        try:
-            for item in items:
-                if not put(load_item(item, width, max_pixels)):
-                    return
-        except BaseException as exc:  # handed to the consumer, raised at this item's place
-            put(exc)
-            return
-        put(_END)
-
-    reader = threading.Thread(target=read, name="torchrow-read-ahead", daemon=True)
-    reader.start()
-    try:
-        while True:
-            got = out.get()
-            if got is _END:
-                return
-            if isinstance(got, BaseException):
-                raise got
-            yield got
-    finally:
-        stop.set()
-        reader.join()
-
-
-@dataclass
-class FrameSource:
-    """A named sequence of frame items: a folder of images (sorted by name) or a video file.
-
-    Iterating yields ``(name, loader)`` items; ``length`` is the number of frames (a video's
-    frame count as its container reports it, which may be approximate).
-    """
-
-    path: Path
-    kind: str  # "folder" or "video"
-    files: list[Path]
-    length: int
-    fps: float | None = None  # frames per second as the container reports it (None: a folder)
-
-    @property
-    def name(self) -> str:
-        return str(self.path)
-
-    def __iter__(self) -> Iterator[tuple[str, Callable[[], np.ndarray]]]:
-        """Items of every frame. A video is read to its real end: a frame that does not
-        decode (OpenCV goes on with the next one) is an item that raises :class:`ImageError`,
-        and reading stops only after the container's frame count (``length``) when a read
-        fails; with an unknown count (0), at the first failed read."""
-        if self.kind == "folder":
-            for f in self.files:
-                yield f.name, (lambda f=f: load_image(f))
-            return
-        import cv2
-
-        def unreadable(i: int) -> Callable[[], np.ndarray]:
-            def fail() -> np.ndarray:
-                raise ImageError(f"frame {i} of {self.path} cannot be decoded")
-            return fail
-
-        with _cv2_name(self.path) as cv_name:
-            cap = cv2.VideoCapture(cv_name)
-            try:
-                i = 0
-                while True:
-                    ok, bgr = cap.read()
-                    if not ok:
-                        if i >= self.length:
-                            break
-                        yield f"{i:06d}", unreadable(i)
-                    else:
-                        rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-                        yield f"{i:06d}", (lambda rgb=rgb: rgb)
-                    i += 1
-            finally:
-                cap.release()
-
-    def working_size(self, width: int, max_pixels: int | None = None) -> tuple[int, int] | None:
-        """The sequence's working ``(H, W)``: the one most of its frames have (ties: the
-        earliest), so one odd frame, even frame 0, cannot make every other frame an error.
-
-        Folders: from the files' headers (Pillow, EXIF rotation applied), decoding only the
-        files whose header cannot be read; videos: the first readable frame (all frames of a
-        video have one size). ``None`` if no frame is readable.
-        """
-        counts: dict[tuple[int, int], int] = {}
-        if self.kind == "folder":
-            for f in self.files:
-                try:
-                    size0 = header_size(f)
-                    if size0 is None:
-                        h0, w0 = load_image(f).shape[:2]
-                    else:
-                        w0, h0 = size0
-                    w, h = working_size(w0, h0, width, max_pixels)
-                except (ImageError, OSError):
-                    continue
-                counts[(h, w)] = counts.get((h, w), 0) + 1
-        else:
-            for item in self:
-                got = load_item(item, width, max_pixels)
-                if got.rgb is not None:
-                    return got.rgb.shape[:2]
-        return max(counts, key=lambda s: counts[s]) if counts else None  # first of the most common
-
-
-def open_source(path: str | Path, topic: str | None = None):
-    """A folder holding image files, a video file readable by OpenCV, or a ROS bag
-    (:func:`torchrow.apps.rosbag.open_bag`: a rosbag2 folder or a ROS 1 ``.bag``; ``topic``
-    chooses its image topic, by default the only one).
-
-    Raises
-    ------
-    FileNotFoundError
-        If the path does not exist.
-    ImageError
-        If a folder holds no images or a video cannot be opened (a bag:
-        :class:`torchrow.apps.rosbag.BagError`, a subclass).
-    """
-    from torchrow.apps.rosbag import is_bag, open_bag
-
-    p = Path(path)
-    if is_bag(p):
-        return open_bag(p, topic)
-    if p.is_dir():
-        files = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_EXTENSIONS)
-        if not files:
-            raise ImageError(f"no images ({', '.join(IMAGE_EXTENSIONS)}) in folder {p}")
-        return FrameSource(p, "folder", files, len(files))
-    if not p.exists():
-        raise FileNotFoundError(f"no such file or folder: {p}")
-    import cv2
-
-    with _cv2_name(p) as cv_name:
-        cap = cv2.VideoCapture(cv_name)
-        try:
-            if not cap.isOpened():
-                raise ImageError(f"cannot open video: {p}")
-            n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
-            fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
-        finally:
-            cap.release()
-    return FrameSource(p, "video", [], max(n, 0), fps if 0 < fps < 1000 else None)
+__all__ = ["VideoWriter", "draw_frame", "error_frame", "central_jumps", "plot_tracks"]
 
 
 class VideoWriter:
@@ -278,7 +39,7 @@ class VideoWriter:
         self._h264 = self.path.suffix.lower() in self.H264
         self._out: Any = None  # av.OutputContainer or cv2.VideoWriter
         self._stream: Any = None
-        self._name = contextlib.ExitStack()  # OpenCV's name of the file while it is written (_cv2_name)
+        self._name = contextlib.ExitStack()  # OpenCV's name of the file while it is written (cv2_name)
         self._size: tuple[int, int] | None = None
 
     def _open(self, height: int, width: int) -> None:
@@ -297,7 +58,7 @@ class VideoWriter:
         else:
             import cv2
 
-            cv_name = self._name.enter_context(_cv2_name(self.path, create=True))
+            cv_name = self._name.enter_context(cv2_name(self.path, create=True))
             vw = cv2.VideoWriter(cv_name, cv2.VideoWriter.fourcc(*"MJPG"), self.fps, (width, height))
             if not vw.isOpened():
                 self._name.close()
@@ -366,7 +127,7 @@ def central_jumps(records: list[dict]) -> dict[str, list[float]]:
       central row to its neighbour when the camera is about half a row spacing off.
     """
     out: dict[str, list[float]] = {"tracked": [], "hough": [], "lateral": []}
-    for prev, cur in zip(records, records[1:]):
+    for prev, cur in itertools.pairwise(records):
         if cur.get("frame") != prev.get("frame", -2) + 1:
             continue
         if prev.get("lateral_px") is not None and cur.get("lateral_px") is not None:

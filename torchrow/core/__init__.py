@@ -1,3 +1,4 @@
-"""Core types of torchrow: parameters, results and records, shared tables, image loading (spec
-section 0), steering signals.
+"""Core types of torchrow (the lowest layer: it imports no other torchrow package): parameters,
+results and records (``ImageResult``, ``BatchResult``, ``FrameResult``), shared tables, image
+loading (spec section 0), frame sources and ROS bag reading, steering signals, progress.
 """

@@ -11,8 +11,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 __all__ = ["Params"]
 
@@ -164,7 +164,7 @@ class Params:
             return self.ransac_band_bushy if self.ransac_band_bushy is not None else int(width / 10)
         return self.ransac_band if self.ransac_band is not None else int(width / 20)
 
-    def replace(self, **changes: object) -> "Params":
+    def replace(self, **changes: object) -> Params:
         """A copy with some fields changed (validated like a new object)."""
         return dataclasses.replace(self, **changes)
 
@@ -185,7 +185,7 @@ class _Rule:
     kind: str  # also "choice": a str out of ``choices``
     lo: float | None = None
     hi: float | None = None
-    extra: "tuple[Callable[[object], bool], str] | None" = None
+    extra: tuple[Callable[[object], bool], str] | None = None
     why: str = ""  # reason for an upper bound, quoted in the error
     choices: tuple[str, ...] = ()
 

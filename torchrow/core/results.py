@@ -121,7 +121,7 @@ class ImageResult:
         return rec
 
     @classmethod
-    def from_record(cls, rec: dict[str, Any], theta_step: int = 1) -> "ImageResult":
+    def from_record(cls, rec: dict[str, Any], theta_step: int = 1) -> ImageResult:
         """Inverse of :meth:`to_record` (hypothesis indices are not stored in records)."""
 
         def line(v: list) -> HoughLine:
@@ -146,7 +146,7 @@ class ImageResult:
         )
 
     @classmethod
-    def failed(cls, name: str | None, error: str, width: int = 0, height: int = 0) -> "ImageResult":
+    def failed(cls, name: str | None, error: str, width: int = 0, height: int = 0) -> ImageResult:
         """Record for an input that could not be processed (status ``error``)."""
         return cls(width=width, height=height, status="error", name=name, error=error)
 

@@ -1,6 +1,6 @@
 """Video-mode outputs shared by both trackers: steering signals, confidence, per-frame result.
 
-Definitions (one place; :mod:`torchrow.reference.tracker` and :mod:`torchrow.functional.tracker`
+Definitions (one place; :mod:`torchrow.reference.tracking` and :mod:`torchrow.functional.tracking`
 both use them). Pixel coordinates are those of the working image (``x`` = column, ``y`` =
 row, origin at the top-left pixel); ``W``, ``H`` = working size; the image centre is
 ``x = W/2``, the convention of CRBD's ground truth and of :mod:`torchrow.evaluation.synthetic`.
@@ -44,8 +44,9 @@ spacing off, so ``lateral_frac`` lives in about ``[-0.5, 0.5]`` and jumps by 1 t
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -186,7 +187,7 @@ class FrameResult(ImageResult):
 
     @classmethod
     def build(cls, base: ImageResult, *, source: str | None, frame: int, hough_ran: bool,
-              hough_redo: bool, confidence: float, hfov_deg: float | None) -> "FrameResult":
+              hough_redo: bool, confidence: float, hfov_deg: float | None) -> FrameResult:
         """Wrap a detection with its tracking flags and the steering signals of its rows."""
         st = steering(base.rows, base.vp, base.width, base.height, hfov_deg) \
             if base.status in ("ok", "invalid") else Steering()
@@ -196,6 +197,6 @@ class FrameResult(ImageResult):
                    lateral_px=st.lateral_px, lateral_frac=st.lateral_frac)
 
     @classmethod
-    def failed_frame(cls, source: str | None, frame: int, name: str | None, error: str) -> "FrameResult":
+    def failed_frame(cls, source: str | None, frame: int, name: str | None, error: str) -> FrameResult:
         """Record of a frame that could not be read (status ``error``; the tracker skipped it)."""
         return cls(width=0, height=0, status="error", name=name, error=error, source=source, frame=frame)

@@ -46,12 +46,15 @@ __all__ = [
     "rho_index_table",
     "hypothesis_table",
     "subsample_key",
+    "cache_dir",
 ]
 
 _N_COLORS = 1 << 24
 
 
-def _cache_dir() -> Path:
+def cache_dir() -> Path:
+    """The folder of the shared caches (the LAB table, onnxruntime's optimised models):
+    ``TORCHROW_CACHE``, else ``~/.cache/torchrow``."""
     env = os.environ.get("TORCHROW_CACHE")
     if env:
         return Path(env)
@@ -189,7 +192,7 @@ def lab_table() -> np.ndarray:
     If the folder cannot be written, one :class:`CacheWarning` says so and the table lives
     in memory for this process (400 MB).
     """
-    path = _cache_dir() / _table_name()
+    path = cache_dir() / _table_name()
     table, why = _open_cached(path)
     if table is not None:
         return table
@@ -215,7 +218,7 @@ def lab_table() -> np.ndarray:
 _TORCH_TABLES: dict = {}
 
 
-def lab_table_torch(device: "str | torch.device" = "cpu"):
+def lab_table_torch(device: str | torch.device = "cpu"):
     """The LAB table as a torch ``(2**24, 3)`` float64 tensor on ``device`` (cached per device).
 
     On the CPU it shares memory with the memory map (no copy); elsewhere it is copied once.

@@ -9,18 +9,19 @@ turns it into the same per-image :class:`~torchrow.core.results.ImageResult` rec
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Any
 
 import numpy as np
 import torch
 from torch import nn
 
-from torchrow.core.io import check_color, check_working_size, load_image, resize_to_width, to_rgb8
+from torchrow.core.batch import BatchResult
+from torchrow.core.io import check_working_size, load_image, resize_to_width, to_rgb8
 from torchrow.core.params import Params
-from torchrow.core.results import REASONS, STATUSES, HoughLine, ImageResult, Row, concat_batches
+from torchrow.core.results import STATUSES, concat_batches
 from torchrow.functional import color as fcolor
 from torchrow.functional import lattice as flattice
 from torchrow.functional import ransac as fransac
@@ -32,98 +33,6 @@ from torchrow.functional._checks import check_device, check_images
 __all__ = ["BatchResult", "CropRowDetector", "STATUS_CODES"]
 
 STATUS_CODES = {s: i for i, s in enumerate(STATUSES)}
-
-
-@dataclass
-class BatchResult:
-    """Detections of a batch of ``B`` images of one working size ``width x height``.
-
-    Per image: ``status`` int64 (code into :data:`torchrow.core.results.STATUSES`), ``sky``,
-    ``k``, ``n_rows`` int64, ``bushy`` bool, ``veg_color`` uint8 ``(B, 3)``, ``vp`` float64
-    ``(B, 2)`` with ``has_vp``. Hough lines ``hough_*`` ``(B, n_rows)`` with ``hough_valid``;
-    dropped outliers ``out_*`` ``(B, O)`` with ``out_valid``; rows ``row_a``/``row_b`` float64
-    ``(B, n_rows)`` (``x = a*y + b``), ``row_valid``, ``row_reason`` (code into
-    :data:`torchrow.core.results.REASONS`), ``row_hypothesis``, ``row_present``.
-    ``timings`` holds seconds per stage when the detector was asked to profile.
-    """
-
-    width: int
-    height: int
-    status: torch.Tensor
-    sky: torch.Tensor
-    veg_color: torch.Tensor
-    k: torch.Tensor
-    bushy: torch.Tensor
-    n_rows: torch.Tensor
-    hough_theta: torch.Tensor
-    hough_rho: torch.Tensor
-    hough_weight: torch.Tensor
-    hough_valid: torch.Tensor
-    out_theta: torch.Tensor
-    out_rho: torch.Tensor
-    out_weight: torch.Tensor
-    out_valid: torch.Tensor
-    vp: torch.Tensor
-    has_vp: torch.Tensor
-    row_a: torch.Tensor
-    row_b: torch.Tensor
-    row_valid: torch.Tensor
-    row_reason: torch.Tensor
-    row_hypothesis: torch.Tensor
-    row_present: torch.Tensor
-    theta_step: int = 1
-    timings: dict[str, float] = field(default_factory=dict)
-    #: Improved mode only (None in faithful mode): ``row_c``/``row_e``/``row_confidence`` ``(B, R)``
-    #: float64 (``x = e*y**3 + c*y**2 + a*y + b``) and ``image_confidence`` ``(B,)`` float64.
-    row_c: torch.Tensor | None = None
-    row_e: torch.Tensor | None = None
-    row_confidence: torch.Tensor | None = None
-    image_confidence: torch.Tensor | None = None
-
-    def __len__(self) -> int:
-        return int(self.status.shape[0])
-
-    def results(self, names: Sequence[str | None] | None = None) -> list[ImageResult]:
-        """Per-image records, equal to what :func:`torchrow.reference.detect` returns.
-
-        ``names``: one per image (``ValueError`` otherwise), stored in the records.
-        """
-        if names is not None and len(names) != len(self):
-            raise ValueError(f"results: names must hold one name per image ({len(self)}), got {len(names)}")
-        cpu = {k: (v.cpu() if isinstance(v, torch.Tensor) else v) for k, v in self.__dict__.items()}
-        out = []
-        for b in range(len(self)):
-            def lines(th, rh, wt, ok, b=b):
-                return [HoughLine(int(th[b, j]), int(rh[b, j]), int(wt[b, j]), self.theta_step)
-                        for j in range(th.shape[1]) if bool(ok[b, j])]
-
-            curved = cpu["row_c"] is not None
-            rows = [Row(float(cpu["row_a"][b, j]), float(cpu["row_b"][b, j]), bool(cpu["row_valid"][b, j]),
-                        REASONS[int(cpu["row_reason"][b, j])], int(cpu["row_hypothesis"][b, j]),
-                        *((float(cpu["row_c"][b, j]), float(cpu["row_confidence"][b, j]),
-                           float(cpu["row_e"][b, j])) if curved else ()))
-                    for j in range(cpu["row_a"].shape[1]) if bool(cpu["row_present"][b, j])]
-            vp = (float(cpu["vp"][b, 0]), float(cpu["vp"][b, 1])) if bool(cpu["has_vp"][b]) else None
-            out.append(ImageResult(
-                width=self.width, height=self.height, status=STATUSES[int(cpu["status"][b])],
-                sky=int(cpu["sky"][b]), veg_color=tuple(int(c) for c in cpu["veg_color"][b]),  # type: ignore[arg-type]
-                k=int(cpu["k"][b]), bushy=bool(cpu["bushy"][b]), n_rows=int(cpu["n_rows"][b]),
-                hough=lines(cpu["hough_theta"], cpu["hough_rho"], cpu["hough_weight"], cpu["hough_valid"]),
-                outliers=lines(cpu["out_theta"], cpu["out_rho"], cpu["out_weight"], cpu["out_valid"]),
-                vp=vp, rows=rows, name=None if names is None else names[b],
-                image_confidence=float(cpu["image_confidence"][b]) if curved else float("nan")))
-        return out
-
-
-def _color_override(color: object, batch: int, device: torch.device) -> torch.Tensor:
-    """Validate a given vegetation colour (:func:`torchrow.core.io.check_color`, the reference's
-    rule: integers in [0, 255], any integer dtype or a list) and broadcast it to ``uint8 (B, 3)``."""
-    a = check_color(color, batched=True)
-    if a.shape == (3,):
-        a = np.broadcast_to(a, (batch, 3))
-    if a.shape != (batch, 3):
-        raise ValueError(f"veg_color must have shape (3,) or (B, 3) = ({batch}, 3), got {a.shape}")
-    return torch.from_numpy(np.ascontiguousarray(a, dtype=np.uint8)).to(device)
 
 
 class CropRowDetector(nn.Module):
@@ -183,7 +92,7 @@ class CropRowDetector(nn.Module):
         check_images(images)
         check_working_size(images.shape[3], images.shape[2], self.params.max_pixels)
         bsz = images.shape[0]
-        color = None if veg_color is None else _color_override(veg_color, bsz, self.device)
+        color = None if veg_color is None else fcolor.color_override(veg_color, bsz, self.device)
         step = self.chunk or max(bsz, 1)
         if profile or self.workers <= 1 or bsz <= step or self.device.type != "cpu":
             return self._forward(images, profile, color)
@@ -205,7 +114,7 @@ class CropRowDetector(nn.Module):
         from torchrow.functional import hough as fhough
         fhough.trig(self.params, self.device)
         fhough.rho_table(height, width, self.params, self.device)
-        fransac._table(self.params, self.device)
+        fransac.hypotheses(self.params, self.device)
         lab_table_torch(self.device)
         if self.params.mode == "improved" and self.params.lattice_vp == "search":
             flattice.vp_table(height, width, self.params, self.device)
@@ -231,7 +140,7 @@ class CropRowDetector(nn.Module):
                 timings[name] = now - clock[0]
                 clock[0] = now
 
-        i64 = dict(dtype=torch.int64, device=x.device)
+        i64: dict[str, Any] = dict(dtype=torch.int64, device=x.device)
         sky = fsky.sky_row(x, p)
         lap("sky")
         if veg_color is None:
@@ -248,7 +157,7 @@ class CropRowDetector(nn.Module):
         lap("vegetation")
         band = fransac.ransac_band(bushy, w, p)
         step = self.chunk or max(bsz, 1)
-        parts = []
+        parts: list[tuple[fvan.LineSearch, fransac.Rows | flattice.LatticeRows]] = []
         for s0 in range(0, max(bsz, 1), step):  # chunks of images: memory and cache, never results
             sl = slice(s0, s0 + step)
             ls = fvan.find_lines(hin[sl], p)

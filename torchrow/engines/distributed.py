@@ -14,7 +14,7 @@ batch that the engines form differently.
   threads). Inside a batch the images are grouped by working size
   (:func:`torchrow.engines.runner.run`), so mixed sizes cost extra calls, never wrong results.
   Loaders run *on the workers*: they must be picklable (``functools.partial(load_image,
-  path, width)``, a :class:`torchrow.apps.rosbag.BagFrame`, a lambda over a path) and the paths
+  path, width)``, a :class:`torchrow.core.rosbag.BagFrame`, a lambda over a path) and the paths
   must be readable there (one machine, a shared file system, or object storage read by the
   loader, see :func:`read_binary`). Results come back in input order.
 * **Video** (:func:`track`): one Ray task (a streaming generator) per batch of sequences
@@ -32,8 +32,8 @@ from __future__ import annotations
 
 import os
 import pickle
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -58,7 +58,7 @@ CONNECT_TIMEOUT_S = 3.0
 def _ray():
     try:
         import ray
-        import ray.data  # noqa: F401
+        import ray.data
     except ImportError:
         raise ImportError("the Ray engine needs Ray Data: pip install 'torchrow[ray]'") from None
     return ray
@@ -132,7 +132,7 @@ class _Detect:
 
             self.det = CropRowDetector(params, device=device, workers=threads)
         elif impl == "onnx":
-            from torchrow.engines.export import OnnxDetector
+            from torchrow.onnx.runtime import OnnxDetector
 
             self.det = OnnxDetector(model)
 
@@ -192,9 +192,9 @@ def run(items: Iterable[tuple[str, Callable[[], np.ndarray]]], impl: str = "tens
     actors = [actor.remote(impl=impl, params=params, device=device, model=model, threads=cpus_per_worker)
               for _ in range(n_workers)]
     pool = ActorPool(actors)
-    from torchrow.engines.runner import _progress
+    from torchrow.core.progress import progress as progress_bar
 
-    bar = _progress(total if total is not None else 0, desc, progress)
+    bar = progress_bar(total if total is not None else 0, desc, progress, unit="image")
     nxt, sent, out = 0, 0, 0  # results yielded, inputs sent, batches sent and not yet back
 
     def back() -> Iterator[tuple[int, None, ImageResult, float]]:
@@ -232,7 +232,7 @@ def _track_task(paths: list[str], topic: str | None, names: list[str], impl: str
     ``(position in the batch, record)``."""
     import torch
 
-    from torchrow.apps.video import open_source
+    from torchrow.core.frames import open_source
     from torchrow.engines.runner import track as track_local
 
     torch.set_num_threads(max(1, min(workers, len(paths))))
@@ -253,7 +253,7 @@ def track(sources: Sequence[str | Path], names: Sequence[str] | None = None, imp
           params: Params | None = None, device: str | None = None, hfov_deg: float | None = None,
           topic: str | None = None, skip: dict[int, set[int]] | None = None, batch_size: int = 8,
           workers: int | None = None, address: str | None = None) -> Iterator[tuple[int, dict]]:
-    """Track every source (folder, video file or ROS bag, :func:`torchrow.apps.video.open_source`)
+    """Track every source (folder, video file or ROS bag, :func:`torchrow.core.frames.open_source`)
     on a Ray cluster; yields ``(source index, record)`` as records arrive (frame order within
     a source).
 
@@ -268,7 +268,7 @@ def track(sources: Sequence[str | Path], names: Sequence[str] | None = None, imp
     """
     import torch
 
-    from torchrow.apps.video import open_source
+    from torchrow.core.frames import open_source
     from torchrow.engines.runner import track_batches
 
     ray = init(address)

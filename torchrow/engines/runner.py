@@ -23,12 +23,13 @@ the 1e-6 of ALGORITHM.md "Identical results".
 from __future__ import annotations
 
 import time
-from typing import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
 from torchrow.core.io import ImageError
 from torchrow.core.params import Params
+from torchrow.core.progress import progress as progress_bar
 from torchrow.core.results import ImageResult
 from torchrow.core.steering import FrameResult
 
@@ -37,12 +38,6 @@ __all__ = ["IMPLS", "run", "default_window", "onnx_workers", "track", "track_bat
 IMPLS = ("tensor", "reference", "onnx")
 
 Loader = Callable[[], np.ndarray]
-
-
-def _progress(total: int, desc: str, enabled: bool):
-    from torchrow.apps.progress import progress
-
-    return progress(total, desc, enabled, unit="image")
 
 
 def _load(name: str, loader: Loader) -> tuple[np.ndarray | None, ImageResult | None]:
@@ -67,7 +62,7 @@ def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Param
     ``items`` may be a lazy iterable (read one item at a time; ``total`` sizes the progress
     bar when it has no ``len``). Results come back in input order, each as soon as every
     earlier input's result is out; ``window`` bounds the images held (module docstring). ``impl="onnx"`` runs the exported
-    model ``model`` (:mod:`torchrow.engines.export`) in onnxruntime, in batches of the model's static
+    model ``model`` (:mod:`torchrow.onnx`) in onnxruntime, in batches of the model's static
     batch size (the last one padded; ``batch_size`` is ignored) with the model's parameters;
     images of another working size than the model's get an ``error`` record. ``detector``: an
     already built :class:`~torchrow.engines.detector.CropRowDetector` (or ``OnnxDetector``) to use
@@ -87,8 +82,8 @@ def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Param
         total = len(items)  # type: ignore[arg-type]
     if impl == "onnx":
         if model is None:
-            raise ValueError("impl='onnx' needs model= (an ONNX file written by torchrow.engines.export.to_onnx)")
-        from torchrow.engines.export import OnnxDetector
+            raise ValueError("impl='onnx' needs model= (an ONNX file written by torchrow.onnx.export.to_onnx)")
+        from torchrow.onnx.runtime import OnnxDetector
 
         if workers is None:
             workers = 1 if detector is not None else onnx_workers()
@@ -105,7 +100,7 @@ def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Param
         window = max(default_window(batch_size), (workers + 1) * batch_size)
     if window < batch_size:
         raise ValueError(f"window must be >= batch_size ({batch_size}), got {window}")
-    bar = _progress(total, desc, progress)
+    bar = progress_bar(total, desc, progress, unit="image")
     try:
         if impl == "reference":
             from torchrow.reference import detect
@@ -234,10 +229,10 @@ def _run_tensor(items, params, batch_size, window, device, bar, det=None, worker
 
 
 def source_size(src, params: Params) -> tuple[int, int] | None:
-    """A sequence's working ``(H, W)``: :meth:`torchrow.apps.video.FrameSource.working_size` (the
+    """A sequence's working ``(H, W)``: :meth:`torchrow.core.frames.FrameSource.working_size` (the
     size most of its frames have) where the source has one, else that of its first readable
     frame; ``None`` if no frame is readable."""
-    from torchrow.apps.video import load_item
+    from torchrow.core.frames import load_item
 
     if hasattr(src, "working_size"):
         return src.working_size(params.video_width, params.max_pixels)
@@ -251,7 +246,7 @@ def source_size(src, params: Params) -> tuple[int, int] | None:
 def track(sources: Sequence, names: Sequence[str], impl: str = "tensor", params: Params | None = None,
           batch_size: int = 8, device: str | None = None, hfov_deg: float | None = None,
           workers: int | None = None, onnx=None) -> Iterator[tuple[int, FrameResult, np.ndarray | None]]:
-    """Track frame sources (:func:`torchrow.apps.video.open_source`); yields ``(source index,
+    """Track frame sources (:func:`torchrow.core.frames.open_source`); yields ``(source index,
     FrameResult, working RGB or None)``.
 
     ``impl="reference"`` tracks the sources one after the other; ``"tensor"`` in batches of
@@ -259,7 +254,7 @@ def track(sources: Sequence, names: Sequence[str], impl: str = "tensor", params:
     Frames that carry a ``stamp_ns`` (ROS bag messages) pass it to their result. Results
     stream as the trackers make them. ``workers``: :class:`~torchrow.engines.tracker.Tracker`'s
     (default: torch's thread count on a CPU). ``impl="onnx"`` runs ``onnx``, an
-    :class:`~torchrow.engines.export.OnnxTracker`, on batches of its model's batch size.
+    :class:`~torchrow.onnx.runtime.OnnxTracker`, on batches of its model's batch size.
     """
     params = params or Params()
     stamps: dict[tuple[int, int], int] = {}

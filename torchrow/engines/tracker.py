@@ -1,6 +1,6 @@
 """The batched video-mode tracker: ``torchrow.Tracker`` (ALGORITHM.md section 8).
 
-A thin :class:`torch.nn.Module` over :mod:`torchrow.functional.tracker`. ``B`` independent
+A thin :class:`torch.nn.Module` over :mod:`torchrow.functional.tracking`. ``B`` independent
 sequences advance in lock-step; :meth:`Tracker.track_iter` segments a chunk of frames of
 every sequence in one batched call, then advances the RANSAC/Hough steps frame by frame,
 masking sequences that have ended or whose frame is unreadable. Results equal
@@ -9,23 +9,22 @@ masking sequences that have ended or whose frame is unreadable. Results equal
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Iterable, Iterator, Sequence
 
 import numpy as np
 import torch
 from torch import nn
 
-from torchrow.apps.video import load_items
-from torchrow.core.io import check_working_size, load_image, resize_to_width, to_rgb8
+from torchrow.core.frames import load_items, prepare_frame
+from torchrow.core.io import check_working_size
 from torchrow.core.params import Params
 from torchrow.core.results import concat_batches
 from torchrow.core.steering import FrameResult
-from torchrow.engines.detector import BatchResult
-from torchrow.functional import tracker as ftrack
+from torchrow.functional import tracking as ftrack
 from torchrow.functional._checks import check_device, check_images
-from torchrow.functional.tracker import TrackerState, TrackStep
+from torchrow.functional.tracking import TrackerState, TrackStep
 
 __all__ = ["Tracker", "TrackerState", "TrackStep"]
 
@@ -140,7 +139,7 @@ class Tracker(nn.Module):
         from torchrow.functional import ransac as fransac
 
         fhough.trig(self.params, self.device)  # shared constants exist before the threads read them
-        fransac._table(self.params, self.device)
+        fransac.hypotheses(self.params, self.device)
         lab_table_torch(self.device)
 
         def run(g: slice):
@@ -157,14 +156,14 @@ class Tracker(nn.Module):
             torch.set_num_threads(threads)
 
     def _segment(self, x: torch.Tensor, sky: torch.Tensor, color: torch.Tensor, info0: torch.Tensor):
-        """:func:`torchrow.functional.tracker.segment` over groups of frames."""
+        """:func:`torchrow.functional.tracking.segment` over groups of frames."""
         parts = self._parallel(lambda g: ftrack.segment(x[g], sky[g], color[g], info0[g], self.params),
                                self._groups(x.shape[0]))
         return tuple(torch.cat(t) for t in zip(*parts)) if len(parts) > 1 else parts[0]
 
     def _advance(self, veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, act: torch.Tensor,
                  state: TrackerState) -> tuple[TrackStep, TrackerState]:
-        """:func:`torchrow.functional.tracker.advance` over groups of sequences."""
+        """:func:`torchrow.functional.tracking.advance` over groups of sequences."""
         groups = self._groups(veg.shape[0])
         if veg.shape[0] >= 2 and len(groups) > 1:
             # rho_table is per working size: build it once, outside the threads
@@ -190,40 +189,15 @@ class Tracker(nn.Module):
     def results(self, step: TrackStep, state: TrackerState, width: int, height: int,
                 names: Sequence[str | None] | None = None, sources: Sequence[str | None] | None = None,
                 indices: Sequence[int] | None = None) -> list[FrameResult | None]:
-        """Per-sequence :class:`FrameResult` of a step (``None`` for inactive sequences).
-
-        ``state`` is any state of these sequences after frame 0 (for sky and colour);
-        ``indices`` default to the frame count of ``state`` minus one.
-        """
-        batch = BatchResult(
-            width=width, height=height, status=step.status, sky=state.sky, veg_color=state.veg_color, k=step.k,
-            bushy=step.bushy, n_rows=step.n_rows, hough_theta=step.hough_theta, hough_rho=step.hough_rho,
-            hough_weight=step.hough_weight, hough_valid=step.hough_valid, out_theta=step.out_theta,
-            out_rho=step.out_rho, out_weight=step.out_weight, out_valid=step.out_valid, vp=step.vp,
-            has_vp=step.has_vp, row_a=step.row_a, row_b=step.row_b, row_valid=step.row_valid,
-            row_reason=step.row_reason, row_hypothesis=step.row_hypothesis, row_present=step.row_present,
-            theta_step=self.params.theta_step)
-        base = batch.results(names)
-        active = step.active.cpu().tolist()
-        ran, redo = step.hough_ran.cpu().tolist(), step.hough_redo.cpu().tolist()
-        conf = step.confidence.cpu().tolist()
-        idx = indices if indices is not None else (state.frames - 1).cpu().tolist()
-        out: list[FrameResult | None] = []
-        for b, r in enumerate(base):
-            if not active[b]:
-                out.append(None)
-                continue
-            out.append(FrameResult.build(r, source=None if sources is None else sources[b], frame=int(idx[b]),
-                                         hough_ran=ran[b], hough_redo=redo[b], confidence=conf[b],
-                                         hfov_deg=self.hfov_deg))
-        return out
+        """Per-sequence :class:`FrameResult` of a step (``None`` for inactive sequences):
+        :func:`torchrow.functional.tracking.records` with this tracker's parameters and field of view."""
+        return ftrack.records(step, state, width, height, self.params, self.hfov_deg, names, sources, indices)
 
     # -- arrays in, records out -------------------------------------------------------------
     def prepare(self, frame: np.ndarray | str | Path) -> np.ndarray:
-        """Load a path or convert an array; resize to ``params.video_width``."""
-        if isinstance(frame, (str, Path)):
-            return load_image(frame, self.params.video_width, self.params.max_pixels)
-        return resize_to_width(to_rgb8(frame), self.params.video_width, self.params.max_pixels)
+        """Load a path or convert an array; resize to ``params.video_width``
+        (:func:`torchrow.core.frames.prepare_frame`)."""
+        return prepare_frame(frame, self.params.video_width, self.params.max_pixels)
 
     def step(self, frames: Sequence[np.ndarray] | torch.Tensor, state: TrackerState | None = None,
              names: Sequence[str | None] | None = None) -> tuple[list[FrameResult], TrackerState]:
@@ -251,12 +225,12 @@ class Tracker(nn.Module):
         ----------
         sequences : sequence of iterables
             One iterable of items per sequence (frames or ``(name, frame)``, see
-            :mod:`torchrow.apps.video`); lengths may differ.
+            :mod:`torchrow.core.frames`); lengths may differ.
         sources : sequence of str, optional
             Sequence names stored in the records.
         size : (int, int), optional
             Working ``(H, W)`` of the batch (e.g. the sequences'
-            :meth:`torchrow.apps.video.FrameSource.working_size`); default: the first loaded
+            :meth:`torchrow.core.frames.FrameSource.working_size`); default: the first loaded
             frame's.
 
         Yields
@@ -347,8 +321,9 @@ class Tracker(nn.Module):
                     if t >= len(got[b]):
                         continue
                     i, fr = got[b][t]
-                    if recs[b] is not None:
-                        yield b, recs[b], fr.rgb
+                    rec = recs[b]
+                    if rec is not None:
+                        yield b, rec, fr.rgb
                     else:
                         yield b, FrameResult.failed_frame(srcs[b], i, fr.name, fr.error or "unreadable frame"), None
 

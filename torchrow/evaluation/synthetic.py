@@ -45,9 +45,9 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import cv2
 import numpy as np
@@ -260,12 +260,12 @@ class FieldSpec:
         """Focal length (px) for heading conversions: ``focal_px`` or ``0.75 * W``."""
         return float(self.focal_px) if self.focal_px is not None else 0.75 * self.width
 
-    def replace(self, **changes: object) -> "FieldSpec":
+    def replace(self, **changes: object) -> FieldSpec:
         """A copy with some fields changed (validated like a new object)."""
         return dataclasses.replace(self, **changes)  # type: ignore[arg-type]
 
     @classmethod
-    def at_size(cls, width: int, height: int, **changes: object) -> "FieldSpec":
+    def at_size(cls, width: int, height: int, **changes: object) -> FieldSpec:
         """The default field scaled to ``width x height`` (then ``changes`` applied).
 
         Lengths of the 320 x 240 defaults (``spacing_px``, ``plant_width_px``,
@@ -825,7 +825,7 @@ def write_crp(path: str | Path, crp: np.ndarray) -> Path:
         raise ValueError("crp holds non-finite values")
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    p.write_text("".join("%f\t%f\n" % (c, d) for c, d in a.tolist()))
+    p.write_text("".join(f"{c:f}\t{d:f}\n" for c, d in a.tolist()))
     return p
 
 

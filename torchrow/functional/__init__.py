@@ -14,6 +14,6 @@ Conventions shared by every stage module (:mod:`.sky`, :mod:`.color`, :mod:`.veg
 * results equal the reference's for every image, whatever else shares the batch.
 """
 
-from torchrow.functional import color, hough, kernels, lattice, ransac, sky, vanishing, vegetation  # noqa: E402
+from torchrow.functional import color, hough, kernels, lattice, ransac, sky, vanishing, vegetation
 
 __all__ = ["kernels", "sky", "color", "vegetation", "hough", "vanishing", "ransac", "lattice"]

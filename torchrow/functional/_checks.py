@@ -33,7 +33,7 @@ def check_rows(sky: torch.Tensor, batch: int, name: str = "sky") -> None:
         raise ValueError(f"{name}: expected an integer tensor of shape ({batch},), got {got}")
 
 
-def check_device(device: "str | torch.device | None", name: str = "device") -> torch.device:
+def check_device(device: str | torch.device | None, name: str = "device") -> torch.device:
     """``device`` as a ``torch.device`` that exists here (default CPU), else ``ValueError``.
 
     Checked when a module is built, so that a missing CUDA device is one clear error and not

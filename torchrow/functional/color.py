@@ -42,14 +42,17 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import nn
 
+from torchrow.core.io import check_color
 from torchrow.core.params import Params
 from torchrow.core.tables import lab_table_torch
 from torchrow.functional._checks import check_images
 
 __all__ = [
+    "color_override",
     "LIME",
     "DistinctColors",
     "ColorClusters",
@@ -466,3 +469,14 @@ class VegetationColor(nn.Module):
 
     def extra_repr(self) -> str:
         return f"color_tol={self.params.color_tol}, n_colors={self.params.n_colors}"
+
+
+def color_override(color: object, batch: int, device: torch.device) -> torch.Tensor:
+    """Validate a given vegetation colour (:func:`torchrow.core.io.check_color`, the reference's
+    rule: integers in [0, 255], any integer dtype or a list) and broadcast it to ``uint8 (B, 3)``."""
+    a = check_color(color, batched=True)
+    if a.shape == (3,):
+        a = np.broadcast_to(a, (batch, 3))
+    if a.shape != (batch, 3):
+        raise ValueError(f"veg_color must have shape (3,) or (B, 3) = ({batch}, 3), got {a.shape}")
+    return torch.from_numpy(np.ascontiguousarray(a, dtype=np.uint8)).to(device)

@@ -12,6 +12,7 @@ NumPy as the reference computes it), so no float arithmetic decides a vote here.
 from __future__ import annotations
 
 import functools
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,7 +26,8 @@ from torchrow.functional._checks import check_masks
 from torchrow.functional._flow import branch, check_flow, choose, keep
 
 __all__ = ["HoughState", "EagerVoter", "StaticVoter", "pickable_angles", "erase_bound", "pixel_list", "compact",
-           "trig", "rho_table", "line_distance", "accumulate", "votes", "excluded_angles", "peak"]
+           "trig", "rho_table", "line_distance", "accumulate", "votes", "excluded_angles", "peak",
+           "VoteTables", "vote_tables", "prefix_votes"]
 
 #: Pixels per chunk when accumulating votes: bounds the ``(chunk, n_theta)`` int32 index
 #: temporary to ``180 * 65536 * 4`` bytes (47 MB).
@@ -228,7 +230,7 @@ class HoughState:
     table: torch.Tensor
 
     @classmethod
-    def start(cls, mask: torch.Tensor, params: Params) -> "HoughState":
+    def start(cls, mask: torch.Tensor, params: Params) -> HoughState:
         check_masks(mask, "hough input")
         b, h, w = mask.shape
         d = rho_offset(h, w)
@@ -346,7 +348,7 @@ class StaticVoter(nn.Module):
     * ``scatter_free=True`` (runtimes without a scatter reduction, e.g. TensorRT): the state
       is the raster alive mask bool ``(B, H*W)``; no accumulator is kept; each peak re-votes
       the alive mask by prefix sums of constant permutations
-      (:func:`torchrow.functional.static.votes`).
+      (:func:`prefix_votes`).
 
     Memory (``B`` images): the accumulator twice, ``B*A*(2D+1)*4`` bytes (0.4 MB per image
     at 320x240), the pixel list (``8*H*W`` bytes per image), plus a chunk's ``(B, chunk, A)``
@@ -380,8 +382,6 @@ class StaticVoter(nn.Module):
         n = self.height * self.width
         self.tier = max(1, min(n, int(tier) if tier is not None else max(self.bound, n // 8)))
         if self.scatter_free:
-            from torchrow.functional.static import vote_tables
-
             t = vote_tables(self.height, self.width, params)
             self.register_buffer("order", t.order, persistent=False)
             self.register_buffer("ends", t.ends, persistent=False)
@@ -418,7 +418,7 @@ class StaticVoter(nn.Module):
         chunk = chunk or self.chunk
         fine = k if fine is None else min(k, fine)
         edges = list(range(0, fine, chunk)) + list(range(fine, k, 4 * chunk)) + [k]
-        spans = list(zip(edges[:-1], edges[1:]))
+        spans = list(itertools.pairwise(edges))
 
         def chunks(acc, i0: int, i1: int):
             for i in range(i0, i1):
@@ -458,10 +458,8 @@ class StaticVoter(nn.Module):
 
     def votes(self, state: tuple) -> torch.Tensor:
         if self.scatter_free:
-            from torchrow.functional.static import VoteTables, votes
-
             t = VoteTables(self.angles, self.order, self.ends, self.run_empty, self.n_rho, self.d)
-            return votes(state[0], t)
+            return prefix_votes(state[0], t)
         return state[1]
 
     def erase(self, state: tuple, init: tuple, theta: torch.Tensor, rho: torch.Tensor,
@@ -501,3 +499,71 @@ class StaticVoter(nn.Module):
         """Restore the untouched input (and its votes) where ``which`` bool ``(B,)``."""
         return tuple(torch.where(which.view((-1,) + (1,) * (s.dim() - 1)), s0, s)
                      for s, s0 in zip(state, init[:len(state)]))
+
+
+# ------------------------------------------------------------------------------------------
+# The scatter-free vote of StaticVoter (constant tables per working size)
+# ------------------------------------------------------------------------------------------
+
+@dataclass
+class VoteTables:
+    """Constant tables of the scatter-free vote, for one working size.
+
+    ``angles`` int64 ``(A,)``: the pickable angle indices (``|j*step - 90| >= horizontal_excl``;
+    the others are never peaks, so they are never voted). ``order`` int32 ``(A*H*W,)``: per
+    angle, the raster pixel indices sorted by rho index (stable), concatenated.
+    ``ends`` int64 ``(A*(2D+1),)``: per angle ``a`` and rho index ``r``, the flat position
+    ``a*H*W + e - 1`` of the run end in the angles' concatenated prefix sums, ``e`` the number
+    of pixels whose rho index is ``<= r`` (0 where ``e = 0``); ``empty`` bool ``(A*(2D+1),)``
+    marks ``e = 0`` (no pixel yet: the sum is 0). ``n_rho = 2D+1``, ``d = D``.
+    """
+
+    angles: torch.Tensor
+    order: torch.Tensor
+    ends: torch.Tensor
+    empty: torch.Tensor
+    n_rho: int
+    d: int
+
+
+@functools.lru_cache(maxsize=2)
+def _vote_arrays(height: int, width: int, theta_step: int, horizontal_excl: int):
+    idx = rho_index_table(height, width, theta_step)  # (n_theta, HW)
+    n_theta = idx.shape[0]
+    angles = np.array([j for j in range(n_theta) if abs(j * theta_step - 90) >= horizontal_excl], dtype=np.int64)
+    d = rho_offset(height, width)
+    n_rho = 2 * d + 1
+    sub = idx[angles].astype(np.int64)
+    order = np.argsort(sub, axis=1, kind="stable")
+    ends = np.stack([np.cumsum(np.bincount(s, minlength=n_rho)) for s in sub])
+    empty = ends == 0
+    ends = np.maximum(ends - 1, 0) + np.arange(len(angles), dtype=np.int64)[:, None] * (height * width)
+    return (angles, order.reshape(-1).astype(np.int32), ends.reshape(-1).astype(np.int64), empty.reshape(-1),
+            n_rho, d)
+
+
+def vote_tables(height: int, width: int, params: Params, device: torch.device | str = "cpu") -> VoteTables:
+    """The :class:`VoteTables` of a ``width x height`` working size (cached)."""
+    angles, order, ends, empty, n_rho, d = _vote_arrays(height, width, params.theta_step, params.horizontal_excl)
+    dev = torch.device(device)
+    return VoteTables(torch.from_numpy(angles).to(dev), torch.from_numpy(order).to(dev),
+                      torch.from_numpy(ends).to(dev), torch.from_numpy(empty).to(dev), n_rho, d)
+
+
+def prefix_votes(alive: torch.Tensor, tables: VoteTables) -> torch.Tensor:
+    """Hough votes of the pickable angles without a scatter: bool ``(B, H*W)`` -> int32
+    ``(B, A, 2D+1)``, equal to :func:`votes` at those angles.
+
+    No scatter: gather the mask in each angle's rho order, prefix-sum it, read the sums at
+    the constant run ends, difference along rho.
+    """
+    b, hw = alive.shape
+    n_ang = tables.angles.shape[0]
+    g = torch.index_select(alive.to(torch.int32), 1, tables.order).view(b, n_ang, hw)
+    cs = torch.cumsum(g, dim=2, dtype=torch.int32)
+    # one flat index_select with the constant run ends reads all cells, and a constant mask
+    # zeroes the cells before an angle's first pixel: no per-step (B, A, 2D+1) index or
+    # zero constants in the graph, no copy of the prefix sums
+    upto = torch.index_select(cs.view(b, n_ang * hw), 1, tables.ends).masked_fill(tables.empty, 0)
+    upto = upto.view(b, n_ang, tables.n_rho)
+    return upto - torch.cat([torch.zeros_like(upto[:, :, :1]), upto[:, :, :-1]], dim=2)

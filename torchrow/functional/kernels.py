@@ -318,7 +318,7 @@ def _merge_pairs(n_blocks: int, block: int) -> list[tuple[int, int]]:
     return _batcher_pairs(n_blocks * block, min_block=block)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _median_programs(k: int) -> tuple:
     """Selection programs for the median of a ``k x k`` window (``k`` odd, ``>= 3``).
 
@@ -539,7 +539,7 @@ def column_median(m: torch.Tensor, length: int) -> torch.Tensor:
     _check_planes(m, "m", (torch.bool, torch.uint8))
     if not (isinstance(length, int) and not isinstance(length, bool) and length >= 1 and length % 2 == 1):
         raise ValueError(f"length: expected an odd integer >= 1, got {length!r}")
-    b, h, w = m.shape
+    b, _h, w = m.shape
     half = length // 2
     acc = torch.uint8 if length <= 255 else torch.int32
     zeros = torch.zeros((b, half, w), dtype=acc, device=m.device)

@@ -22,7 +22,7 @@ from torchrow.functional.hough import active_width, cacheable, pixel_list, trig
 
 __all__ = ["RowFit", "RowMoments", "Rows", "fit_rows", "score_hypotheses", "exact_counts", "padded_points",
            "validate_rows", "ransac_band", "image_status", "BandPoints", "kept_points", "list_band_points", "band_member",
-           "subsample_plan", "max_kept", "principal_direction", "REASON_CODES", "SCORE_BUDGET"]
+           "subsample_plan", "max_kept", "principal_direction", "REASON_CODES", "SCORE_BUDGET", "hypotheses"]
 
 #: Reason codes of :attr:`Rows.reason`, indices into :data:`torchrow.core.results.REASONS`.
 REASON_CODES = {r: i for i, r in enumerate(REASONS)}
@@ -231,7 +231,9 @@ def _inliers(px, py, vx, vy, x1, y1, x2, y2, thr: float):
     return pix, vpi
 
 
-def _table(params: Params, device: torch.device) -> torch.Tensor:
+def hypotheses(params: Params, device: torch.device) -> torch.Tensor:
+    """The RANSAC hypothesis table (:func:`torchrow.core.tables.hypothesis_table`) as float64
+    ``(T, 2)`` on ``device``, cached per seed, trial count and device (see :func:`cacheable`)."""
     key = (params.seed, params.ransac_trials, str(device))
     if key not in _TABLES or not cacheable():
         made = torch.tensor(hypothesis_table(params.seed, params.ransac_trials), device=device)
@@ -372,7 +374,7 @@ def fit_rows(veg: torch.Tensor, theta: torch.Tensor, rho: torch.Tensor, present:
     if p == 0:  # no band has a pixel (e.g. an all-soil batch): no row has support
         z = torch.zeros(theta.shape, dtype=torch.float64, device=dev)
         return RowFit(z, z, z, z.clone().fill_(1.0), torch.full_like(theta, -1), torch.zeros_like(present))
-    u = _table(params, dev)  # (T, 2)
+    u = hypotheses(params, dev)  # (T, 2)
     total = (n_keep + v_keep).to(torch.float64)  # (B, S)
     valid_pt = torch.arange(p, device=dev) < n_keep.unsqueeze(2)  # (B, S, P)
     bsz, s = theta.shape

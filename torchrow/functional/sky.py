@@ -35,7 +35,7 @@ from torch import nn
 
 from torchrow.core.params import Params
 from torchrow.functional._checks import check_images
-from torchrow.functional.kernels import box_blur, column_median, erode_rect, gray, laplacian, median_blur  # noqa: F401  (re-exported: stage modules keep their names)
+from torchrow.functional.kernels import box_blur, column_median, erode_rect, gray, laplacian, median_blur
 
 # the kernels stay importable from here (F.sky.gray); they are listed in .kernels' __all__
 __all__ = [

@@ -61,7 +61,8 @@ from torch import nn
 from torchrow.core.params import Params
 from torchrow.core.tables import lab_table_torch
 from torchrow.functional._checks import as_u8, below_horizon, check_images, check_masks, check_params, check_rows, clamp_sky
-from torchrow.functional.kernels import CANNY_SHIFT, TG22, canny_binary  # noqa: F401  (re-exported: stage modules keep their names)
+from torchrow.functional.cielab import lab_f, linear_lut
+from torchrow.functional.kernels import CANNY_SHIFT, TG22, canny_binary
 
 __all__ = [
     "CANNY_SHIFT",
@@ -301,9 +302,7 @@ def _block_lab_bounds(device: torch.device) -> tuple[torch.Tensor, torch.Tensor]
     at the block's lowest and highest corner, and ``L = 116 f(Y) - 16``,
     ``a = 500 (f(X) - f(Y))``, ``b = 200 (f(Y) - f(Z))`` between the combinations of those.
     """
-    from torchrow.functional.static import LINEAR_RGB, lab_f
-
-    lin = torch.from_numpy(LINEAR_RGB()).to(device)
+    lin = torch.from_numpy(linear_lut()).to(device)
     n, s = 256 // _TABLE_BLOCK, _TABLE_BLOCK
     ends = []
     for first in (0, s - 1):

@@ -23,7 +23,7 @@ None of this is used by the hard pipeline; importing or running it changes no re
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import kornia
 import numpy as np

@@ -28,8 +28,8 @@ hard masks of CRBD's training images cover 0-11%, median about 2.5%) it costs up
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -38,8 +38,8 @@ from torchrow.core.params import Params
 from torchrow.evaluation.datasets import CRBD, GroundTruth
 from torchrow.nn import SoftVegetationMask
 
-__all__ = ["TrainingSet", "FitResult", "ColorComparison", "row_band_target", "load_training_set",
-           "band_loss", "mask_precision", "fit_vegetation_color", "compare_colors"]
+__all__ = ["TrainingSet", "FitResult", "row_band_target", "load_training_set",
+           "band_loss", "mask_precision", "fit_vegetation_color"]
 
 
 def row_band_target(gt: GroundTruth, width: int, band: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
@@ -271,81 +271,3 @@ def fit_vegetation_color(images: torch.Tensor, targets: torch.Tensor, regions: t
     return FitResult(color=module.color_uint8().numpy(), init_color=init.numpy(),
                      temperature=float(module.temperature.detach()), history=history,
                      module=module.requires_grad_(False), seconds=time.perf_counter() - t0)
-
-
-@dataclass
-class ColorComparison:
-    """CRDA of the same images under several vegetation-colour choices (:func:`compare_colors`).
-
-    ``names`` image names; ``crda01`` / ``crda03`` ``{arm: float64 (n,)}`` official CRDA at
-    sigma 0.1 / 0.3; ``precision`` / ``fraction`` ``{arm: (n,)}`` of the hard raw mask against
-    the band target; ``results`` ``{arm: [ImageResult]}``; ``colors`` ``{arm: uint8 (n, 3)}``
-    the colour each image was segmented with.
-    """
-
-    names: list[str]
-    crda01: dict[str, np.ndarray]
-    crda03: dict[str, np.ndarray]
-    precision: dict[str, np.ndarray]
-    fraction: dict[str, np.ndarray]
-    results: dict[str, list]
-    colors: dict[str, np.ndarray]
-
-    def table(self) -> str:
-        """One line per arm: official CRDA sigma 0.1 and 0.3 mean / median, mask precision."""
-        lines = [f"{'colour':<22} {'n':>4}  {'CRDA s0.1 mean/median':>22}  {'CRDA s0.3 mean/median':>22}  "
-                 f"{'mask precision':>14}  {'mask size':>9}"]
-        for arm in self.crda01:
-            a, b = self.crda01[arm], self.crda03[arm]
-            lines.append(f"{arm:<22} {len(a):>4}  {a.mean():>10.3f} / {np.median(a):<9.3f}  "
-                         f"{b.mean():>10.3f} / {np.median(b):<9.3f}  {self.precision[arm].mean():>14.3f}  "
-                         f"{self.fraction[arm].mean():>9.3f}")
-        return "\n".join(lines)
-
-
-def compare_colors(crbd: CRBD, indices: Sequence[int], colors: Mapping[str, Sequence[int] | np.ndarray | None],
-                   params: Params | None = None, band: float = 0.3, batch_size: int = 32) -> ColorComparison:
-    """Detect ``indices`` once per colour choice with the hard pipeline and score them.
-
-    Parameters
-    ----------
-    crbd : CRBD
-    indices : sequence of int
-        Images to score (e.g. held-out ``crbd.indices("test")``).
-    colors : mapping
-        ``{arm name: colour}``: ``None`` = per-image clustering (the default pipeline), or an
-        RGB ``uint8`` triple given to every image (``veg_color=``).
-    params : Params, optional
-    band : float
-        Band of :func:`row_band_target` for the mask precision.
-    batch_size : int
-        Images per detector call.
-    """
-    from torchrow.engines.detector import CropRowDetector
-    from torchrow.evaluation.metrics import crda_official
-    from torchrow.functional.vegetation import raw_mask
-
-    p = params or Params()
-    det = CropRowDetector(p)
-    data = load_training_set(crbd, indices, band)
-    out = ColorComparison(data.names, {}, {}, {}, {}, {}, {})
-    for arm, color in colors.items():
-        res, used, prec, frac = [], [], [], []
-        for s0 in range(0, len(indices), batch_size):
-            imgs = data.images[s0:s0 + batch_size]
-            vc = None if color is None else torch.as_tensor(np.asarray(color), dtype=torch.uint8).reshape(3)
-            batch = det(imgs, veg_color=vc)
-            res.extend(batch.results(data.names[s0:s0 + batch_size]))
-            used.append(batch.veg_color)
-            raw = raw_mask(imgs, batch.veg_color, batch.k, batch.sky)
-            pr, fr = mask_precision(raw, data.targets[s0:s0 + batch_size], data.regions[s0:s0 + batch_size])
-            prec.append(pr)
-            frac.append(fr)
-        gts = [crbd.ground_truth(i) for i in indices]
-        out.results[arm] = res
-        out.colors[arm] = torch.cat(used).numpy()
-        out.crda01[arm] = np.array([crda_official(r, g, sigma=0.1) for r, g in zip(res, gts)])
-        out.crda03[arm] = np.array([crda_official(r, g, sigma=0.3) for r, g in zip(res, gts)])
-        out.precision[arm] = np.concatenate(prec)
-        out.fraction[arm] = np.concatenate(frac)
-    return out

@@ -58,7 +58,7 @@ class HoughState:
     d: int
 
     @classmethod
-    def start(cls, mask: np.ndarray, params: Params) -> "HoughState":
+    def start(cls, mask: np.ndarray, params: Params) -> HoughState:
         return cls(mask.copy(), votes(mask, params), rho_offset(*mask.shape))
 
 

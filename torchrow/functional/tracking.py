@@ -1,6 +1,6 @@
 """Batched video-mode row tracker (ALGORITHM.md section 8): B sequences in lock-step.
 
-The rules are those of :mod:`torchrow.reference.tracker` (read its docstring); this module
+The rules are those of :mod:`torchrow.reference.tracking` (read its docstring); this module
 runs them on ``B`` independent sequences at once:
 
 * :func:`init_state` fixes sky, vegetation colour and ``info0`` from each sequence's frame 0;
@@ -22,12 +22,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 
+from torchrow.core.batch import BatchResult
 from torchrow.core.params import Params
+from torchrow.core.steering import FrameResult
 from torchrow.functional import color as fcolor
 from torchrow.functional import ransac as fransac
 from torchrow.functional import sky as fsky
@@ -37,7 +39,7 @@ from torchrow.functional._checks import check_images
 from torchrow.functional._flow import branch
 
 __all__ = ["TrackerState", "TrackStep", "init_state", "merge_state", "segment", "finish_segment", "advance",
-           "coverage", "Stages", "eager_stages",
+           "coverage", "Stages", "eager_stages", "records",
            "STATUS_OK", "STATUS_INVALID", "STATUS_NO_VP", "STATUS_NO_VEGETATION"]
 
 # codes into torchrow.core.results.STATUSES
@@ -85,7 +87,7 @@ class TrackerState:
     row_present: torch.Tensor
 
     @classmethod
-    def empty(cls, batch: int, params: Params, device: torch.device | str = "cpu") -> "TrackerState":
+    def empty(cls, batch: int, params: Params, device: torch.device | str = "cpu") -> TrackerState:
         """State of ``batch`` sequences that have not seen a frame yet."""
         dev = torch.device(device)
         i64 = dict(dtype=torch.int64, device=dev)
@@ -102,7 +104,7 @@ class TrackerState:
     def __len__(self) -> int:
         return int(self.sky.shape[0])
 
-    def select(self, index: torch.Tensor | slice) -> "TrackerState":
+    def select(self, index: torch.Tensor | slice) -> TrackerState:
         """The state of some sequences (index along the batch dimension)."""
         return TrackerState(**{f.name: getattr(self, f.name)[index] for f in dataclasses.fields(self)})
 
@@ -248,7 +250,7 @@ def _where(mask: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor
 @dataclass(frozen=True)
 class Stages:
     """The stages :func:`advance` composes, so that the eager tracker and the exportable
-    tracker step (:class:`torchrow.functional.static.StaticTrackerStep`) share one set of rules.
+    tracker step (:class:`torchrow.onnx.graphs.StaticTrackerStep`) share one set of rules.
 
     ``find_lines(hin bool (B, H, W)) -> LineSearch`` (sections 5-6);
     ``fit_rows(veg, theta, rho, present, vp, band, track=None) ->``
@@ -396,3 +398,38 @@ def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: tor
         prev_valid=status == STATUS_OK, vp=vp, has_vp=has_vp, row_a=rows.a, row_b=rows.b,
         row_present=rows.present)
     return step, merge_state(state, new, active)
+
+
+def records(step: TrackStep, state: TrackerState, width: int, height: int, params: Params,
+            hfov_deg: float | None = None, names: Sequence[str | None] | None = None,
+            sources: Sequence[str | None] | None = None,
+            indices: Sequence[int] | None = None) -> list[FrameResult | None]:
+    """Per-sequence :class:`~torchrow.core.steering.FrameResult` of a step (``None`` for
+    inactive sequences), shared by the eager and the ONNX trackers.
+
+    ``state`` is any state of these sequences after frame 0 (for sky and colour);
+    ``indices`` default to the frame count of ``state`` minus one; ``hfov_deg`` gives the
+    records' heading (:meth:`~torchrow.core.steering.FrameResult.build`).
+    """
+    batch = BatchResult(
+        width=width, height=height, status=step.status, sky=state.sky, veg_color=state.veg_color, k=step.k,
+        bushy=step.bushy, n_rows=step.n_rows, hough_theta=step.hough_theta, hough_rho=step.hough_rho,
+        hough_weight=step.hough_weight, hough_valid=step.hough_valid, out_theta=step.out_theta,
+        out_rho=step.out_rho, out_weight=step.out_weight, out_valid=step.out_valid, vp=step.vp,
+        has_vp=step.has_vp, row_a=step.row_a, row_b=step.row_b, row_valid=step.row_valid,
+        row_reason=step.row_reason, row_hypothesis=step.row_hypothesis, row_present=step.row_present,
+        theta_step=params.theta_step)
+    base = batch.results(names)
+    active = step.active.cpu().tolist()
+    ran, redo = step.hough_ran.cpu().tolist(), step.hough_redo.cpu().tolist()
+    conf = step.confidence.cpu().tolist()
+    idx = indices if indices is not None else (state.frames - 1).cpu().tolist()
+    out: list[FrameResult | None] = []
+    for b, r in enumerate(base):
+        if not active[b]:
+            out.append(None)
+            continue
+        out.append(FrameResult.build(r, source=None if sources is None else sources[b], frame=int(idx[b]),
+                                     hough_ran=ran[b], hough_redo=redo[b], confidence=conf[b],
+                                     hfov_deg=hfov_deg))
+    return out

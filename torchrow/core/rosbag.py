@@ -19,9 +19,10 @@ the command line writes into its record beside ``frame``.
 from __future__ import annotations
 
 import bisect
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -124,7 +125,7 @@ class BagFrame:
 @dataclass
 class BagSource:
     """One image topic of a bag as a frame source (the interface of
-    :class:`torchrow.apps.video.FrameSource`): iterating yields ``(name, BagFrame)`` items named
+    :class:`torchrow.core.frames.FrameSource`): iterating yields ``(name, BagFrame)`` items named
     by the frame number, ``length`` is the topic's message count by the bag's index (by its
     metadata where it has no usable index: then a hint for progress bars, nothing is sized by it)."""
 
@@ -197,7 +198,7 @@ class BagSource:
 
     def working_size(self, width: int, max_pixels: int | None = None) -> tuple[int, int] | None:
         """The sequence's working ``(H, W)``: the one most of its frames have (ties: the
-        earliest), as :meth:`torchrow.apps.video.FrameSource.working_size` for a folder, so an
+        earliest), as :meth:`torchrow.core.frames.FrameSource.working_size` for a folder, so an
         odd first frame cannot make every other frame an error. Sizes come from the messages
         (an ``Image``'s fields, a ``CompressedImage``'s header; decoded only where the header
         cannot be read); ``None`` if no frame is readable. Read once per ``(width, max_pixels)``."""

@@ -38,7 +38,7 @@ class PlainProgress:
         self.n += n
         now = time.monotonic()
         step = max(1, (self.total or 0) // 10)
-        if self.n - self._last_n >= step and now - self._last_t >= min(self.interval, 5.0) \
+        if (self.n - self._last_n >= step and now - self._last_t >= min(self.interval, 5.0)) \
                 or now - self._last_t >= self.interval:
             self._write(self._line())
             self._last_n, self._last_t = self.n, now
@@ -48,7 +48,7 @@ class PlainProgress:
             self._closed = True
             self._write(self._line() + " (done)")
 
-    def __enter__(self) -> "PlainProgress":
+    def __enter__(self) -> PlainProgress:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -64,7 +64,7 @@ class _Silent:
     def close(self) -> None:
         pass
 
-    def __enter__(self) -> "_Silent":
+    def __enter__(self) -> _Silent:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -20,21 +20,21 @@ Rules (the spec's, plus the choices it leaves open, marked *choice*):
   unreadable, the first readable frame becomes frame 0.
 * *choice*: a frame whose working size differs from the sequence's is unreadable in that
   sense. The sequence's size is given to :meth:`Tracker.track_iter` (the CLI gives the size
-  most frames have, :meth:`torchrow.apps.video.FrameSource.working_size`) or is frame 0's.
+  most frames have, :meth:`torchrow.core.frames.FrameSource.working_size`) or is frame 0's.
 * *choice*: tracked frames carry all rows of the previous frame (it was ``ok``, so all of
   them are valid); ``n_rows`` of a tracked frame is their number.
 
-State is an immutable :class:`TrackerState`; :meth:`Tracker.step` returns a new one.
+State is an immutable :class:`SequenceState`; :meth:`Tracker.step` returns a new one.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
-from typing import Iterable, Iterator
 
 import numpy as np
 
-from torchrow.apps.video import load_items
+from torchrow.core.frames import load_items
 from torchrow.core.io import resize_to_width, to_rgb8
 from torchrow.core.params import Params
 from torchrow.core.results import ImageResult
@@ -45,12 +45,13 @@ from torchrow.reference.sky import sky_row
 from torchrow.reference.vanishing import find_lines
 from torchrow.reference.vegetation import adapt_k, density, hough_input, raw_fraction, raw_mask, remove_bushy
 
-__all__ = ["TrackerState", "Tracker"]
+__all__ = ["SequenceState", "Tracker"]
 
 
 @dataclass(frozen=True)
-class TrackerState:
-    """Everything the tracker carries from one frame to the next (plain Python values).
+class SequenceState:
+    """Everything the tracker carries from one frame to the next for one sequence (plain Python
+    values; the batched tracker's is :class:`torchrow.functional.tracking.TrackerState`).
 
     Attributes
     ----------
@@ -115,25 +116,25 @@ class Tracker:
             raise TypeError(f"expected a numpy array (H, W, 3), got {type(frame).__name__}")
         return resize_to_width(to_rgb8(frame), self.params.video_width, self.params.max_pixels)
 
-    def init(self, rgb: np.ndarray) -> TrackerState:
+    def init(self, rgb: np.ndarray) -> SequenceState:
         """State from frame 0 (a working-size RGB image): sky, colour, info0."""
         p = self.params
         h, w = rgb.shape[:2]
         sky = sky_row(rgb, p)
         color, _ = vegetation_color(rgb, p)
         info0 = raw_fraction(raw_mask(rgb, color, p.video_k_start, sky), sky)
-        return TrackerState(width=w, height=h, sky=sky, veg_color=color, info0=info0)
+        return SequenceState(width=w, height=h, sky=sky, veg_color=color, info0=info0)
 
     # -- one frame ------------------------------------------------------------------------
-    def step(self, frame: np.ndarray, state: TrackerState | None = None, *, name: str | None = None,
-             source: str | None = None, index: int | None = None) -> tuple[FrameResult, TrackerState]:
+    def step(self, frame: np.ndarray, state: SequenceState | None = None, *, name: str | None = None,
+             source: str | None = None, index: int | None = None) -> tuple[FrameResult, SequenceState]:
         """Process one frame.
 
         Parameters
         ----------
         frame : numpy.ndarray
             ``(H, W, 3)`` uint8 RGB, any size (resized to ``video_width``).
-        state : TrackerState or None
+        state : SequenceState or None
             The state returned for the previous frame; ``None`` starts a sequence (this
             frame is frame 0).
         name, source, index : optional
@@ -142,7 +143,7 @@ class Tracker:
 
         Returns
         -------
-        (FrameResult, TrackerState)
+        (FrameResult, SequenceState)
             The frame's result and the new state (the given one is not modified).
         """
         rgb = self.prepare(frame)
@@ -180,7 +181,7 @@ class Tracker:
     def _fresh(self, base: ImageResult) -> ImageResult:
         return ImageResult(**{k: getattr(base, k) for k in ImageResult.__dataclass_fields__})
 
-    def _hough(self, veg: np.ndarray, base: ImageResult, state: TrackerState) -> ImageResult:
+    def _hough(self, veg: np.ndarray, base: ImageResult, state: SequenceState) -> ImageResult:
         """Sections 4-7 on the segmented frame (image mode after segmentation)."""
         p = self.params
         res = self._fresh(base)
@@ -198,7 +199,7 @@ class Tracker:
         res.status = "ok" if all(r.valid for r in res.rows) else "invalid"
         return res
 
-    def _tracked(self, veg: np.ndarray, base: ImageResult, state: TrackerState) -> ImageResult:
+    def _tracked(self, veg: np.ndarray, base: ImageResult, state: SequenceState) -> ImageResult:
         """Section 7 with bands around the previous frame's rows and the last Hough VP."""
         p = self.params
         res = self._fresh(base)
@@ -217,13 +218,13 @@ class Tracker:
                    size: tuple[int, int] | None = None) -> Iterator[tuple[FrameResult, np.ndarray | None]]:
         """Track one sequence lazily: yields ``(result, working RGB or None)`` per item.
 
-        Items are frames or ``(name, frame)`` (:mod:`torchrow.apps.video`); unreadable frames,
+        Items are frames or ``(name, frame)`` (:mod:`torchrow.core.frames`); unreadable frames,
         and frames whose working size differs from the sequence's, get ``error`` records.
         The sequence's working ``size`` ``(H, W)`` is given (e.g.
-        :meth:`torchrow.apps.video.FrameSource.working_size`, the size most frames have) or, by
+        :meth:`torchrow.core.frames.FrameSource.working_size`, the size most frames have) or, by
         default, that of the first readable frame; frame 0 is the first readable frame of it.
         """
-        state: TrackerState | None = None
+        state: SequenceState | None = None
         for i, got in enumerate(load_items(items, self.params.video_width, self.params.max_pixels)):
             if got.rgb is not None and size is None:
                 size = got.rgb.shape[:2]

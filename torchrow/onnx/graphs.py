@@ -1,21 +1,23 @@
 """Static-shape, scatter-free formulation of the image-mode detector and of the tracker step
-(:class:`StaticTrackerStep`, at the end), for ONNX export.
+(:class:`StaticTrackerStep`, at the end), for ONNX export (:mod:`torchrow.onnx.export`).
 
 Same results as :class:`torchrow.engines.detector.CropRowDetector` (ALGORITHM.md sections 1 and 3-7),
 written so that ``torch.onnx.export(..., dynamo=True)`` gives a graph whose every shape is
 fixed by ``(B, H, W)`` and the parameters alone:
 
-* **LAB** (section 3) is computed in the graph in float64 (:func:`lab`), not gathered from the
+* **LAB** (section 3) is computed in the graph in float64
+  (:func:`torchrow.functional.cielab.lab_formula`), not gathered from the
   400 MB shared table. Its values are not always bit-identical to the table (the table comes
   from kornia's BLAS ``einsum``), but the box decisions are: ``scripts``/tests check all
-  2**24 colours (see :func:`torchrow.engines.export.check_lab`). The vegetation colour's own LAB
+  2**24 colours (see :func:`torchrow.onnx.checks.check_lab`). The vegetation colour's own LAB
   ``c`` is a graph **input** read from the shared table on the host, so ``c - k`` and
   ``c + k`` are the reference's bits.
 * **Hough voting** (section 5), :class:`~torchrow.functional.hough.StaticVoter`: by default
   one scatter-add vote (``ScatterElements`` with ``reduction="add"``, onnxruntime) of the
   Hough input's compact pixel list, updated by the erased band only. With
   ``scatter_free=True`` (TensorRT cannot take a scatter with a reduction) for every pickable
-  angle a constant permutation lists the pixels sorted by their rho index (from the shared
+  angle a constant permutation (:func:`~torchrow.functional.hough.vote_tables`) lists the
+  pixels sorted by their rho index (from the shared
   :func:`torchrow.core.tables.rho_index_table`), so the votes of one rho cell are a run of
   that order: votes = differences of the prefix sum of the gathered alive mask at the runs'
   constant ends (``Gather``, ``CumSum``, ``GatherElements``, ``Sub``), re-voted at every
@@ -36,148 +38,33 @@ fixed by ``(B, H, W)`` and the parameters alone:
 
 from __future__ import annotations
 
-import functools
-from dataclasses import dataclass
-
-import numpy as np
 import torch
 from torch import nn
 
 from torchrow.core.params import Params
-from torchrow.core.tables import hypothesis_table, rho_index_table, rho_offset
+from torchrow.core.tables import hypothesis_table
 from torchrow.functional import ransac as fransac
 from torchrow.functional import sky as fsky
-from torchrow.functional import tracker as ftrack
+from torchrow.functional import tracking as ftrack
 from torchrow.functional import vegetation as fveg
 from torchrow.functional._flow import check_flow, choose
+from torchrow.functional.cielab import lab_formula, linear_lut
 from torchrow.functional.hough import StaticVoter, pixel_list
 from torchrow.functional.vanishing import LineSearch, find_lines
 
-__all__ = ["lab", "lab_f", "LINEAR_RGB", "VoteTables", "vote_tables", "votes", "StaticDetector", "finish_rows",
-           "GRAPH_OUTPUTS", "StaticTrackerStep", "TRACKER_INPUTS", "TRACKER_OUTPUTS"]
-
-# kornia.color.rgb_to_lab constants (sRGB D65), in the order kornia applies them.
-_XYZ = ((0.412453, 0.357580, 0.180423), (0.212671, 0.715160, 0.072169), (0.019334, 0.119193, 0.950227))
-_WHITE = (0.95047, 1.0, 1.08883)
-_LAB_EPS = 0.008856
-
-
-@functools.lru_cache(maxsize=1)
-def _linear_lut() -> np.ndarray:
-    """sRGB -> linear RGB of the 256 byte values (kornia's formula, float64), ``(256,)``."""
-    import kornia
-
-    v = torch.arange(256, dtype=torch.float64) / 255.0
-    return kornia.color.rgb_to_linear_rgb(v.view(1, 1, 1, 256).expand(1, 3, 1, 256))[0, 0, 0].numpy().copy()
-
-
-LINEAR_RGB = _linear_lut
-
-
-def lab_f(r: torch.Tensor, g: torch.Tensor, b: torch.Tensor) -> list[torch.Tensor]:
-    """``f(X/Xn), f(Y/Yn), f(Z/Zn)`` of linear RGB (float64, broadcastable), kornia's order:
-    the XYZ matrix as ``(k0*r + k1*g) + k2*b``, the white-point division, then the cube root
-    above ``_LAB_EPS`` and ``7.787*t + 4/29`` below (increasing and continuous, as X, Y and Z
-    are in each channel: :func:`torchrow.functional.vegetation.min_k_table` relies on it)."""
-    f = []
-    for row, white in zip(_XYZ, _WHITE):
-        t = (row[0] * r + row[1] * g) + row[2] * b
-        t = t / white
-        f.append(torch.where(t > _LAB_EPS, torch.pow(t.clamp(min=_LAB_EPS), 1 / 3.0), 7.787 * t + 4.0 / 29.0))
-    return f
-
-
-def lab(images: torch.Tensor, lut: torch.Tensor | None = None) -> torch.Tensor:
-    """CIE LAB (D65) of ``uint8 (B, 3, H, W)`` RGB as float64 ``(B, 3, H, W)``, in the graph.
-
-    kornia's ``rgb_to_lab`` written out element-wise: a 256-entry linearisation table, the
-    XYZ matrix as ``(k0*r + k1*g) + k2*b``, white-point division, the cube root branch and
-    ``L = 116*y - 16``, ``a = 500*(x - y)``, ``b = 200*(y - z)``. Values may differ from the
-    shared table by an ulp; the decisions of the vegetation box do not (checked on all
-    2**24 colours by :func:`torchrow.engines.export.check_lab`).
-    """
-    if lut is None:
-        lut = torch.from_numpy(_linear_lut()).to(images.device)
-    # a flat index_select exports as one Gather (advanced indexing gave a slower GatherND)
-    lin = torch.index_select(lut, 0, images.reshape(-1).to(torch.int64)).view(images.shape)  # (B, 3, H, W)
-    r, g, b = lin[:, 0], lin[:, 1], lin[:, 2]
-    x, y, z = lab_f(r, g, b)
-    return torch.stack([(116.0 * y) - 16.0, 500.0 * (x - y), 200.0 * (y - z)], dim=1)
-
+__all__ = ["StaticDetector", "finish_rows", "GRAPH_OUTPUTS", "StaticTrackerStep", "TRACKER_STATE", "TRACKER_STEP",
+           "TRACKER_INPUTS", "TRACKER_OUTPUTS"]
 
 def raw_mask(images: torch.Tensor, veg_lab: torch.Tensor, k: float, sky: torch.Tensor,
              lut: torch.Tensor | None = None) -> torch.Tensor:
     """Section 3.2 with the colour's LAB ``veg_lab`` float64 ``(B, 3)`` given: bool ``(B, H, W)``."""
     lo = (veg_lab - k).view(-1, 3, 1, 1)
     hi = (veg_lab + k).view(-1, 3, 1, 1)
-    v = lab(images, lut)
+    v = lab_formula(images, lut)
     inside = ((lo <= v) & (v <= hi)).all(dim=1)
     h = images.shape[2]
     below = torch.arange(h, device=images.device).view(1, h, 1) >= sky.view(-1, 1, 1)
     return inside & below
-
-
-@dataclass
-class VoteTables:
-    """Constant tables of the scatter-free vote, for one working size.
-
-    ``angles`` int64 ``(A,)``: the pickable angle indices (``|j*step - 90| >= horizontal_excl``;
-    the others are never peaks, so they are never voted). ``order`` int32 ``(A*H*W,)``: per
-    angle, the raster pixel indices sorted by rho index (stable), concatenated.
-    ``ends`` int64 ``(A*(2D+1),)``: per angle ``a`` and rho index ``r``, the flat position
-    ``a*H*W + e - 1`` of the run end in the angles' concatenated prefix sums, ``e`` the number
-    of pixels whose rho index is ``<= r`` (0 where ``e = 0``); ``empty`` bool ``(A*(2D+1),)``
-    marks ``e = 0`` (no pixel yet: the sum is 0). ``n_rho = 2D+1``, ``d = D``.
-    """
-
-    angles: torch.Tensor
-    order: torch.Tensor
-    ends: torch.Tensor
-    empty: torch.Tensor
-    n_rho: int
-    d: int
-
-
-@functools.lru_cache(maxsize=2)
-def _vote_arrays(height: int, width: int, theta_step: int, horizontal_excl: int):
-    idx = rho_index_table(height, width, theta_step)  # (n_theta, HW)
-    n_theta = idx.shape[0]
-    angles = np.array([j for j in range(n_theta) if abs(j * theta_step - 90) >= horizontal_excl], dtype=np.int64)
-    d = rho_offset(height, width)
-    n_rho = 2 * d + 1
-    sub = idx[angles].astype(np.int64)
-    order = np.argsort(sub, axis=1, kind="stable")
-    ends = np.stack([np.cumsum(np.bincount(s, minlength=n_rho)) for s in sub])
-    empty = ends == 0
-    ends = np.maximum(ends - 1, 0) + np.arange(len(angles), dtype=np.int64)[:, None] * (height * width)
-    return (angles, order.reshape(-1).astype(np.int32), ends.reshape(-1).astype(np.int64), empty.reshape(-1),
-            n_rho, d)
-
-
-def vote_tables(height: int, width: int, params: Params, device: torch.device | str = "cpu") -> VoteTables:
-    """The :class:`VoteTables` of a ``width x height`` working size (cached)."""
-    angles, order, ends, empty, n_rho, d = _vote_arrays(height, width, params.theta_step, params.horizontal_excl)
-    dev = torch.device(device)
-    return VoteTables(torch.from_numpy(angles).to(dev), torch.from_numpy(order).to(dev),
-                      torch.from_numpy(ends).to(dev), torch.from_numpy(empty).to(dev), n_rho, d)
-
-
-def votes(alive: torch.Tensor, tables: VoteTables) -> torch.Tensor:
-    """Hough votes of the pickable angles: bool ``(B, H*W)`` -> int32 ``(B, A, 2D+1)``.
-
-    No scatter: gather the mask in each angle's rho order, prefix-sum it, read the sums at
-    the constant run ends, difference along rho.
-    """
-    b, hw = alive.shape
-    n_ang = tables.angles.shape[0]
-    g = torch.index_select(alive.to(torch.int32), 1, tables.order).view(b, n_ang, hw)
-    cs = torch.cumsum(g, dim=2, dtype=torch.int32)
-    # one flat index_select with the constant run ends reads all cells, and a constant mask
-    # zeroes the cells before an angle's first pixel: no per-step (B, A, 2D+1) index or
-    # zero constants in the graph, no copy of the prefix sums
-    upto = torch.index_select(cs.view(b, n_ang * hw), 1, tables.ends).masked_fill(tables.empty, 0)
-    upto = upto.view(b, n_ang, tables.n_rho)
-    return upto - torch.cat([torch.zeros_like(upto[:, :, :1]), upto[:, :, :-1]], dim=2)
 
 
 #: Names of the exported graph's outputs, in order (see :class:`StaticDetector`).
@@ -217,6 +104,9 @@ class StaticDetector(nn.Module):
         scatter-add vote updated by the erased bands (:class:`~torchrow.functional.hough.StaticVoter`).
     """
 
+    lut: torch.Tensor  # buffers: the linearisation table and the RANSAC hypotheses
+    u: torch.Tensor
+
     def __init__(self, height: int = 240, width: int = 320, params: Params | None = None,
                  score_chunks: int = 4, flow: str = "loop", scatter_free: bool = False) -> None:
         super().__init__()
@@ -228,7 +118,7 @@ class StaticDetector(nn.Module):
         hw = self.height * self.width
         #: list entries the short band-point form covers (an eighth of the image)
         self.band_tier = max(min(hw, fransac.max_kept(self.params)), hw // 8)
-        self.register_buffer("lut", torch.from_numpy(_linear_lut().copy()), persistent=False)
+        self.register_buffer("lut", torch.from_numpy(linear_lut().copy()), persistent=False)
         self.register_buffer("u", torch.from_numpy(hypothesis_table(self.params.seed, self.params.ransac_trials).copy()),
                              persistent=False)
 
@@ -291,7 +181,7 @@ class StaticDetector(nn.Module):
 
     def forward(self, images: torch.Tensor, veg_lab: torch.Tensor):
         p = self.params
-        bsz, _, h, w = images.shape
+        _bsz, _, h, w = images.shape
         if (h, w) != (self.height, self.width):
             raise ValueError(f"StaticDetector built for {self.width}x{self.height}, got images {w}x{h}")
         sky = fsky.sky_row(images, p)
@@ -331,7 +221,7 @@ TRACKER_STATE = ("sky", "info0", "ready", "frames", "age", "prev_valid", "vp", "
 #: Inputs of the exported tracker step, in order (see :class:`StaticTrackerStep`): the frames,
 #: each sequence's ``k`` table, the active mask, then ``state_<field>`` of the state.
 TRACKER_INPUTS = ("images", "k_table", "active") + tuple("state_" + f for f in TRACKER_STATE)
-#: Fields of :class:`~torchrow.functional.tracker.TrackStep` the graph returns (all but ``active``).
+#: Fields of :class:`~torchrow.functional.tracking.TrackStep` the graph returns (all but ``active``).
 TRACKER_STEP = tuple(f for f in ftrack.TrackStep.__dataclass_fields__ if f != "active")
 #: Outputs of the exported tracker step: the step's fields, then ``next_<field>`` of the new state.
 TRACKER_OUTPUTS = TRACKER_STEP + tuple("next_" + f for f in TRACKER_STATE)
@@ -340,7 +230,7 @@ TRACKER_OUTPUTS = TRACKER_STEP + tuple("next_" + f for f in TRACKER_STATE)
 class StaticTrackerStep(nn.Module):
     """The exportable tracker step: one frame of ``B`` sequences + their state -> rows + new state.
 
-    The rules are :func:`torchrow.functional.tracker.advance` itself, composed from the
+    The rules are :func:`torchrow.functional.tracking.advance` itself, composed from the
     static stages of :class:`StaticDetector`. With ``control_flow=True`` (default) the
     tracked fit and the Hough stage each sit in a ``torch.cond`` (an ONNX ``If``) that skips
     them when no sequence of the batch needs them: a tracked frame of one camera then costs
@@ -373,7 +263,7 @@ class StaticTrackerStep(nn.Module):
 
     ``forward(images uint8 (B, 3, H, W), k_table uint8 (B, 2**24), active bool (B,), *state)``
     with the state fields :data:`TRACKER_STATE` (dtypes and shapes of
-    :class:`~torchrow.functional.tracker.TrackerState`) returns the tuple
+    :class:`~torchrow.functional.tracking.TrackerState`) returns the tuple
     :data:`TRACKER_OUTPUTS`. Inactive sequences keep their state.
 
     Memory: the detector's (the vote gathers ``(B, A, H*W)`` int32, band temporaries

@@ -1,0 +1,215 @@
+"""ONNX export of the image-mode detector and of the tracker step: :func:`to_onnx`.
+
+:func:`to_onnx` exports :class:`torchrow.onnx.graphs.StaticDetector` (a static-shape,
+scatter-free formulation of ALGORITHM.md sections 1 and 3-7) or
+:class:`torchrow.onnx.graphs.StaticTrackerStep` with torch's dynamo-based exporter
+(``torch.onnx.export(..., dynamo=True)``, opset 18 by default) for one working size and batch
+size, under the exporter shims of :mod:`torchrow.onnx.shims`, then applies the passes of
+:mod:`torchrow.onnx.passes` and stores the torchrow metadata (:mod:`torchrow.onnx.metadata`).
+:class:`torchrow.onnx.runtime.OnnxDetector` runs such a model in onnxruntime and returns the
+same :class:`~torchrow.core.batch.BatchResult` / records as :class:`~torchrow.CropRowDetector`.
+
+Graph inputs: ``images`` uint8 ``(B, 3, H, W)`` RGB, ``veg_lab`` float64 ``(B, 3)``.
+Outputs: :data:`torchrow.onnx.graphs.GRAPH_OUTPUTS`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+
+import torch
+
+from torchrow.core.params import Params
+from torchrow.onnx.passes import ORT_NATIVE, compact_names, drop_unused_initializers, legalize
+from torchrow.onnx.shims import float64_python_constants, nested_subgraph_opsets
+
+__all__ = ["to_onnx", "DEFAULT_OPSET", "MAX_EXPORT_BATCH"]
+
+DEFAULT_OPSET = 18
+
+#: Largest static batch of an export: the example inputs (and the tracker's ``k_table``, 16 MiB
+#: per sequence) are allocated before tracing, and a graph's intermediate tensors grow with it.
+MAX_EXPORT_BATCH = {"detector": 256, "tracker": 64}
+
+
+def _check_shape(height: int, width: int, batch: int, opset: int, params: Params, tracker: bool) -> None:
+    """One-line ``ValueError`` for a size that is not an integer in range, checked before any
+    tracing or allocation: the working image within ``params.max_pixels`` (ALGORITHM.md 0.1)
+    and the batch within :data:`MAX_EXPORT_BATCH`."""
+    kind = "tracker" if tracker else "detector"
+    for name, v, lo, hi in (("height", height, 1, params.max_pixels), ("width", width, 1, 4096),
+                            ("batch", batch, 1, MAX_EXPORT_BATCH[kind]), ("opset", opset, 18, None)):
+        if not isinstance(v, int) or isinstance(v, bool) or v < lo:
+            raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
+        if hi is not None and v > hi:
+            raise ValueError(f"{name} of a {kind} export must be <= {hi}, got {v}")
+    if height * width > params.max_pixels:
+        raise ValueError(f"a {width}x{height} working image has {height * width} pixels, more than "
+                         f"max_pixels = {params.max_pixels} (ALGORITHM.md 0.1)")
+
+
+def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 1, params: Params | None = None,
+            opset: int = DEFAULT_OPSET, optimize: bool = True, tracker: bool = False,
+            control_flow: bool = True, scatter_free: bool = False, progress=None) -> Path:
+    """Export the image-mode detector (or, with ``tracker=True``, the tracker step) as a
+    static-shape ONNX graph.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output ``.onnx`` file (its folder must exist).
+    height, width : int
+        Working size of the images the graph takes (CRBD: 240 x 320).
+    batch : int
+        Static batch size ``B``.
+    params : Params, optional
+        Detector constants, baked into the graph (stored in the model's metadata).
+    opset : int
+        ONNX opset, 18 or newer (default 18).
+
+    tracker : bool
+        Export :class:`torchrow.onnx.graphs.StaticTrackerStep` (one frame of ``B``
+        sequences + their state -> rows + new state; run it with :class:`OnnxTracker`).
+        ``width`` must then equal ``params.video_width`` (set it with ``params``).
+    control_flow : bool
+        Skip work no image needs (default): the line search is one ONNX ``Loop`` that stops
+        once every image is finished (its body traced and stored once: the export takes
+        about a minute, not twenty), and ``If`` nodes skip vote chunks past every image's
+        pixel count and, for the tracker, the Hough stage and the tracked fit. ``False``
+        gives a graph without ``Loop`` or ``If`` that always runs every step to the static
+        bound and masks the results (slower; same results).
+    scatter_free : bool
+        Vote without ``ScatterElements(reduction="add")`` (prefix sums of constant
+        permutations, re-voted at every line-search step) for runtimes without a scatter
+        reduction (TensorRT). Slower on a CPU; same results.
+    progress : callable, optional
+        Called with a short phase name (``"trace"``, ``"onnx"``, ``"optimize"``, ``"save"``)
+        as each phase of the export starts.
+
+    Returns
+    -------
+    Path
+        ``path``. The detector has inputs ``images`` uint8 ``(B, 3, H, W)`` and ``veg_lab``
+        float64 ``(B, 3)`` and the outputs :data:`torchrow.onnx.graphs.GRAPH_OUTPUTS`;
+        the tracker step has the inputs :data:`~torchrow.onnx.graphs.TRACKER_INPUTS`
+        and outputs :data:`~torchrow.onnx.graphs.TRACKER_OUTPUTS`.
+    """
+    import json
+    import warnings
+
+    import onnx
+
+    from torchrow.onnx import graphs as static
+
+    params = params or Params()
+    _check_shape(height, width, batch, opset, params, tracker)
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise FileNotFoundError(f"output folder does not exist: {path.parent}")
+    images = torch.zeros((batch, 3, height, width), dtype=torch.uint8)
+    veg_lab = torch.zeros((batch, 3), dtype=torch.float64)
+    if tracker:
+        if width != params.video_width:
+            raise ValueError(f"the tracker step works at params.video_width = {params.video_width} px, "
+                             f"got width {width}")
+        from torchrow.functional.tracking import TrackerState
+
+        module = static.StaticTrackerStep(height, width, params, control_flow=control_flow,
+                                          scatter_free=scatter_free).eval()
+        empty = TrackerState.empty(batch, params)
+        k_table = torch.zeros((batch, 1 << 24), dtype=torch.uint8)
+        args = (images, k_table, torch.ones(batch, dtype=torch.bool)) + tuple(
+            getattr(empty, f) for f in static.TRACKER_STATE)
+        names, outputs = list(static.TRACKER_INPUTS), list(static.TRACKER_OUTPUTS)
+    else:
+        module = static.StaticDetector(height, width, params, flow="loop" if control_flow else "always",
+                                       scatter_free=scatter_free).eval()
+        args = (images, veg_lab)
+        names, outputs = ["images", "veg_lab"], list(static.GRAPH_OUTPUTS)
+    import sys
+
+    shown = sys.stdout  # the exporter's own prints are silenced below; the caller's progress is not
+
+    def note(phase: str) -> None:
+        if progress is not None:
+            with contextlib.redirect_stdout(shown):
+                progress(phase)
+
+    with warnings.catch_warnings(), torch.no_grad(), _quiet_exporter():
+        warnings.simplefilter("ignore")
+        note("trace")
+        ep = torch.export.export(module, args, strict=False)
+        # bool <-> uint8/int8 reinterpretations in the vegetation stage only ever hold 0/1,
+        # whose bit patterns equal their cast values: export them as Cast.
+        if not control_flow:
+            ep = ep.run_decompositions({torch.ops.aten.view.dtype: _view_as_cast})
+            table = None
+        else:  # re-decomposing a program with torch.cond subgraphs fails validation: translate instead
+            table = {torch.ops.aten.view.dtype: _view_dtype_onnx}
+        note("onnx")
+        with float64_python_constants(), nested_subgraph_opsets():
+            prog = torch.onnx.export(ep, dynamo=True, opset_version=opset, input_names=names,
+                                     output_names=outputs, verbose=False, optimize=False,
+                                     custom_translation_table=table)
+        if optimize:
+            # Constant folding and dead-node removal only: the exporter's default optimizer
+            # also runs onnxscript's pattern rewriter, which took ~80% of a 9-minute export
+            # of this unrolled graph (hundreds of thousands of match attempts) for no gain.
+            from onnxscript import optimizer
+
+            note("optimize")
+            optimizer.fold_constants_ir(prog.model)
+            optimizer.remove_unused_nodes(prog.model)
+    note("save")
+    # onnxruntime runs small-integer arithmetic natively; the scatter-free form is for other
+    # runtimes (TensorRT), which need int32
+    model = compact_names(drop_unused_initializers(legalize(prog.model_proto, None if scatter_free else ORT_NATIVE)))
+    meta = {"torchrow_format": "1", "kind": "tracker" if tracker else "detector", "height": str(height),
+            "width": str(width), "batch": str(batch), "control_flow": str(bool(control_flow)),
+            "scatter_free": str(bool(scatter_free)),
+            "params": json.dumps(_params_dict(params)), "exporter": f"torch.onnx dynamo, torch {torch.__version__}",
+            "opset": str(opset)}
+    for k, v in meta.items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = k, v
+    onnx.save(model, str(path))
+    return path
+
+
+@contextlib.contextmanager
+def _quiet_exporter():
+    """Silence the exporter's logged notices (``torchvision is not installed. Skipping ...``,
+    one line per torchvision op) and its progress prints, which are not warnings."""
+    import io
+    import logging
+
+    names = ("torch.onnx", "torch.onnx._internal.exporter._registration", "torch.export", "torch._export",
+             "onnxscript")
+    loggers = [logging.getLogger(n) for n in names]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.ERROR)
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):
+            yield
+    finally:
+        for lg, lv in zip(loggers, levels):
+            lg.setLevel(lv)
+
+
+def _view_dtype_onnx(x, dtype: int):
+    """``aten.view.dtype`` of a 0/1 tensor as an ONNX ``Cast``."""
+    from onnxscript import opset18 as op
+
+    return op.Cast(x, to=int(dtype))  # the exporter hands over the ONNX element type
+
+
+def _view_as_cast(x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    return x.to(dtype)
+
+
+def _params_dict(params: Params) -> dict:
+    import dataclasses
+
+    return {f.name: getattr(params, f.name) for f in dataclasses.fields(params)}
