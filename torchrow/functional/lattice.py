@@ -400,7 +400,12 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, 
     bsz, h, w = mask.shape
     params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
     dev = mask.device
-    v = vp_search(mask, params) if params.lattice_vp == "search" else init_vp(vp, has_vp, w, params)
+    if params.lattice_vp == "search":
+        v = vp_search(mask, params)
+    elif vp is None or has_vp is None:
+        raise ValueError(f"lattice_vp={params.lattice_vp!r} needs section 6's vp and has_vp, got None")
+    else:
+        v = init_vp(vp, has_vp, w, params)
     spacing, phase, found, contrast = comb_search(mask, v, params)
     den = ((h - 1) - v[:, 1]).to(torch.float64)
     ph = phase.to(torch.float64)
