@@ -554,3 +554,23 @@ def test_improved_record_round_trip() -> None:
     assert [r.c for r in back.rows] == [r.c for r in res.rows]
     assert [r.e for r in back.rows] == [r.e for r in res.rows] and any(r.e != 0.0 for r in res.rows)
     assert back.image_confidence == res.image_confidence
+
+
+@pytest.mark.parametrize("model", ["auto", "straight"])
+def test_model_choice_and_weak_status_agree_between_paths(model: str) -> None:
+    # sections 11.3.1 and 11.4: the straight lattice, the curved refit kept by the gain rule,
+    # and the evidence thresholds give the same records in both paths
+    params = IMPROVED.replace(lattice_model=model, lattice_min_contrast=0.3, lattice_min_image_confidence=0.5)
+    noise = np.random.default_rng(5).integers(0, 256, (240, 320, 3), dtype=np.uint8)
+    images = [_field(), _s_field(), _field(spacing=60.0, shift=30.0, curve=0.002, seed=4), noise]
+    got = CropRowDetector(params)(torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2).contiguous())
+    for res, img in zip(got.results([str(i) for i in range(len(images))]), images):
+        want = detect(img, params, name=res.name)
+        assert res.status == want.status
+        assert [(r.valid, r.e == 0.0) for r in res.rows] == [(r.valid, r.e == 0.0) for r in want.rows]
+        assert np.allclose([(r.a, r.b, r.c, r.e) for r in res.rows], [(r.a, r.b, r.c, r.e) for r in want.rows],
+                           atol=1e-9, rtol=0)
+    statuses = [r.status for r in got.results([str(i) for i in range(len(images))])]
+    assert statuses[-1] != "ok"  # uniform noise holds no crop rows
+    if model == "straight":
+        assert all(r.e == 0.0 and r.c == 0.0 for r in detect(images[1], params).rows)

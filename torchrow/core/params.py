@@ -119,7 +119,7 @@ class Params:
     lattice_min_spacing_px: float = 2.0  # pixels where d(t) <= this are not assigned
     lattice_pivot_tol: float = 1e-12  # pivot <= this * max(its diagonal entry, 1): singular normal equations
     lattice_min_confidence: float = 0.0  # rows below this confidence are invalid
-    lattice_model: str = "auto"  # "auto": straight lattice, curved kept where it gains support; "straight"; "curved"
+    lattice_model: str = "curved"  # "curved" (one curved refit); "straight"; "auto": straight, curved where it gains support
     lattice_curve_gain: float = 0.1  # "auto": the curved refit must hold this fraction more inlier pixels
     lattice_min_contrast: float = 0.0  # status ok needs the comb's contrast per binned pixel at least this
     lattice_min_image_confidence: float = 0.0  # status ok needs the image confidence at least this
