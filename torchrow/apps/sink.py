@@ -39,10 +39,11 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from collections.abc import Callable, Hashable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
+
+from torchrow.core.tables import write_atomic
 
 __all__ = ["RecordSink", "SinkError", "image_key", "frame_key", "read_records", "PARQUET_ROW_GROUP",
            "journal_path", "header_path", "output_paths", "bytes_safe", "records_to_parquet",
@@ -295,19 +296,9 @@ def _open_locked(path: Path):
 
 
 def _write_header(path: Path, header: dict) -> None:
-    """The run header, written atomically (a temporary file beside it, renamed over it)."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(_safe({"torchrow_run": 1, **header}), fh, indent=1)
-            fh.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    """The run header, written atomically (:func:`torchrow.core.tables.write_atomic`)."""
+    text = json.dumps(_safe({"torchrow_run": 1, **header}), indent=1) + "\n"
+    write_atomic(path, lambda fh: fh.write(text.encode()))
 
 
 def _check_header(path: Path, header: dict) -> dict:

@@ -20,7 +20,15 @@ from pathlib import Path
 
 import numpy as np
 
-from torchrow.core.io import IMAGE_EXTENSIONS, ImageError, header_size, load_image, resize_to_width, to_rgb8, working_size
+from torchrow.core.io import (
+    IMAGE_EXTENSIONS,
+    ImageError,
+    header_size,
+    load_image,
+    majority_working_size,
+    resize_to_width,
+    to_rgb8,
+)
 
 __all__ = ["prepare_frame", "LoadedFrame", "load_item", "load_items", "READ_AHEAD", "VIDEO_EXTENSIONS", "FrameSource",
            "open_source", "display_name", "cv2_name"]
@@ -208,25 +216,14 @@ class FrameSource:
         files whose header cannot be read; videos: the first readable frame (all frames of a
         video have one size). ``None`` if no frame is readable.
         """
-        counts: dict[tuple[int, int], int] = {}
         if self.kind == "folder":
-            for f in self.files:
-                try:
-                    size0 = header_size(f)
-                    if size0 is None:
-                        h0, w0 = load_image(f).shape[:2]
-                    else:
-                        w0, h0 = size0
-                    w, h = working_size(w0, h0, width, max_pixels)
-                except (ImageError, OSError):
-                    continue
-                counts[(h, w)] = counts.get((h, w), 0) + 1
-        else:
-            for item in self:
-                got = load_item(item, width, max_pixels)
-                if got.rgb is not None:
-                    return got.rgb.shape[:2]
-        return max(counts, key=lambda s: counts[s]) if counts else None  # first of the most common
+            return majority_working_size(
+                ((functools.partial(header_size, f), functools.partial(load_image, f)) for f in self.files), width, max_pixels)
+        for item in self:
+            got = load_item(item, width, max_pixels)
+            if got.rgb is not None:
+                return got.rgb.shape[:2]
+        return None
 
 
 def open_source(path: str | Path, topic: str | None = None):

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import functools
 import io
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +21,7 @@ import numpy as np
 
 __all__ = ["ImageError", "IMAGE_EXTENSIONS", "MAX_DECODE_PIXELS", "MAX_FILE_BYTES", "to_rgb8", "resize_to_width",
            "load_image", "decode_image", "check_file_size", "working_size", "check_working_size", "lattice_params",
-           "check_color", "header_size"]
+           "check_color", "header_size", "majority_working_size"]
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 
@@ -259,3 +260,27 @@ def check_color(color: object, name: str = "veg_color", batched: bool = False) -
     if a.size and (a.min() < 0 or a.max() > 255):
         raise ValueError(f"{name} must be RGB integers in [0, 255], got {color!r}")
     return a
+
+
+def majority_working_size(frames: Iterable[tuple[Callable[[], tuple[int, int] | None], Callable[[], np.ndarray]]],
+                          width: int, max_pixels: int | None = None) -> tuple[int, int] | None:
+    """The working ``(H, W)`` most of a sequence's frames have (ties: the earliest; ALGORITHM.md 8).
+
+    ``frames`` yields per frame ``(size, load)``: ``size()`` its source ``(W0, H0)`` from a
+    header, or ``None`` when the header cannot tell, and ``load()`` the decoded frame, only
+    called then. Frames that fail (:class:`ImageError`, ``OSError``) or exceed ``max_pixels``
+    are skipped; ``None`` if no frame is readable.
+    """
+    counts: dict[tuple[int, int], int] = {}
+    for size, load in frames:
+        try:
+            size0 = size()
+            if size0 is None:
+                h0, w0 = load().shape[:2]
+            else:
+                w0, h0 = size0
+            w, h = working_size(w0, h0, width, max_pixels)
+        except (ImageError, OSError):
+            continue
+        counts[(h, w)] = counts.get((h, w), 0) + 1
+    return max(counts, key=lambda s: counts[s]) if counts else None  # dicts keep order: first of the most common

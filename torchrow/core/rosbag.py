@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from torchrow.core.io import ImageError, decode_image, header_size, resize_to_width, to_rgb8, working_size
+from torchrow.core.io import ImageError, decode_image, header_size, majority_working_size, resize_to_width, to_rgb8, working_size
 
 __all__ = ["BagError", "BagFrame", "BagSource", "ENCODINGS", "IMAGE_TYPES", "is_bag", "open_bag"]
 
@@ -204,19 +204,7 @@ class BagSource:
         cannot be read); ``None`` if no frame is readable. Read once per ``(width, max_pixels)``."""
         key = (width, max_pixels)
         if key not in self._sizes:
-            counts: dict[tuple[int, int], int] = {}
-            for f in self.frames():
-                try:
-                    size0 = f.size()
-                    if size0 is None:
-                        h0, w0 = f().shape[:2]
-                    else:
-                        w0, h0 = size0
-                    w, h = working_size(w0, h0, width, max_pixels)
-                except (ImageError, OSError):
-                    continue
-                counts[(h, w)] = counts.get((h, w), 0) + 1
-            self._sizes[key] = max(counts, key=lambda s: counts[s]) if counts else None  # first of the most common
+            self._sizes[key] = majority_working_size(((f.size, f) for f in self.frames()), width, max_pixels)
         return self._sizes[key]
 
 

@@ -37,6 +37,7 @@ from torchrow.core.params import Params
 
 __all__ = [
     "CacheWarning",
+    "write_atomic",
     "lab_table",
     "lab_table_torch",
     "rgb_to_lab",
@@ -113,7 +114,7 @@ def _stamp(path: Path) -> dict:
     return {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "ctime_ns": st.st_ctime_ns, "inode": st.st_ino}
 
 
-def _write_atomic(path: Path, write) -> None:
+def write_atomic(path: Path, write) -> None:
     """``write(file)`` into a temporary file beside ``path``, then rename it over ``path``
     (mode 0644: the cache is meant to be shared). The temporary file never outlives a failure."""
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -132,7 +133,7 @@ def _write_atomic(path: Path, write) -> None:
 
 def _record_check(path: Path, crc: int) -> None:
     record = {"crc32": crc, **_stamp(path)}
-    _write_atomic(_check_path(path), lambda fh: fh.write(json.dumps(record).encode()))
+    write_atomic(_check_path(path), lambda fh: fh.write(json.dumps(record).encode()))
 
 
 def _damage(path: Path) -> str | None:
@@ -205,7 +206,7 @@ def lab_table() -> np.ndarray:
     table.setflags(write=False)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        _write_atomic(path, lambda fh: np.save(fh, table))
+        write_atomic(path, lambda fh: np.save(fh, table))
         _record_check(path, _crc32(path))
     except OSError as exc:
         warnings.warn(f"torchrow: cannot write the LAB table to {path.parent} ({exc}); it is kept in memory "
