@@ -123,9 +123,10 @@ class CameraModel:
         Parameters
         ----------
         source : str, Path or mapping
-            ``{"height_m", "tilt_deg"}`` plus either ``"hfov_deg"`` (horizontal field of view,
-            degrees in ``(0, 180)``: ``fx = fy = (W0/2) / tan(hfov/2)``, ``cx = (W0-1)/2``,
-            ``cy = (H0-1)/2``) or all of ``"fx", "fy", "cx", "cy"`` (px of the source frame).
+            A JSON file, or its object already parsed: ``{"height_m", "tilt_deg"}`` plus either
+            ``"hfov_deg"`` (horizontal field of view, degrees in ``(0, 180)``:
+            ``fx = fy = (W0/2) / tan(hfov/2)``, ``cx = (W0-1)/2``, ``cy = (H0-1)/2``) or all
+            of ``"fx", "fy", "cx", "cy"`` (px of the source frame).
         source_size : (int, int)
             ``(W0, H0)``: the source frames' size (px), before any resizing.
 
@@ -135,7 +136,7 @@ class CameraModel:
             One line: an unreadable file, a missing, unknown or conflicting key, or a value out
             of range (naming what was expected and what was given).
         """
-        if isinstance(source, Mapping):
+        if not isinstance(source, (str, Path)):  # already parsed (checked below)
             obj: object = source
             where = "camera model"
         else:

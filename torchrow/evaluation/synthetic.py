@@ -1203,9 +1203,10 @@ def render_camera(field: GroundField, camera: CameraModel, pose: CameraPose, fra
         k_near = min(max(k_near, lo), lo + field.n_rows - 1)
     # listed: the rows that cross the image below `top`, the image row of the ground
     # _CAM_FAR_SPACINGS row spacings ahead (towards the horizon every row enters the image)
-    _, top = camera.ground_to_image(_CAM_FAR_SPACINGS * sp, 0.0)
-    top = max(float(top), 0.0)
-    rows, ids = [], []
+    _, v_far = camera.ground_to_image(_CAM_FAR_SPACINGS * sp, 0.0)
+    top = max(float(v_far), 0.0)
+    rows: list[tuple[float, float]] = []
+    ids: list[int] = []
     if top < h - 1:
         corners = camera.image_to_ground(np.array([0.0, w - 1.0, 0.0, w - 1.0]), np.array([top, top, h - 1.0, h - 1.0]))
         k_seen = -pose.to_field(*corners)[1] / sp
