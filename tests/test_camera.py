@@ -210,3 +210,13 @@ def test_cli_video_camera(tmp_path, capsys) -> None:
     spec.write_text(json.dumps({**CAM, "hfov_deg": 0}))
     assert main(base[:-1] + [str(spec), "--out", str(tmp_path / "b.jsonl")]) == 2
     assert "hfov_deg must be a finite number in (0, 180), got 0" in capsys.readouterr().err
+
+
+def test_camera_path_interpolates_key_poses() -> None:
+    from torchrow.evaluation.synthetic import camera_path
+
+    path = camera_path([CameraPose(0.0, 0.0, 0.0), CameraPose(0.5, 0.1, 2.0)], 4)
+    assert len(path) == 5 and path[-1] == CameraPose(0.5, 0.1, 2.0)
+    assert path[2] == CameraPose(0.25, 0.05, 1.0)
+    with pytest.raises(ValueError, match="frames_per_leg >= 1"):
+        camera_path([CameraPose()], 0)

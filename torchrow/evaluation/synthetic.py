@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -67,6 +68,7 @@ __all__ = [
     "CameraPose",
     "CameraFrame",
     "render_camera",
+    "camera_path",
 ]
 
 # Texture extent on the ground: p in [-_TEX_P, _TEX_P] row spacings, u in [0, _TEX_U];
@@ -1117,6 +1119,25 @@ class CameraFrame:
     row_ids: list[int]
     camera: CameraModel
     pose: CameraPose
+
+
+def camera_path(keys: Sequence[CameraPose], frames_per_leg: int) -> list[CameraPose]:
+    """Poses along a drive: ``frames_per_leg`` poses from each key pose towards the next
+    (linear in ``lateral_m``, ``heading_rad`` and ``along_m``), then the last key.
+
+    E.g. along a row, turning, changing rows (``lateral_m`` moving by a spacing) and reaching
+    the rows' end (``along_m`` passing ``GroundField.row_end_m``).
+    """
+    if len(keys) < 1 or frames_per_leg < 1:
+        raise ValueError(f"camera_path needs >= 1 key pose and frames_per_leg >= 1, got {len(keys)} and {frames_per_leg}")
+    out = []
+    for p, q in itertools.pairwise(keys):
+        for i in range(frames_per_leg):
+            t = i / frames_per_leg
+            out.append(CameraPose(p.lateral_m + t * (q.lateral_m - p.lateral_m),
+                                  p.heading_rad + t * (q.heading_rad - p.heading_rad),
+                                  p.along_m + t * (q.along_m - p.along_m)))
+    return out + [keys[-1]]
 
 
 def render_camera(field: GroundField, camera: CameraModel, pose: CameraPose, frame: int = 0) -> CameraFrame:
