@@ -220,3 +220,31 @@ def test_camera_path_interpolates_key_poses() -> None:
     assert path[2] == CameraPose(0.25, 0.05, 1.0)
     with pytest.raises(ValueError, match="frames_per_leg >= 1"):
         camera_path([CameraPose()], 0)
+
+
+def test_batched_steering_equals_the_reference() -> None:
+    import torch
+
+    from torchrow.functional.camera import metric_steering as batched
+
+    cam = camera()
+    rng = np.random.default_rng(3)
+    rows_list = []
+    for i in range(12):
+        pose = CameraPose(rng.uniform(-0.3, 0.3), rng.uniform(-0.2, 0.2))
+        rows = exact_rows(cam, pose, 0.5, ks=range(-3, 3))
+        rows = [Row(r.a, r.b, bool(rng.random() > 0.3), c=float(rng.normal(0, 1e-3)), e=float(rng.normal(0, 1e-6)))
+                for r in rows]
+        rows_list.append(rows[: 6 - i % 4] if i != 5 else [Row(0.0, 100.0, False)] * 6)
+    n = max(len(r) for r in rows_list)
+
+    def col(name: str, fill: float) -> torch.Tensor:
+        return torch.tensor([[getattr(r, name) for r in rows] + [fill] * (n - len(rows)) for rows in rows_list],
+                            dtype=torch.float64)
+
+    valid = torch.tensor([[r.valid for r in rows] + [False] * (n - len(rows)) for rows in rows_list])
+    lat, head, spc = batched(col("a", 0.0), col("b", 0.0), col("c", 0.0), col("e", 0.0), valid, cam, 240)
+    for i, rows in enumerate(rows_list):
+        ref = metric_steering(rows, cam, 240)
+        for got, want in ((lat[i], ref.lateral_m), (head[i], ref.heading_rad), (spc[i], ref.spacing_m)):
+            assert (math.isnan(float(got)) if want is None else float(got) == pytest.approx(want, abs=1e-9))
