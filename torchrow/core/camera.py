@@ -162,8 +162,9 @@ class CameraModel:
             missing += [k for k in CAMERA_KEYS["pixels"] if k not in keys] if pix else ["hfov_deg (or fx, fy, cx, cy)"]
         if missing:
             raise ValueError(f"{where}: missing key(s) {', '.join(missing)}")
-        if not (isinstance(source_size, (tuple, list)) and len(source_size) == 2):
-            raise ValueError(f"camera model: source_size must be (width, height), got {source_size!r}")
+        if not (isinstance(source_size, (tuple, list)) and len(source_size) == 2
+                and all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1 for v in source_size)):
+            raise ValueError(f"camera model: source_size must be (width, height) in px, integers >= 1, got {source_size!r}")
         w0, h0 = source_size
         try:
             if "hfov_deg" in keys:
