@@ -22,7 +22,7 @@ Seen from above, the camera at the nadir ``N`` looking up the page, rows ``-1, 0
                 \\      \\      \\                    direction, counter-clockwise
           X ^    \\      \\      \\                   (REP 103): > 0 = the rows point
             |     \\      \\      \\                  to the camera's left, the robot
-            |      \\      \\      \\                 must turn left. Drawn: < 0.
+            |      \\      \\      \\                 must turn left. Drawn: > 0.
        Y <--N       \\      \\      \\
             |<-lat->|                  lateral_m = the nadir's signed distance
                     |<-sp->|                       from row 0, > 0 = the camera is LEFT
