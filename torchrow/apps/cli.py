@@ -711,6 +711,16 @@ def cmd_video(args: argparse.Namespace) -> int:
     device = _check_device(args.device)
     _check_engine(args)
     sources = _open_sources(args.sources, args.topic)
+    camera = None
+    if args.camera is not None:
+        from torchrow.engines.runner import load_camera
+
+        if args.fov is not None:
+            raise CLIError("give --fov or --camera, not both (the camera model has its own field of view)")
+        try:
+            camera = load_camera(args.camera, sources)
+        except ValueError as exc:
+            raise CLIError(str(exc)) from None
     onnx = None
     if model is not None:
         if args.engine == "ray":
@@ -718,7 +728,7 @@ def cmd_video(args: argparse.Namespace) -> int:
         from torchrow.engines.runner import source_size
         from torchrow.onnx.runtime import OnnxTracker
 
-        onnx = OnnxTracker(model, hfov_deg=args.fov)
+        onnx = OnnxTracker(model, hfov_deg=args.fov, camera=camera)
         params = onnx.params
         for s in sources:  # the model's working size, checked before anything is written
             size = source_size(s, params)
@@ -775,13 +785,13 @@ def cmd_video(args: argparse.Namespace) -> int:
         stream = ((todo[b], rec, None, None) for b, rec in ray_track(
             [sources[i].path for i in todo], [names[i] for i in todo], args.impl, params, device, args.fov,
             args.topic, skip={b: done.get(names[i], set()) for b, i in enumerate(todo)},
-            batch_size=args.batch_size, address=args.address))
+            batch_size=args.batch_size, address=args.address, camera=camera))
     else:
         from torchrow.engines.runner import track
 
         stream = ((todo[b], None, res, rgb) for b, res, rgb in track(
             [sources[i] for i in todo], [names[i] for i in todo], args.impl, params, args.batch_size, device,
-            args.fov, onnx=onnx))
+            args.fov, onnx=onnx, camera=camera))
     counts: dict[str, int] = {}
     total = sum(sources[i].length for i in todo)
     bar = progress(total, "video", enabled=not args.quiet, unit="frame")
@@ -952,6 +962,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="--serve: wait up to SEC seconds for a first client before tracking (default 10)")
     p.add_argument("--fov", type=float, default=None, metavar="DEG",
                    help="horizontal field of view of the frames, for heading_rad (null without it)")
+    p.add_argument("--camera", metavar="CAMERA.json", default=None,
+                   help="camera model (height_m, tilt_deg, and hfov_deg or fx, fy, cx, cy in source pixels): "
+                        "records gain lateral_m, spacing_m and the ground heading_rad (README: video)")
     p.add_argument("--plot", default=None, help="plot file (default: --out with suffix .png); 'none': no plot")
     impl(p, batch=8, item="sequence", export="a tracker step: torchrow export onnx --tracker")
     common(p)

@@ -91,7 +91,7 @@ SIGNALS_SCHEMA: dict[str, Any] = {
         "heading_px": dict(_NUM, description="vp_x - W/2 (working px; + = rows head right)"),
         "lateral_px": dict(_NUM, description="central row's bottom x - W/2 (working px; + = row right of centre)"),
         "lateral_frac": dict(_NUM, description="lateral_px / local row spacing"),
-        "heading_rad": dict(_NUM, description="yaw error (rad, REP 103: + = turn left); needs a field of view"),
+        "heading_rad": dict(_NUM, description="yaw error (rad, REP 103: + = turn left); needs a field of view or camera model"),
         "lateral_m": dict(_NUM, description="lateral offset from the central row (m); needs a camera model"),
         "spacing_m": dict(_NUM, description="row spacing on the ground (m); needs a camera model"),
         "state": {"type": ["string", "null"], "description": "tracking state where the record carries one"},

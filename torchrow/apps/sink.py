@@ -356,6 +356,7 @@ def _arrow_types():
         "hough": pa.list_(pa.list_(f64)), "outliers": pa.list_(pa.list_(f64)), "vp": pa.list_(f64),
         "rows": pa.list_(row), "error": s, "hough_ran": pa.bool_(), "hough_redo": pa.bool_(),
         "image_confidence": f64, "confidence": f64, "heading_px": f64, "heading_rad": f64, "lateral_px": f64, "lateral_frac": f64,
+        "lateral_m": f64, "spacing_m": f64,
     }
 
 

@@ -153,7 +153,8 @@ LATERAL = (255, 255, 0)
 
 def draw_frame(rgb: np.ndarray, result, scale: int = 2) -> np.ndarray:
     """Annotated frame: :func:`torchrow.apps.annotate.draw_result` plus a Hough-frame marker, the
-    steering signals as text (only those the frame has: ``heading_rad`` needs ``--fov``), the
+    steering signals as text (only those the frame has: ``heading_rad`` needs ``--fov`` or
+    ``--camera``, ``lateral_m`` ``--camera``), the
     central row's bottom x with the lateral offset drawn as an arrow from the image centre, and
     a legend strip below. ``(H, W, 3)`` uint8 -> ``(scale*H + legend, scale*W, 3)``."""
     import cv2
@@ -169,8 +170,8 @@ def draw_frame(rgb: np.ndarray, result, scale: int = 2) -> np.ndarray:
 
     heading = [f"{v:+.{p}f}{u}" for v, u, p in ((result.heading_px, " px", 1), (result.heading_rad, " rad", 3))
                if v is not None]
-    lateral = [f"{v:+.{p}f}{u}" for v, u, p in ((result.lateral_px, " px", 1), (result.lateral_frac, " rows", 2))
-               if v is not None]
+    lateral = [f"{v:+.{p}f}{u}" for v, u, p in ((result.lateral_px, " px", 1), (result.lateral_frac, " rows", 2),
+                                               (getattr(result, "lateral_m", None), " m", 3)) if v is not None]
     lines = [f"frame {result.frame}  k {result.k}  confidence {result.confidence:.2f}",
              signal("heading", heading), signal("lateral offset", lateral)]
     y = 50  # below draw_result's status label

@@ -16,6 +16,12 @@ signal             definition, unit, sign
                    positive = the robot must turn **left** (counter-clockwise seen from
                    above) to point along the rows. Note the sign is opposite to
                    ``heading_px``. ``None`` without a field of view or vanishing point.
+                   With a camera model instead: the rows' heading on the ground, same
+                   sign (:mod:`torchrow.core.camera`).
+``lateral_m``      With a camera model (:mod:`torchrow.core.camera`, which defines them
+``spacing_m``      and draws their signs): the camera's offset from the central row (m,
+                   positive = camera **left** of the row, as ``lateral_px``) and the row
+                   spacing on the ground (m). ``None`` without a camera model.
 ``lateral_px``     ``x_c(H-1) - W/2`` (px): x of the central row on the bottom image row
                    minus the image centre. Image convention: positive = the central row
                    is **right** of the image centre (the robot must move right to sit on
@@ -50,9 +56,10 @@ from typing import Any
 
 import numpy as np
 
+from torchrow.core.camera import CameraModel, MetricSteering, metric_steering
 from torchrow.core.results import ImageResult, Row
 
-__all__ = ["FrameResult", "Steering", "steering", "focal_from_fov", "row_coverage", "confidence"]
+__all__ = ["FrameResult", "Steering", "steering", "focal_from_fov", "row_coverage", "confidence", "check_optics"]
 
 
 @dataclass(frozen=True)
@@ -70,6 +77,15 @@ def focal_from_fov(width: int, hfov_deg: float) -> float:
     if not (0 < hfov_deg < 180):
         raise ValueError(f"horizontal field of view must lie in (0, 180) degrees, got {hfov_deg!r}")
     return (width / 2) / math.tan(math.radians(hfov_deg) / 2)
+
+
+def check_optics(hfov_deg: float | None, camera: CameraModel | None) -> None:
+    """One source of ``heading_rad``: a field of view or a camera model, not both (``ValueError``)."""
+    if hfov_deg is not None and camera is not None:
+        raise ValueError(f"give a field of view or a camera model, not both (hfov_deg={hfov_deg!r} and a camera "
+                         "model, which has its own)")
+    if camera is not None and not isinstance(camera, CameraModel):
+        raise ValueError(f"camera must be a torchrow.core.camera.CameraModel, got {type(camera).__name__}")
 
 
 def steering(rows: Sequence[Row], vp: tuple[float, float] | None, width: int, height: int,
@@ -164,12 +180,14 @@ class FrameResult(ImageResult):
     heading_rad: float | None = None
     lateral_px: float | None = None
     lateral_frac: float | None = None
+    lateral_m: float | None = None
+    spacing_m: float | None = None
     stamp_ns: int | None = None
 
     def to_record(self) -> dict[str, Any]:
         """``torchrow detect``'s record keys plus ``source``, ``frame``, ``hough_ran``,
         ``hough_redo``, ``confidence``, ``heading_px``, ``heading_rad``, ``lateral_px``,
-        ``lateral_frac`` (``None`` -> JSON null); ``stamp_ns`` after ``frame`` for frames of
+        ``lateral_frac``, ``lateral_m``, ``spacing_m`` (``None`` -> JSON null); ``stamp_ns`` after ``frame`` for frames of
         a ROS bag (the message's header stamp), absent otherwise."""
         rec: dict[str, Any] = {"source": self.source, "frame": int(self.frame)}
         if self.stamp_ns is not None:
@@ -182,19 +200,32 @@ class FrameResult(ImageResult):
         rec.update(hough_ran=bool(self.hough_ran), hough_redo=bool(self.hough_redo),
                    confidence=float(self.confidence), heading_px=num(self.heading_px),
                    heading_rad=num(self.heading_rad), lateral_px=num(self.lateral_px),
-                   lateral_frac=num(self.lateral_frac))
+                   lateral_frac=num(self.lateral_frac), lateral_m=num(self.lateral_m),
+                   spacing_m=num(self.spacing_m))
         return rec
 
     @classmethod
     def build(cls, base: ImageResult, *, source: str | None, frame: int, hough_ran: bool,
-              hough_redo: bool, confidence: float, hfov_deg: float | None) -> FrameResult:
-        """Wrap a detection with its tracking flags and the steering signals of its rows."""
-        st = steering(base.rows, base.vp, base.width, base.height, hfov_deg) \
-            if base.status in ("ok", "invalid") else Steering()
+              hough_redo: bool, confidence: float, hfov_deg: float | None,
+              camera: CameraModel | None = None) -> FrameResult:
+        """Wrap a detection with its tracking flags and the steering signals of its rows.
+
+        ``camera`` (for any image size: scaled to the working size here) gives ``lateral_m``,
+        ``spacing_m`` and ``heading_rad`` (:func:`torchrow.core.camera.metric_steering`);
+        ``hfov_deg`` the pixel heading's ``heading_rad``; not both (:func:`check_optics`).
+        """
+        check_optics(hfov_deg, camera)
+        rows_ok = base.status in ("ok", "invalid")
+        st = steering(base.rows, base.vp, base.width, base.height, hfov_deg) if rows_ok else Steering()
+        metric = MetricSteering()
+        if camera is not None and rows_ok:
+            metric = metric_steering(base.rows, camera.scaled(base.width, base.height), base.height)
         fields = {k: getattr(base, k) for k in ImageResult.__dataclass_fields__}
         return cls(**fields, source=source, frame=frame, hough_ran=hough_ran, hough_redo=hough_redo,
-                   confidence=confidence, heading_px=st.heading_px, heading_rad=st.heading_rad,
-                   lateral_px=st.lateral_px, lateral_frac=st.lateral_frac)
+                   confidence=confidence, heading_px=st.heading_px,
+                   heading_rad=metric.heading_rad if camera is not None else st.heading_rad,
+                   lateral_px=st.lateral_px, lateral_frac=st.lateral_frac, lateral_m=metric.lateral_m,
+                   spacing_m=metric.spacing_m)
 
     @classmethod
     def failed_frame(cls, source: str | None, frame: int, name: str | None, error: str) -> FrameResult:

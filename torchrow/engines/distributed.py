@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from torchrow.core.camera import CameraModel
 from torchrow.core.params import Params
 from torchrow.core.results import ImageResult
 
@@ -227,7 +228,8 @@ def run(items: Iterable[tuple[str, Callable[[], np.ndarray]]], impl: str = "tens
 
 
 def _track_task(paths: list[str], topic: str | None, names: list[str], impl: str, params: Params,
-                device: str | None, hfov_deg: float | None, skip: list[frozenset], workers: int):
+                device: str | None, hfov_deg: float | None, skip: list[frozenset], workers: int,
+                camera: CameraModel | None = None):
     """One batch of sequences, on a worker: yields lists of up to RECORDS_PER_CHUNK
     ``(position in the batch, record)``."""
     import torch
@@ -238,7 +240,8 @@ def _track_task(paths: list[str], topic: str | None, names: list[str], impl: str
     torch.set_num_threads(max(1, min(workers, len(paths))))
     srcs = [open_source(p, topic=topic) for p in paths]
     chunk: list[tuple[int, dict]] = []
-    for b, res, _ in track_local(srcs, names, impl, params, max(len(srcs), 1), device, hfov_deg, workers):
+    for b, res, _ in track_local(srcs, names, impl, params, max(len(srcs), 1), device, hfov_deg, workers,
+                                 camera=camera):
         if res.frame in skip[b]:
             continue
         chunk.append((b, res.to_record()))
@@ -252,7 +255,8 @@ def _track_task(paths: list[str], topic: str | None, names: list[str], impl: str
 def track(sources: Sequence[str | Path], names: Sequence[str] | None = None, impl: str = "tensor",
           params: Params | None = None, device: str | None = None, hfov_deg: float | None = None,
           topic: str | None = None, skip: dict[int, set[int]] | None = None, batch_size: int = 8,
-          workers: int | None = None, address: str | None = None) -> Iterator[tuple[int, dict]]:
+          workers: int | None = None, address: str | None = None,
+          camera: CameraModel | None = None) -> Iterator[tuple[int, dict]]:
     """Track every source (folder, video file or ROS bag, :func:`torchrow.core.frames.open_source`)
     on a Ray cluster; yields ``(source index, record)`` as records arrive (frame order within
     a source).
@@ -264,7 +268,8 @@ def track(sources: Sequence[str | Path], names: Sequence[str] | None = None, imp
     (default: this process's torch thread count, the local engine's grouping) and reserves
     one CPU per group. ``batch_size=1`` gives one task per sequence, the most parallel (rows
     may then differ from a local batched run in a last bit, see ``track_batches``).
-    ``skip[i]``: frame indices of source ``i`` not to return (resume).
+    ``skip[i]``: frame indices of source ``i`` not to return (resume). ``camera``: the records'
+    metric steering (:class:`~torchrow.engines.tracker.Tracker`).
     """
     import torch
 
@@ -280,7 +285,7 @@ def track(sources: Sequence[str | Path], names: Sequence[str] | None = None, imp
     cpus = _cluster_cpus(ray)
     gens = {task.options(num_cpus=min(cpus, max(1, min(workers, len(batch))) if impl == "tensor" else 1)).remote(
         [str(sources[i]) for i in batch], topic, [names[i] for i in batch], impl, params, device, hfov_deg,
-        [frozenset((skip or {}).get(i, ())) for i in batch], workers): batch for batch in batches}
+        [frozenset((skip or {}).get(i, ())) for i in batch], workers, camera): batch for batch in batches}
     while gens:
         ready, _ = ray.wait(list(gens), num_returns=1)
         for gen in ready:

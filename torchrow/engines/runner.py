@@ -24,16 +24,19 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from pathlib import Path
 
 import numpy as np
 
+from torchrow.core.camera import CameraModel
 from torchrow.core.io import ImageError
 from torchrow.core.params import Params
 from torchrow.core.progress import progress as progress_bar
 from torchrow.core.results import ImageResult
 from torchrow.core.steering import FrameResult
 
-__all__ = ["IMPLS", "run", "default_window", "onnx_workers", "track", "track_batches", "source_size"]
+__all__ = ["IMPLS", "run", "default_window", "onnx_workers", "track", "track_batches", "source_size",
+           "native_size", "load_camera"]
 
 IMPLS = ("tensor", "reference", "onnx")
 
@@ -243,9 +246,41 @@ def source_size(src, params: Params) -> tuple[int, int] | None:
     return None
 
 
+def native_size(src) -> tuple[int, int] | None:
+    """``(W0, H0)`` of a sequence's first readable frame as stored, before any resizing (one
+    frame is decoded); ``None`` if no frame is readable."""
+    for item in src:
+        frame = item[1] if isinstance(item, tuple) and len(item) == 2 else item
+        try:
+            rgb = frame() if callable(frame) else frame
+        except (ImageError, OSError):
+            continue
+        if isinstance(rgb, np.ndarray) and rgb.ndim >= 2:
+            return (int(rgb.shape[1]), int(rgb.shape[0]))
+    return None
+
+
+def load_camera(path: str | Path, sources: Sequence) -> CameraModel:
+    """The camera model of ``path`` (:meth:`CameraModel.from_json`) for the sources' frames.
+
+    Its pixels are those of the stored frames, so every source must store frames of one size
+    (that of its first readable frame). Raises ``ValueError`` with a one-line reason.
+    """
+    sizes = {getattr(s, "name", str(i)): native_size(s) for i, s in enumerate(sources)}
+    known = {k: v for k, v in sizes.items() if v is not None}
+    if not known:
+        raise ValueError(f"camera model {path}: no source has a readable frame to take its size from")
+    if len(set(known.values())) > 1:
+        (a, sa), (b, sb) = (min(known.items(), key=lambda kv: kv[1]), max(known.items(), key=lambda kv: kv[1]))
+        raise ValueError(f"camera model {path} describes frames of one size; {a} has {sa[0]}x{sa[1]}, "
+                         f"{b} has {sb[0]}x{sb[1]}")
+    return CameraModel.from_json(path, next(iter(known.values())))
+
+
 def track(sources: Sequence, names: Sequence[str], impl: str = "tensor", params: Params | None = None,
           batch_size: int = 8, device: str | None = None, hfov_deg: float | None = None,
-          workers: int | None = None, onnx=None) -> Iterator[tuple[int, FrameResult, np.ndarray | None]]:
+          workers: int | None = None, onnx=None, camera: CameraModel | None = None
+          ) -> Iterator[tuple[int, FrameResult, np.ndarray | None]]:
     """Track frame sources (:func:`torchrow.core.frames.open_source`); yields ``(source index,
     FrameResult, working RGB or None)``.
 
@@ -254,7 +289,8 @@ def track(sources: Sequence, names: Sequence[str], impl: str = "tensor", params:
     Frames that carry a ``stamp_ns`` (ROS bag messages) pass it to their result. Results
     stream as the trackers make them. ``workers``: :class:`~torchrow.engines.tracker.Tracker`'s
     (default: torch's thread count on a CPU). ``impl="onnx"`` runs ``onnx``, an
-    :class:`~torchrow.onnx.runtime.OnnxTracker`, on batches of its model's batch size.
+    :class:`~torchrow.onnx.runtime.OnnxTracker`, on batches of its model's batch size (its own
+    ``camera``). ``camera``: the trackers' (:class:`~torchrow.engines.tracker.Tracker`).
     """
     params = params or Params()
     stamps: dict[tuple[int, int], int] = {}
@@ -273,7 +309,7 @@ def track(sources: Sequence, names: Sequence[str], impl: str = "tensor", params:
     if impl == "reference":
         from torchrow.reference import Tracker as RefTracker
 
-        ref = RefTracker(params, hfov_deg=hfov_deg)
+        ref = RefTracker(params, hfov_deg=hfov_deg, camera=camera)
         for b in range(len(sources)):
             for res, rgb in ref.track_iter(tapped(b), names[b], source_size(sources[b], params)):
                 yield b, stamped(b, res), rgb
@@ -287,7 +323,7 @@ def track(sources: Sequence, names: Sequence[str], impl: str = "tensor", params:
         return
     from torchrow.engines.tracker import Tracker
 
-    tracker = Tracker(params, device=device, hfov_deg=hfov_deg, workers=workers)
+    tracker = Tracker(params, device=device, hfov_deg=hfov_deg, workers=workers, camera=camera)
     sizes: dict[int, tuple[int, int] | None] = {}
     for batch in track_batches(sources, impl, params, batch_size, sizes):
         for k, res, rgb in tracker.track_iter([tapped(b) for b in batch], [names[b] for b in batch],

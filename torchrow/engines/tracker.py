@@ -17,11 +17,12 @@ import numpy as np
 import torch
 from torch import nn
 
+from torchrow.core.camera import CameraModel
 from torchrow.core.frames import load_items, prepare_frame
 from torchrow.core.io import check_working_size
 from torchrow.core.params import Params
 from torchrow.core.results import concat_batches
-from torchrow.core.steering import FrameResult
+from torchrow.core.steering import FrameResult, check_optics
 from torchrow.functional import tracking as ftrack
 from torchrow.functional._checks import check_device, check_images
 from torchrow.functional.tracking import TrackerState, TrackStep
@@ -44,6 +45,10 @@ class Tracker(nn.Module):
         Where the stages run (default CPU).
     hfov_deg : float, optional
         Horizontal field of view (degrees) for ``heading_rad``.
+    camera : CameraModel, optional
+        The camera (:class:`torchrow.core.camera.CameraModel`, for the source frames' size or
+        any size of the same aspect: records scale it to the working size): records carry
+        ``lateral_m``, ``spacing_m`` and the ground ``heading_rad``. Not with ``hfov_deg``.
     chunk : int
         Frames per sequence segmented in one batched call by :meth:`track_iter`.
 
@@ -64,11 +69,14 @@ class Tracker(nn.Module):
     """
 
     def __init__(self, params: Params | None = None, device: str | torch.device | None = None,
-                 hfov_deg: float | None = None, chunk: int = 8, workers: int | None = None) -> None:
+                 hfov_deg: float | None = None, chunk: int = 8, workers: int | None = None,
+                 camera: CameraModel | None = None) -> None:
         super().__init__()
         self.params = params or Params()
         self.device = check_device(device)
+        check_optics(hfov_deg, camera)
         self.hfov_deg = hfov_deg
+        self.camera = camera
         if chunk < 1:
             raise ValueError(f"chunk must be >= 1, got {chunk}")
         self.chunk = chunk
@@ -190,8 +198,9 @@ class Tracker(nn.Module):
                 names: Sequence[str | None] | None = None, sources: Sequence[str | None] | None = None,
                 indices: Sequence[int] | None = None) -> list[FrameResult | None]:
         """Per-sequence :class:`FrameResult` of a step (``None`` for inactive sequences):
-        :func:`torchrow.functional.tracking.records` with this tracker's parameters and field of view."""
-        return ftrack.records(step, state, width, height, self.params, self.hfov_deg, names, sources, indices)
+        :func:`torchrow.functional.tracking.records` with this tracker's parameters and optics."""
+        return ftrack.records(step, state, width, height, self.params, self.hfov_deg, names, sources, indices,
+                              camera=self.camera)
 
     # -- arrays in, records out -------------------------------------------------------------
     def prepare(self, frame: np.ndarray | str | Path) -> np.ndarray:

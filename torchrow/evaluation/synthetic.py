@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -51,6 +52,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
+from torchrow.core.camera import CameraModel
 
 __all__ = [
     "FieldSpec",
@@ -61,6 +64,11 @@ __all__ = [
     "write_crp",
     "save",
     "sequence",
+    "GroundField",
+    "CameraPose",
+    "CameraFrame",
+    "render_camera",
+    "camera_path",
 ]
 
 # Texture extent on the ground: p in [-_TEX_P, _TEX_P] row spacings, u in [0, _TEX_U];
@@ -940,3 +948,302 @@ def sequence(spec: FieldSpec | None, n_frames: int, drift_px_per_frame: float = 
         )
         frames.append(render(sk))
     return frames
+
+
+# ----------------------------------------------------------------------------------------
+# Pinhole mode: a camera at a known pose over a field measured in metres
+# ----------------------------------------------------------------------------------------
+
+#: Supersampling factor per axis of :func:`render_camera` (anti-aliasing of thin far rows).
+_CAM_SUPERSAMPLE = 2
+#: Soil value-noise cells (m) and their amplitudes (units of ``GroundField.soil_texture``).
+_CAM_SOIL_OCTAVES = ((0.02, 0.8), (0.08, 0.6), (0.4, 0.5))
+#: Rows the truth lists: those crossing the image below the ground this many spacings ahead.
+_CAM_FAR_SPACINGS = 40.0
+#: Random tables of the ground (rows x clumps per row; soil cells per side): the field repeats
+#: every 64 rows, every 4096 clumps along a row, and every 256 cells of each soil octave.
+_CAM_TABLE_ROWS = 64
+_CAM_TABLE_CLUMPS = 4096
+_CAM_TABLE_SOIL = 256
+
+
+@functools.lru_cache(maxsize=4)
+def _ground_tables(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ground's random content, a function of ``seed`` only (never of a pose): per clump
+    ``(k mod 64, c mod 4096)`` 3 uniforms (along, across, radius) and 4 normals (colour),
+    float64 ``(7, 64, 4096)``; per soil octave a float32 ``(256, 256)`` table of normals."""
+    rng = np.random.default_rng((seed, _STREAM_CELL, _ID_OFFSET))
+    clumps = np.concatenate([rng.random((3, _CAM_TABLE_ROWS, _CAM_TABLE_CLUMPS)),
+                             rng.standard_normal((4, _CAM_TABLE_ROWS, _CAM_TABLE_CLUMPS))])
+    soil = rng.standard_normal((len(_CAM_SOIL_OCTAVES), _CAM_TABLE_SOIL, _CAM_TABLE_SOIL), dtype=np.float32)
+    clumps.setflags(write=False)
+    soil.setflags(write=False)
+    return clumps, soil
+
+
+@dataclass(frozen=True)
+class GroundField:
+    """A field measured on the ground (metres) for :func:`render_camera`.
+
+    Field frame: ``x_f`` along the rows (forward), ``y_f`` to the left; row ``k`` (``k > 0`` to
+    the right) is the line ``y_f = -k·spacing_m``. Plants are discs (leaf clumps) on the rows.
+
+    Parameters
+    ----------
+    spacing_m : float
+        Distance between adjacent rows (m), > 0.
+    n_rows : int or None
+        Rows ``k = -(n//2) .. n - 1 - n//2`` are planted; ``None`` (default): every row.
+    plant_radius_m : float
+        Mean radius of a leaf clump (m), > 0.
+    plant_spacing_m : float
+        Distance between consecutive clumps of a row (m), > 0 (each clump jitters by 35% of it).
+    row_end_m : float or None
+        ``x_f`` where the rows end (m): bare soil beyond it. ``None``: endless rows.
+    soil_color, plant_color : (int, int, int)
+        Mean RGB; the plant colour must be green-dominant (``G >= R + 20``, ``G >= B + 20``).
+    soil_texture : float
+        Standard deviation (intensity levels, >= 0) of the soil brightness texture.
+    color_jitter : float
+        Standard deviation (intensity levels, >= 0) of the per-clump leaf colour.
+    noise : float
+        Standard deviation (intensity levels, >= 0) of per-pixel Gaussian sensor noise.
+    seed : int
+        Seed (>= 0) of the plants, the soil and the noise.
+    """
+
+    spacing_m: float = 0.5
+    n_rows: int | None = None
+    plant_radius_m: float = 0.05
+    plant_spacing_m: float = 0.08
+    row_end_m: float | None = None
+    soil_color: tuple[int, int, int] = (148, 124, 96)
+    plant_color: tuple[int, int, int] = (84, 136, 52)
+    soil_texture: float = 14.0
+    color_jitter: float = 9.0
+    noise: float = 3.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        def need(cond: bool, name: str, what: str) -> None:
+            if not cond:
+                raise ValueError(f"GroundField.{name} {what}; got {getattr(self, name)!r}")
+
+        def num(v: object) -> bool:
+            return (isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+                    and math.isfinite(float(v)))
+
+        for name in ("spacing_m", "plant_radius_m", "plant_spacing_m"):
+            need(num(getattr(self, name)) and getattr(self, name) > 0, name, "must be a finite number > 0")
+        for name in ("soil_texture", "color_jitter", "noise"):
+            need(num(getattr(self, name)) and getattr(self, name) >= 0, name, "must be a finite number >= 0")
+        need(self.row_end_m is None or num(self.row_end_m), "row_end_m", "must be None or a finite number")
+        need(self.n_rows is None or (isinstance(self.n_rows, int) and not isinstance(self.n_rows, bool)
+                                     and self.n_rows >= 1), "n_rows", "must be None or an integer >= 1")
+        need(isinstance(self.seed, int) and not isinstance(self.seed, bool) and 0 <= self.seed < 2**63, "seed",
+             "must be an integer in [0, 2**63)")
+        _rgb_tuple(self.soil_color, "soil_color")
+        pc = _rgb_tuple(self.plant_color, "plant_color")
+        need(pc[1] >= pc[0] + 20 and pc[1] >= pc[2] + 20, "plant_color",
+             "must be green-dominant (G >= R + 20 and G >= B + 20)")
+
+    def planted(self, k: np.ndarray) -> np.ndarray:
+        """Whether rows ``k`` (int array) are planted."""
+        if self.n_rows is None:
+            return np.ones(np.shape(k), bool)
+        lo = -(self.n_rows // 2)
+        return (k >= lo) & (k < lo + self.n_rows)
+
+
+@dataclass(frozen=True)
+class CameraPose:
+    """Where the camera's nadir is in the field of :class:`GroundField`, and where it looks.
+
+    ``lateral_m``: the nadir's ``y_f`` (m; > 0 = left of row 0, as the steering signal
+    ``lateral_m``); ``heading_rad``: angle from the camera's forward direction to the rows'
+    (counter-clockwise, > 0 = the rows point to the camera's left, as the steering signal);
+    ``along_m``: the nadir's ``x_f`` (m, the distance driven along the rows).
+    """
+
+    lateral_m: float = 0.0
+    heading_rad: float = 0.0
+    along_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("lateral_m", "heading_rad", "along_m"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) \
+                    or not math.isfinite(float(v)):
+                raise ValueError(f"CameraPose.{name} must be a finite number; got {v!r}")
+        if not abs(float(self.heading_rad)) < math.pi / 2:
+            raise ValueError(f"CameraPose.heading_rad must lie in (-pi/2, pi/2); got {self.heading_rad!r}")
+
+    def to_field(self, x_m: np.ndarray, y_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Ground-frame points (m, :mod:`torchrow.core.camera`) in field coordinates ``(x_f, y_f)``."""
+        ch, sh = math.cos(self.heading_rad), math.sin(self.heading_rad)
+        return self.along_m + x_m * ch + y_m * sh, self.lateral_m - x_m * sh + y_m * ch
+
+
+@dataclass(frozen=True, eq=False)
+class CameraFrame:
+    """One :func:`render_camera` image and its exact ground truth.
+
+    Attributes
+    ----------
+    image : numpy.ndarray, shape (H, W, 3), uint8
+        RGB image of ``camera.image_width x camera.image_height``.
+    lateral_m, heading_rad, spacing_m : float
+        The steering signals' true values (:mod:`torchrow.core.camera`): the nadir's signed
+        distance from the nearest planted row (m, > 0 = camera left of it), the rows' heading
+        (rad, > 0 = rows point left), the row spacing (m).
+    row_end_m : float or None
+        Distance (m) along the rows from the nadir to the rows' end; ``None``: endless rows.
+    rows : list of (float, float)
+        ``(a, b)`` with ``x = a*y + b`` (px) for every planted row seen below the horizon, left
+        to right (the rows end at ``row_end_m``; the lines are the rows' infinite extension).
+    row_ids : list of int
+        Row index ``k`` of each entry of :attr:`rows`, relative to the central row (0, the
+        row ``lateral_m`` refers to; negative to its left). Listed: every planted row that
+        crosses the image below the image row of the ground 40 row spacings ahead (towards the
+        horizon all rows enter the image).
+    camera : CameraModel
+    pose : CameraPose
+    """
+
+    image: np.ndarray
+    lateral_m: float
+    heading_rad: float
+    spacing_m: float
+    row_end_m: float | None
+    rows: list[tuple[float, float]]
+    row_ids: list[int]
+    camera: CameraModel
+    pose: CameraPose
+
+
+def camera_path(keys: Sequence[CameraPose], frames_per_leg: int) -> list[CameraPose]:
+    """Poses along a drive: ``frames_per_leg`` poses from each key pose towards the next
+    (linear in ``lateral_m``, ``heading_rad`` and ``along_m``), then the last key.
+
+    E.g. along a row, turning, changing rows (``lateral_m`` moving by a spacing) and reaching
+    the rows' end (``along_m`` passing ``GroundField.row_end_m``).
+    """
+    if len(keys) < 1 or frames_per_leg < 1:
+        raise ValueError(f"camera_path needs >= 1 key pose and frames_per_leg >= 1, got {len(keys)} and {frames_per_leg}")
+    out = []
+    for p, q in itertools.pairwise(keys):
+        for i in range(frames_per_leg):
+            t = i / frames_per_leg
+            out.append(CameraPose(p.lateral_m + t * (q.lateral_m - p.lateral_m),
+                                  p.heading_rad + t * (q.heading_rad - p.heading_rad),
+                                  p.along_m + t * (q.along_m - p.along_m)))
+    return out + [keys[-1]]
+
+
+def render_camera(field: GroundField, camera: CameraModel, pose: CameraPose, frame: int = 0) -> CameraFrame:
+    """Render what a pinhole ``camera`` at ``pose`` sees of ``field``, with the exact truth.
+
+    The image is drawn per pixel (supersampled 2 x 2, then averaged): each pixel's ray meets
+    the ground (:meth:`CameraModel.image_to_ground`), which is soil (hashed value noise) or a
+    leaf clump; rays above the horizon see sky. Then Gaussian sensor noise. Everything on the
+    ground is a function of field coordinates and ``field.seed`` only, so frames along a
+    path of poses show the same plants; the noise depends on ``(seed, frame)``.
+
+    Parameters
+    ----------
+    field : GroundField
+    camera : CameraModel
+        Height, tilt and intrinsics; the image has its ``image_width x image_height``.
+    pose : CameraPose
+    frame : int
+        Index of the sensor-noise stream (>= 0).
+
+    Returns
+    -------
+    CameraFrame
+        Identical bytes for identical arguments.
+    """
+    ss = _CAM_SUPERSAMPLE
+    w, h = camera.image_width, camera.image_height
+    # sample centres of the supersampled grid, in pixels of the output image
+    su = (np.arange(w * ss, dtype=np.float64) + 0.5) / ss - 0.5
+    sv = (np.arange(h * ss, dtype=np.float64) + 0.5) / ss - 0.5
+    gx, gy = camera.image_to_ground(su[None, :], sv[:, None])
+    ground = np.isfinite(gx)
+    xf, yf = pose.to_field(np.where(ground, gx, 0.0), np.where(ground, gy, 0.0))
+    clumps, soil = _ground_tables(field.seed)
+    # soil: octaves of bilinear value noise, looked up in periodic tables
+    n = _CAM_TABLE_SOIL
+    tex = np.zeros(xf.shape, np.float32)
+    for i, (cell, amp) in enumerate(_CAM_SOIL_OCTAVES):
+        mx = np.mod(xf / cell, n).astype(np.float32)
+        my = np.mod(yf / cell, n).astype(np.float32)
+        tex += np.float32(amp) * cv2.remap(soil[i], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    tex *= np.float32(field.soil_texture)
+    img = np.asarray(field.soil_color, np.float32) + tex[:, :, None] * np.array([1.0, 0.92, 0.8], np.float32)
+    # plants: the nearest row's clumps of this and the two neighbouring along-row cells
+    sp, ps, r0 = field.spacing_m, field.plant_spacing_m, field.plant_radius_m
+    k = np.rint(-yf / sp).astype(np.int64)
+    dy = yf + k * sp
+    near = np.flatnonzero(ground & field.planted(k) & (np.abs(dy) < 1.25 * r0 + 0.125 * r0))
+    xn, dn, kn = xf.reshape(-1)[near], dy.reshape(-1)[near], k.reshape(-1)[near]
+    kt = np.mod(kn, _CAM_TABLE_ROWS)
+    hit = np.zeros(near.size, bool)
+    colour = np.zeros((near.size, 3), np.float64)
+    base = np.asarray(field.plant_color, np.float64)
+    for dc in (-1, 0, 1):
+        c = np.floor(xn / ps).astype(np.int64) + dc
+        t = clumps[:, kt, np.mod(c, _CAM_TABLE_CLUMPS)]
+        cx = (c + 0.5 + 0.35 * (t[0] - 0.5)) * ps
+        cy = 0.25 * r0 * (t[1] - 0.5)
+        rad = r0 * (0.75 + 0.5 * t[2])
+        inside = ~hit & ((xn - cx) ** 2 + (dn - cy) ** 2 < rad * rad)
+        if field.row_end_m is not None:
+            inside &= cx <= field.row_end_m
+        colour[inside] = _green(base, t[3:, inside].T, field.color_jitter)
+        hit |= inside
+    flat = img.reshape(-1, 3)
+    flat[near[hit]] = colour[hit]
+    if not ground.all():
+        rows_sky = int(np.count_nonzero(~ground.all(axis=1)))  # no roll: the sky is the top rows
+        sky = _sky(FieldSpec(), rows_sky, w * ss)
+        img[:rows_sky] = np.where(ground[:rows_sky, :, None], img[:rows_sky], sky)
+    img = np.asarray(cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA), np.float32)
+    if field.noise > 0:
+        rng = np.random.default_rng((field.seed, _STREAM_NOISE, frame))
+        img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(field.noise)
+    np.rint(img, out=img)
+    np.clip(img, 0, 255, out=img)
+
+    # ground truth: rows as image lines (a ground line maps by the inverse transpose)
+    m_inv_t = np.linalg.inv(camera.ground_to_image_matrix()).T
+    ch, sh = math.cos(pose.heading_rad), math.sin(pose.heading_rad)
+    k_near = int(np.rint(-pose.lateral_m / sp))
+    if field.n_rows is not None:
+        lo = -(field.n_rows // 2)
+        k_near = min(max(k_near, lo), lo + field.n_rows - 1)
+    # listed: the rows that cross the image below `top`, the image row of the ground
+    # _CAM_FAR_SPACINGS row spacings ahead (towards the horizon every row enters the image)
+    _, v_far = camera.ground_to_image(_CAM_FAR_SPACINGS * sp, 0.0)
+    top = max(float(v_far), 0.0)
+    rows: list[tuple[float, float]] = []
+    ids: list[int] = []
+    if top < h - 1:
+        corners = camera.image_to_ground(np.array([0.0, w - 1.0, 0.0, w - 1.0]), np.array([top, top, h - 1.0, h - 1.0]))
+        k_seen = -pose.to_field(*corners)[1] / sp
+        for kk in range(int(math.floor(k_seen.min())) - 1, int(math.ceil(k_seen.max())) + 2):
+            if not field.planted(np.array(kk)):
+                continue
+            li = m_inv_t @ np.array([-sh, ch, pose.lateral_m + kk * sp])
+            if li[0] == 0:
+                continue
+            a, b = -li[1] / li[0], -li[2] / li[0]
+            x_bot, x_top = a * (h - 1) + b, a * top + b
+            if max(x_bot, x_top) >= 0 and min(x_bot, x_top) <= w - 1:
+                rows.append((float(a), float(b)))
+                ids.append(kk - k_near)
+    order = sorted(range(len(rows)), key=lambda i: ids[i])
+    return CameraFrame(
+        image=img.astype(np.uint8), lateral_m=float(pose.lateral_m + k_near * sp), heading_rad=float(pose.heading_rad),
+        spacing_m=float(sp), row_end_m=None if field.row_end_m is None else float(field.row_end_m - pose.along_m),
+        rows=[rows[i] for i in order], row_ids=[ids[i] for i in order], camera=camera, pose=pose)

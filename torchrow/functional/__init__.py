@@ -2,7 +2,8 @@
 
 Conventions shared by every stage module (:mod:`.sky`, :mod:`.color`, :mod:`.vegetation`,
 :mod:`.hough`, :mod:`.vanishing`, :mod:`.ransac`, :mod:`.lattice`), mirroring
-:mod:`torchrow.reference`; the OpenCV-exact image kernels they compose are in :mod:`.kernels`:
+:mod:`torchrow.reference`; the OpenCV-exact image kernels they compose are in :mod:`.kernels`;
+:mod:`.camera` batches the metric steering of :mod:`torchrow.core.camera`:
 
 * images are ``uint8 (B, 3, H, W)`` RGB; masks are ``bool (B, H, W)``; per-image scalars
   (``sky``, ``k``) are ``int64 (B,)``; the vegetation colour is ``uint8 (B, 3)``;
@@ -14,6 +15,6 @@ Conventions shared by every stage module (:mod:`.sky`, :mod:`.color`, :mod:`.veg
 * results equal the reference's for every image, whatever else shares the batch.
 """
 
-from torchrow.functional import color, hough, kernels, lattice, ransac, sky, vanishing, vegetation
+from torchrow.functional import camera, color, hough, kernels, lattice, ransac, sky, vanishing, vegetation
 
-__all__ = ["kernels", "sky", "color", "vegetation", "hough", "vanishing", "ransac", "lattice"]
+__all__ = ["kernels", "sky", "color", "vegetation", "hough", "vanishing", "ransac", "lattice", "camera"]

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import torch
 
 from torchrow.core.batch import BatchResult
+from torchrow.core.camera import CameraModel
 from torchrow.core.params import Params
 from torchrow.core.steering import FrameResult
 from torchrow.functional import color as fcolor
@@ -403,13 +404,13 @@ def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: tor
 def records(step: TrackStep, state: TrackerState, width: int, height: int, params: Params,
             hfov_deg: float | None = None, names: Sequence[str | None] | None = None,
             sources: Sequence[str | None] | None = None,
-            indices: Sequence[int] | None = None) -> list[FrameResult | None]:
+            indices: Sequence[int] | None = None, camera: CameraModel | None = None) -> list[FrameResult | None]:
     """Per-sequence :class:`~torchrow.core.steering.FrameResult` of a step (``None`` for
     inactive sequences), shared by the eager and the ONNX trackers.
 
     ``state`` is any state of these sequences after frame 0 (for sky and colour);
     ``indices`` default to the frame count of ``state`` minus one; ``hfov_deg`` gives the
-    records' heading (:meth:`~torchrow.core.steering.FrameResult.build`).
+    records' heading, ``camera`` their metric steering (:meth:`~torchrow.core.steering.FrameResult.build`).
     """
     batch = BatchResult(
         width=width, height=height, status=step.status, sky=state.sky, veg_color=state.veg_color, k=step.k,
@@ -431,5 +432,5 @@ def records(step: TrackStep, state: TrackerState, width: int, height: int, param
             continue
         out.append(FrameResult.build(r, source=None if sources is None else sources[b], frame=int(idx[b]),
                                      hough_ran=ran[b], hough_redo=redo[b], confidence=conf[b],
-                                     hfov_deg=hfov_deg))
+                                     hfov_deg=hfov_deg, camera=camera))
     return out

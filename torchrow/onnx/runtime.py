@@ -27,7 +27,9 @@ import numpy as np
 import torch
 
 from torchrow.core.batch import BatchResult
+from torchrow.core.camera import CameraModel
 from torchrow.core.results import concat_batches
+from torchrow.core.steering import check_optics
 from torchrow.onnx.metadata import model_meta
 
 __all__ = ["OnnxDetector", "OnnxTracker", "ort_optimized", "import_ort", "ORT_CACHE_KEEP"]
@@ -215,6 +217,9 @@ class OnnxTracker:
     model_path : str or Path
     hfov_deg : float, optional
         Horizontal field of view for the records' ``heading_rad``.
+    camera : CameraModel, optional
+        For the records' ``lateral_m``, ``spacing_m`` and ground ``heading_rad`` (as
+        :class:`torchrow.Tracker`); not with ``hfov_deg``.
     threads : int, optional
         onnxruntime intra-op threads.
     cache : bool
@@ -222,12 +227,14 @@ class OnnxTracker:
     """
 
     def __init__(self, model_path: str | Path, hfov_deg: float | None = None, threads: int | None = None,
-                 cache: bool = True) -> None:
+                 cache: bool = True, camera: CameraModel | None = None) -> None:
+        check_optics(hfov_deg, camera)
         _open(self, model_path, "tracker", threads, cache)
         if self.session.get_inputs()[1].name != "k_table":
             raise ValueError(f"{self.path.name} is a tracker model of an older torchrow (it takes veg_lab, not "
                              "k_table); export it again with `torchrow export onnx --tracker`")
         self.hfov_deg = hfov_deg
+        self.camera = camera
         n_k = self.params.video_k_max - self.params.video_k_min + 1
         self._table = np.full((self.batch, 1 << 24), n_k, dtype=np.uint8)  # the graph's k_table feed
         self._table_color: list = [None] * self.batch  # the colour each slot's table row holds
@@ -292,7 +299,8 @@ class OnnxTracker:
         stepped, new = self.forward(x.contiguous(), state)
         from torchrow.functional.tracking import records
 
-        return records(stepped, new, x.shape[3], x.shape[2], self.params, self.hfov_deg, names), new
+        return records(stepped, new, x.shape[3], x.shape[2], self.params, self.hfov_deg, names,
+                       camera=self.camera), new
 
 
     def track_iter(self, sequences, sources=None):
@@ -340,7 +348,7 @@ class OnnxTracker:
                 names = [g[1].name if g is not None else None for g in got] + [None] * (self.batch - n)
                 idxs = [g[0] if g is not None else 0 for g in got] + [0] * (self.batch - n)
                 recs = records(stepped, state, w, h, self.params, self.hfov_deg, names,
-                               srcs + [None] * (self.batch - n), idxs)
+                               srcs + [None] * (self.batch - n), idxs, camera=self.camera)
             for b in range(n):
                 if got[b] is None:
                     continue

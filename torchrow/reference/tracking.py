@@ -34,11 +34,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from torchrow.core.camera import CameraModel
 from torchrow.core.frames import load_items
 from torchrow.core.io import resize_to_width, to_rgb8
 from torchrow.core.params import Params
 from torchrow.core.results import ImageResult
-from torchrow.core.steering import FrameResult, confidence
+from torchrow.core.steering import FrameResult, check_optics, confidence
 from torchrow.reference.color import vegetation_color
 from torchrow.reference.ransac import fit_row, fit_tracked_row, validate_rows
 from torchrow.reference.sky import sky_row
@@ -96,6 +97,9 @@ class Tracker:
         Constants; frames are resized to ``params.video_width``; K = ``params.hough_every``.
     hfov_deg : float, optional
         Horizontal field of view of the camera (degrees), for ``heading_rad``.
+    camera : CameraModel, optional
+        For ``lateral_m``, ``spacing_m`` and the ground ``heading_rad`` (as
+        :class:`torchrow.Tracker`); not with ``hfov_deg``.
 
     Examples
     --------
@@ -105,9 +109,12 @@ class Tracker:
     ...     result, state = tr.step(frame, state)
     """
 
-    def __init__(self, params: Params | None = None, hfov_deg: float | None = None) -> None:
+    def __init__(self, params: Params | None = None, hfov_deg: float | None = None,
+                 camera: CameraModel | None = None) -> None:
         self.params = params or Params()
+        check_optics(hfov_deg, camera)
         self.hfov_deg = hfov_deg
+        self.camera = camera
 
     # -- section 0 ------------------------------------------------------------------------
     def prepare(self, frame: np.ndarray) -> np.ndarray:
@@ -175,7 +182,8 @@ class Tracker:
             rows=tuple((r.a, r.b) for r in res.rows))
         conf = confidence(veg, res.rows, state.sky, p.n_rows, p.track_band / 2)
         out = FrameResult.build(res, source=source, frame=state.frames if index is None else index,
-                                hough_ran=hough_ran, hough_redo=redo, confidence=conf, hfov_deg=self.hfov_deg)
+                                hough_ran=hough_ran, hough_redo=redo, confidence=conf, hfov_deg=self.hfov_deg,
+                                camera=self.camera)
         return out, new
 
     def _fresh(self, base: ImageResult) -> ImageResult:
