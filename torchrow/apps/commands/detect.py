@@ -130,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
 
     total = max(0, len(paths) + sum(b.length for b in bags) - len(sink.done))
     common: dict[str, Any] = dict(impl=args.impl, params=params, batch_size=args.batch_size, device=device,
-                  progress=not args.quiet, model=model, total=total)
+                                  progress=not args.quiet, model=model, total=total)
     stream: Iterator[tuple[int, np.ndarray | None, ImageResult, float]]
     if args.engine == "ray":
         from torchrow.engines.distributed import run as ray_run

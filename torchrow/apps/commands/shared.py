@@ -1,6 +1,7 @@
 """What several commands share: argument groups, ``--param`` parsing, input expansion and
 record names, output checks, ``--out`` / ``--resume`` (the run header and the record sink),
-engine, device and model checks, the Foxglove recorder, and the one-line error.
+engine, device and model checks, the Foxglove recorder, the datasets of ``eval`` and
+``score``, and the one-line error.
 
 A user error raises :class:`CLIError`; :func:`torchrow.apps.cli.main` prints it with
 :func:`print_error` and exits with :data:`ERROR_STATUS`.
