@@ -12,7 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
-from torchrow.apps.cli import _annotation_names, _record_names, main
+from torchrow.apps.cli import main
+from torchrow.apps.commands.shared import annotation_names, record_names
 from torchrow.apps.sink import bytes_safe
 from torchrow.evaluation.synthetic import FieldSpec, render
 
@@ -80,9 +81,9 @@ def test_names_and_pictures_are_unique_per_input(tmp_path: Path) -> None:
     pictures = sorted(p.relative_to(ann).as_posix() for p in ann.rglob("*.png"))
     assert pictures == ["s1/x.jpg.png", "s1/x.png.png", "s2/x.png"]
     # one folder, or one file: names are the file names, as before
-    assert _record_names([Path("d/a.jpg"), Path("d/b.jpg")]) == ["a.jpg", "b.jpg"]
-    assert _record_names([Path("d/a.jpg")]) == ["a.jpg"]
-    assert _annotation_names(["a.jpg", "b.JPG"]) == ["a.png", "b.png"]
+    assert record_names([Path("d/a.jpg"), Path("d/b.jpg")]) == ["a.jpg", "b.jpg"]
+    assert record_names([Path("d/a.jpg")]) == ["a.jpg"]
+    assert annotation_names(["a.jpg", "b.JPG"]) == ["a.png", "b.png"]
 
 
 def test_the_same_file_twice_is_one_input(tmp_path: Path) -> None:

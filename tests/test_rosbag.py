@@ -14,7 +14,8 @@ pytest.importorskip("rosbags")
 
 from bags import encode, write_bag
 
-from torchrow.apps.cli import _annotation_names, main
+from torchrow.apps.cli import main
+from torchrow.apps.commands.shared import annotation_names
 from torchrow.core.rosbag import BagError, is_bag, open_bag
 from torchrow.evaluation.synthetic import FieldSpec, render, sequence
 
@@ -257,7 +258,7 @@ def test_bags_of_one_file_name_in_two_folders_keep_apart(tmp_path: Path) -> None
     one = _detect(bags[0], tmp_path / "one.jsonl", *SMALL)  # one bag: named by its file name, as before
     assert [r["name"] for r in one] == ["cam.bag#000000", "cam.bag#000001"]
     # an image file whose picture would be a bag frame's keeps its whole name
-    assert _annotation_names(["cam.bag_000001.jpg", "x.jpg"], ["cam.bag"]) == ["cam.bag_000001.jpg.png", "x.png"]
+    assert annotation_names(["cam.bag_000001.jpg", "x.jpg"], ["cam.bag"]) == ["cam.bag_000001.jpg.png", "x.png"]
 
 
 def _damage(bag: Path, storage: str, payload: bytes, log_time: int) -> None:

@@ -1,3 +1,3 @@
-"""Applications on top of the engines: the command line, evaluation reports, pictures, video
-writing, output sinks, notebook helpers.
+"""Applications on top of the engines: the command line (``cli``, one module per command in
+``commands``), evaluation reports, pictures, video writing, output sinks, notebook helpers.
 """
