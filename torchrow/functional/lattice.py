@@ -439,7 +439,8 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, 
     return LatticeFitBatch(coef, spacing, phase, found, v, cnt, contrast, curved)
 
 
-def row_polynomials(coef: torch.Tensor, ks: torch.Tensor, height: int) -> tuple[torch.Tensor, ...]:
+def row_polynomials(coef: torch.Tensor, ks: torch.Tensor,
+                    height: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Batched :func:`torchrow.reference.lattice.row_polynomial`: rows ``ks`` (``(R,)`` float64) of
     the lattices ``coef (B, 7)`` as ``(a, b, c, e)``, ``(B, R)`` float64 each."""
     c0, c1, c2, c3, d0, d1, d2 = (coef[:, i].unsqueeze(1) for i in range(N_COEF))
