@@ -356,7 +356,8 @@ def _arrow_types():
         # [theta_rad, rho_px, votes]: one float64 list (rho and votes are exact in float64)
         "hough": pa.list_(pa.list_(f64)), "outliers": pa.list_(pa.list_(f64)), "vp": pa.list_(f64),
         "rows": pa.list_(row), "error": s, "hough_ran": pa.bool_(), "hough_redo": pa.bool_(),
-        "image_confidence": f64, "lattice_rows": pa.list_(lattice_row), "confidence": f64, "heading_px": f64, "heading_rad": f64, "lateral_px": f64, "lateral_frac": f64,
+        "image_confidence": f64, "lattice_rows": pa.list_(lattice_row),
+        "confidence": f64, "heading_px": f64, "heading_rad": f64, "lateral_px": f64, "lateral_frac": f64,
     }
 
 
