@@ -439,6 +439,12 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, 
     return LatticeFitBatch(coef, spacing, phase, found, v, cnt, contrast, curved)
 
 
+def _span(top: torch.Tensor, height: int) -> torch.Tensor:
+    """Section 11.4's denominator of a row's confidence: image rows from ``top`` down, at least 1,
+    ``(B,)`` float64."""
+    return torch.clamp(height - torch.clamp(top.to(torch.int64), min=0), min=1).to(torch.float64)
+
+
 def row_polynomials(coef: torch.Tensor, ks: torch.Tensor,
                     height: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Batched :func:`torchrow.reference.lattice.row_polynomial`: rows ``ks`` (``(R,)`` float64) of
@@ -485,8 +491,7 @@ def visible_rows(mask: torch.Tensor, top: torch.Tensor, coef: torch.Tensor, foun
     defined = below.unsqueeze(2) & (dd > params.lattice_min_spacing_px)
     inside = (defined & (centre >= 0) & (centre <= w - 1)).any(dim=1)
     support = (cnt > 0).sum(dim=1)
-    span = torch.clamp(h - torch.clamp(top.to(torch.int64), min=0), min=1).to(torch.float64)
-    conf = support.to(torch.float64) / span.unsqueeze(1)
+    conf = support.to(torch.float64) / _span(top, h).unsqueeze(1)
     present = found.unsqueeze(1) & inside & (support > 0) & (conf >= params.lattice_min_confidence)
     return VisibleRows(*row_polynomials(coef, ks, h), conf, present)
 
@@ -504,8 +509,7 @@ def improved_rows(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | No
     mask = green_mask(images, top, params)
     coef, spacing, phase, found, v, cnt, contrast, curved = fit_lattice(mask, top, vp, has_vp, params)
     support = (cnt > 0).sum(dim=1).to(torch.float64)  # (B, R)
-    span = torch.clamp(h - torch.clamp(top.to(torch.int64), min=0), min=1).to(torch.float64)
-    conf = support / span.unsqueeze(1)
+    conf = support / _span(top, h).unsqueeze(1)
     ks = torch.arange(-params.lattice_half, params.lattice_half + 1, device=images.device, dtype=torch.float64)
     a, b, c, e = row_polynomials(coef, ks, h)
     valid = found.unsqueeze(1) & (conf >= params.lattice_min_confidence)
