@@ -8,7 +8,7 @@ import torch
 
 from torchrow.apps.cli import main
 from torchrow.core.params import Params
-from torchrow.core.results import ImageResult, Row
+from torchrow.core.results import ImageResult, Row, record_differences
 from torchrow.engines.detector import CropRowDetector
 from torchrow.evaluation.metrics import crda_official, rows_to_U
 from torchrow.functional import lattice as flat
@@ -23,8 +23,8 @@ def _t(images: list[np.ndarray]) -> torch.Tensor:
 
 
 def _field(h: int = 240, w: int = 320, spacing: float = 90.0, shift: float = 0.0, curve: float = 0.0,
-           seed: int = 0) -> np.ndarray:
-    """Green rows through a VP above the image on brown soil, optionally bent (x += curve * t^2)."""
+           seed: int = 0, ks: range = range(-3, 4)) -> np.ndarray:
+    """Green rows ``ks`` through a VP above the image on brown soil, optionally bent (x += curve * t^2)."""
     rng = np.random.default_rng(seed)
     img = np.empty((h, w, 3), np.uint8)
     img[...] = (120, 90, 60)
@@ -33,7 +33,7 @@ def _field(h: int = 240, w: int = 320, spacing: float = 90.0, shift: float = 0.0
     ys, xs = np.mgrid[0:h, 0:w]
     t = ys - (h - 1.0)
     scale = (ys - yv) / (h - 1 - yv)
-    for k in range(-3, 4):
+    for k in ks:
         xc = w / 2 + shift + (k * spacing) * scale + curve * t * t
         on = np.abs(xs - xc) < 4 * scale + 1
         img[on] = (40, 170, 40)
@@ -42,6 +42,8 @@ def _field(h: int = 240, w: int = 320, spacing: float = 90.0, shift: float = 0.0
 
 def _records_equal(a: ImageResult, b: ImageResult) -> None:
     ra, rb = a.to_record(), b.to_record()
+    assert not record_differences(ra, rb)
+    assert [(r["k"], r["confidence"]) for r in ra["lattice_rows"]] == [(r["k"], r["confidence"]) for r in rb["lattice_rows"]]
     assert (ra["status"], ra["n_rows"]) == (rb["status"], rb["n_rows"])
     assert ra["image_confidence"] == rb["image_confidence"]
     assert len(ra["rows"]) == len(rb["rows"])
@@ -225,7 +227,7 @@ def test_comb_and_fit_recover_a_synthetic_lattice(spacing: float, shift: float) 
     d, phase, found, _ = rlat.comb_search(mask, (int(vp[0]), -60), IMPROVED)
     assert found and abs(d - spacing) <= 2
     assert abs(phase - (160 + shift)) <= 0.1 * spacing  # the refit below makes it exact
-    rows, conf, _fit = rlat.improved_rows(img, 0, vp, IMPROVED)
+    rows, conf, _fit, _ = rlat.improved_rows(img, 0, vp, IMPROVED)
     assert [r.valid for r in rows] == [True] * 3 and conf > 0.75  # the far rows are 14 px apart
     xb = sorted(r.x_at(239.0) for r in rows)
     np.testing.assert_allclose(xb, [160 + shift - spacing, 160 + shift, 160 + shift + spacing], atol=1.5)
@@ -234,7 +236,7 @@ def test_comb_and_fit_recover_a_synthetic_lattice(spacing: float, shift: float) 
 def test_curved_lattice_gets_its_curvature() -> None:
     # the rows bend 17 px by the top row, where they are 18 px apart (more would alias)
     img = _field(curve=0.0003)
-    rows, _, _fit = rlat.improved_rows(img, 0, (160.0, -60.0), IMPROVED)
+    rows, _, _fit, _ = rlat.improved_rows(img, 0, (160.0, -60.0), IMPROVED)
     assert all(r.valid for r in rows)
     assert all(abs(r.c - 0.0003) < 3e-5 for r in rows)
     y = np.arange(240.0)
@@ -260,11 +262,11 @@ def test_cubic_lattice_follows_an_s_bend_that_a_quadratic_cannot() -> None:
     img = _s_field()
     y = np.arange(240.0)
     truth = 160 + 1e-5 * (y - 239) * (y - 119) * y
-    rows, _, fit = rlat.improved_rows(img, 0, None, IMPROVED)
+    rows, _, fit, _ = rlat.improved_rows(img, 0, None, IMPROVED)
     assert all(r.valid for r in rows) and fit.coef[3] != 0.0
     assert abs(rows[1].e - 1e-5) < 1e-6
     assert np.abs(rows[1].x_at(y) - truth).max() < 2
-    quad, _, qfit = rlat.improved_rows(img, 0, None, IMPROVED.replace(lattice_center_degree=2))
+    quad, _, qfit, _ = rlat.improved_rows(img, 0, None, IMPROVED.replace(lattice_center_degree=2))
     assert qfit.coef[3] == 0.0 and all(r.e == 0.0 for r in quad)
     assert np.abs(quad[1].x_at(y) - truth).max() > 4
     got = CropRowDetector(IMPROVED)(_t([img])).results()[0]
@@ -290,7 +292,8 @@ def test_faithful_rows_carry_zero_curvature() -> None:
     res = detect(_field(), Params())
     rec = res.to_record()
     assert all(r["c"] == 0.0 and r["e"] == 0.0 and r["confidence"] is None for r in rec["rows"])
-    assert rec["image_confidence"] is None
+    assert rec["image_confidence"] is None and rec["lattice_rows"] is None
+    assert rec["veg_color"] is not None and rec["hough"] is not None  # sections 2-6 ran
 
 
 # --- metrics -------------------------------------------------------------------------------
@@ -350,6 +353,11 @@ def test_tensor_equals_reference_on_adversarial_and_shuffled_batches() -> None:
     out = det(_t(images)).results()
     for img, got in zip(images, out):
         _records_equal(detect(img, IMPROVED), got)
+    # 11.4: no green pixel below the lattice's top row (grey; uniform green is no greener than
+    # its rows' means) -> the comb bins none -> every row invalid (no_support), no lattice rows
+    for got in out[:2]:
+        assert got.status == "invalid" and got.lattice_rows == []
+        assert [(r.valid, r.reason) for r in got.rows] == [(False, "no_support")] * 3
     perm = [3, 0, 5, 1, 4, 2]
     shuffled = det(_t([images[i] for i in perm])).results()
     for j, i in enumerate(perm):
@@ -418,8 +426,8 @@ def test_vp_search_finds_the_vanishing_point_of_a_clean_field(shift: float) -> N
 
 def test_searched_vp_replaces_a_wrong_section_6_vp() -> None:
     img = _field(spacing=70.0, shift=40.0)
-    good, _, fit_good = rlat.improved_rows(img, 0, (200.0, -60.0), IMPROVED)
-    rows, _, fit = rlat.improved_rows(img, 0, (40.0, -20.0), IMPROVED)  # section 6 far off
+    good, _, fit_good, _ = rlat.improved_rows(img, 0, (200.0, -60.0), IMPROVED)
+    rows, _, fit, _ = rlat.improved_rows(img, 0, (40.0, -20.0), IMPROVED)  # section 6 far off
     assert fit.vp == fit_good.vp == (200, -60) and rows == good
     old = IMPROVED.replace(lattice_vp="section6")
     assert rlat.improved_rows(img, 0, (40.0, -20.0), old)[2].vp == (40, -20)
@@ -476,8 +484,8 @@ def test_lattice_horizon_image_uses_rows_above_section_2_sky() -> None:
     got = flat.horizon_row(torch.tensor([sky, -1, 0]), IMPROVED)
     assert got.tolist() == [0, 0, 0] and got.dtype == torch.int64
     assert flat.horizon_row(torch.tensor([sky, -1]), old).tolist() == [sky, -1]
-    rows, _conf, fit = rlat.improved_rows(img, sky, (160.0, -60.0), IMPROVED)
-    rows_sky, _conf_sky, fit_sky = rlat.improved_rows(img, sky, (160.0, -60.0), old)
+    rows, _conf, fit, _ = rlat.improved_rows(img, sky, (160.0, -60.0), IMPROVED)
+    rows_sky, _conf_sky, fit_sky, _ = rlat.improved_rows(img, sky, (160.0, -60.0), old)
     assert fit.span == 240 and fit_sky.span == 240 - sky
     assert min(fit.support) > 240 - sky  # rows above section 2's horizon support the rows
     # the far rows keep their spacing: at the top row the fitted rows are as far apart as drawn
@@ -574,3 +582,85 @@ def test_model_choice_and_weak_status_agree_between_paths(model: str) -> None:
     assert statuses[-1] != "ok"  # uniform noise holds no crop rows
     if model == "straight":
         assert all(r.e == 0.0 and r.c == 0.0 for r in detect(images[1], params).rows)
+
+
+# --- what the improved mode computes and reports -----------------------------------------------
+
+FAITHFUL_ONLY = ("veg_color", "k", "bushy", "hough", "outliers", "vp")
+
+
+def _both(images: list[np.ndarray], params: Params) -> list[tuple[ImageResult, ImageResult]]:
+    got = CropRowDetector(params)(_t(images)).results()
+    return [(detect(img, params), g) for img, g in zip(images, got)]
+
+
+def test_improved_mode_runs_only_the_stages_it_uses(monkeypatch) -> None:
+    # lattice_vp "search" with lattice_horizon "image" needs none of sections 1-6; "sky" needs
+    # section 1 only; "section6" needs sections 1-6 (its VP starts the comb). Either way the
+    # records null sections 2-6's fields, and sky is the lattice's first row
+    import torchrow.engines.detector as engine
+    import torchrow.reference.pipeline as pipeline
+    from torchrow.reference.sky import sky_row
+
+    calls: list[str] = []
+
+    def spy(module, name: str) -> None:
+        real = getattr(module, name)
+        monkeypatch.setattr(module, name, lambda *a, **k: (calls.append(name), real(*a, **k))[1])
+
+    for mod in (pipeline, engine.fsky, engine.fcolor, engine.fvan):
+        for name in ("sky_row", "vegetation_color", "find_lines"):
+            if hasattr(mod, name):
+                spy(mod, name)
+    img = (_field(spacing=70.0, seed=2) // 32) * 32 + 16  # few colours: section 2's clustering is quick
+    img[:40] = (208, 208, 240)  # a sky band: section 1 puts its row below it
+    sky = sky_row(img, IMPROVED)
+    assert sky > 0
+    for change, want in (({}, set()), ({"lattice_horizon": "sky"}, {"sky_row"}),
+                         ({"lattice_vp": "section6"}, {"sky_row", "vegetation_color", "find_lines"})):
+        calls.clear()
+        params = IMPROVED.replace(**change)
+        ref, got = _both([img], params)[0]
+        assert set(calls) == want, change
+        _records_equal(ref, got)
+        rec = got.to_record()
+        assert all(rec[k] is None for k in FAITHFUL_ONLY) and rec["n_rows"] == 3 and rec["lattice_rows"]
+        assert rec["sky"] == (sky if params.lattice_horizon == "sky" else 0)
+        assert ImageResult.from_record(rec).to_record() == rec
+
+
+def test_lattice_rows_are_every_visible_row_in_k_order() -> None:
+    kss = [range(-1, 2), range(-2, 3), range(-3, 4)]
+    assert IMPROVED.lattice_visible_half(320) >= 3
+    for ks, (ref, got) in zip(kss, _both([_field(spacing=90.0, ks=ks) for ks in kss], IMPROVED)):
+        _records_equal(ref, got)
+        assert [r.k for r in got.lattice_rows] == list(ks)
+        by_k = {r.k: r for r in got.lattice_rows}
+        for k, row in zip((-1, 0, 1), got.rows):  # the three rows are lattice rows -1, 0, 1
+            lr = by_k[k]
+            assert (lr.a, lr.b, lr.c, lr.e, lr.confidence) == (row.a, row.b, row.c, row.e, row.confidence)
+        for r in got.lattice_rows:  # each on its drawn row: x = W/2 + k d (y + 60) / 299
+            for y in (0.0, 120.0, 239.0):
+                assert abs(r.x_at(y) - (160 + r.k * 90.0 * (y + 60) / 299)) < 3.0, (r.k, y)
+            assert 0 < r.confidence <= 1
+
+
+def test_a_colour_is_refused_where_section_2_does_not_run() -> None:
+    img = _field()
+    with pytest.raises(ValueError, match="veg_color is only used where section 2 runs"):
+        detect(img, IMPROVED, veg_color=(40, 170, 40))
+    with pytest.raises(ValueError, match="veg_color is only used where section 2 runs"):
+        CropRowDetector(IMPROVED)(_t([img]), veg_color=torch.tensor([40, 170, 40]))
+
+
+def test_lattice_rows_agree_between_paths_on_crdld(data_dir) -> None:
+    from torchrow.evaluation.datasets import CRDLD
+
+    root = data_dir / "crdld_dev" / "test"
+    if not (root / "image").is_dir():
+        pytest.skip(f"CRDLD not found under {data_dir}")
+    ds = CRDLD(root)
+    images = [ds.image(i) for i in (0, 7)]
+    for ref, got in _both(images, IMPROVED):
+        _records_equal(ref, got)
+        assert got.lattice_rows and len(got.lattice_rows) >= 3

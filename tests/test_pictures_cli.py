@@ -10,7 +10,7 @@ import pytest
 from torchrow.apps.annotate import INVALID, VALID, draw_result, legend_entries, row_top
 from torchrow.apps.cli import main
 from torchrow.apps.video import VideoWriter, draw_frame
-from torchrow.core.results import ImageResult, Row
+from torchrow.core.results import ImageResult, LatticeRow, Row
 
 
 def _result(**kw) -> ImageResult:
@@ -30,8 +30,13 @@ def test_legend_names_every_mark_shown():
     texts = [e[2] for e in outside]
     assert not any("horizon" in t or "invalid" in t for t in texts)
     assert any("outside the picture" in t for t in texts)
-    improved = [e[2] for e in legend_entries(_result(image_confidence=0.8))]
-    assert "horizon of section 2" in improved and not any("rows above ignored" in t for t in improved)
+    # improved mode: sky is the lattice's first row, and its other visible rows are drawn thin
+    lattice = [LatticeRow(k, 0.1 * k, 40.0 + 20 * k, 0.0, 0.0, 0.5) for k in (-2, -1, 0, 1)]
+    improved = [e[2] for e in legend_entries(_result(image_confidence=0.8, lattice_rows=lattice))]
+    assert "horizon (rows above ignored)" in improved and "other visible row of the lattice" in improved
+    three = [Row(a=0.1 * k, b=40.0 + 20 * k, valid=True, reason="") for k in (-1, 0, 1)]
+    alone = [e[2] for e in legend_entries(_result(image_confidence=0.8, rows=three, lattice_rows=lattice[1:]))]
+    assert "other visible row of the lattice" not in alone
 
 
 def test_picture_has_legend_strip_and_rows_start_below_vp():

@@ -109,6 +109,23 @@ def test_parquet_output_holds_the_jsonl_records(field_folder: Path, tmp_path: Pa
     assert list(read_records(tmp_path / "r.parquet")) == want
 
 
+def test_parquet_holds_improved_records_with_their_nulls(field_folder: Path, tmp_path: Path) -> None:
+    # the improved mode's records null sections 2-6's fields and add lattice_rows: the schema,
+    # fixed before the first row, types them (not JSON strings) and they come back as written
+    pytest.importorskip("pyarrow")
+    import pyarrow.parquet as pq
+
+    _cli_records(field_folder, tmp_path / "r.jsonl", "--mode", "improved")
+    _cli_records(field_folder, tmp_path / "r.parquet", "--mode", "improved")
+    want = [json.loads(s) for s in _lines(tmp_path / "r.jsonl")]
+    ok = [r for r in want if r["status"] != "error"]
+    assert ok and all(r["veg_color"] is None and r["hough"] is None and r["vp"] is None and r["lattice_rows"]
+                      for r in ok)
+    assert list(read_records(tmp_path / "r.parquet")) == want
+    schema = pq.read_schema(tmp_path / "r.parquet")
+    assert str(schema.field("lattice_rows").type).startswith("list<") and str(schema.field("k").type) == "int32"
+
+
 # -- the runner's ordering window --------------------------------------------------------
 
 _SMALL = [render(FieldSpec(seed=s, width=64, height=48)).image for s in range(3)]

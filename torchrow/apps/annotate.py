@@ -1,4 +1,5 @@
-"""Pictures of detection results: rows, vanishing point, horizon, invalid rows marked."""
+"""Pictures of detection results: rows, vanishing point, horizon, invalid rows marked, and the
+improved mode's other visible lattice rows (thin)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from torchrow.core.results import ImageResult
+from torchrow.core.results import ImageResult, LatticeRow
 
 __all__ = ["draw_result", "save_rgb", "legend", "legend_entries", "row_top", "GT_COLOR"]
 
@@ -79,18 +80,23 @@ def legend_entries(result: ImageResult, ground_truth: bool = False) -> list[tupl
         entries.append(("line", VALID, "detected row"))
     if any(not r.valid for r in result.rows):
         entries.append(("line", INVALID, "invalid row (reason at its foot)"))
+    if _other_lattice_rows(result):
+        entries.append(("thin", VALID, "other visible row of the lattice"))
     if ground_truth:
         entries.append(("thin", GT_COLOR, "ground truth"))
-    if result.sky > 0:
-        # the improved mode's lattice may use the rows above section 2's horizon
-        # (Params.lattice_horizon), which a result does not record
-        improved = math.isfinite(result.image_confidence)
-        entries.append(("line", HORIZON, "horizon of section 2" if improved else "horizon (rows above ignored)"))
+    if result.sky > 0:  # improved mode: the lattice's first row, which is section 1's or 0
+        entries.append(("line", HORIZON, "horizon (rows above ignored)"))
     if result.vp is not None and all(math.isfinite(v) for v in result.vp):
         inside = 0 <= result.vp[0] < result.width and 0 <= result.vp[1] < result.height
         entries.append(("cross", VP_COLOR, "vanishing point") if inside else
                        ("arrow", VP_COLOR, "towards the vanishing point (outside the picture)"))
     return entries
+
+
+def _other_lattice_rows(result: ImageResult) -> list[LatticeRow]:
+    """The improved mode's visible lattice rows beyond the ``2K+1`` reported as ``rows``."""
+    half = (len(result.rows) - 1) // 2
+    return [r for r in result.lattice_rows or [] if abs(r.k) > half]
 
 
 def row_top(result: ImageResult, height: int) -> float:
@@ -118,7 +124,8 @@ def draw_result(rgb: np.ndarray, result: ImageResult, scale: int = 2,
     Returns
     -------
     ``(scale*H + legend, scale*W, 3)`` uint8 RGB. Valid rows solid cyan, invalid rows red with
-    their reason written at their foot, the horizon yellow, the vanishing point a magenta
+    their reason written at their foot, the improved mode's other visible lattice rows thin
+    cyan, the horizon yellow, the vanishing point a magenta
     cross (an arrow at the border when it lies outside the picture), the status in the
     top-left corner. Rows are drawn from :func:`row_top` down.
     """
@@ -135,6 +142,11 @@ def draw_result(rgb: np.ndarray, result: ImageResult, scale: int = 2,
         y = int(result.sky * s)
         cv2.line(img, (0, y), (w * scale - 1, y), HORIZON, th, cv2.LINE_AA)
     y_top = row_top(result, h)
+    ys = np.linspace(y_top, h - 1, 48)
+    for lr in _other_lattice_rows(result):
+        pts = np.stack([np.asarray(lr.x_at(ys)) * s, ys * s], 1)
+        if np.isfinite(pts).all():
+            cv2.polylines(img, [pts.round().astype(np.int32)], False, VALID, 1, cv2.LINE_AA)
     labels: list[tuple[int, str]] = []
     for i, row in enumerate(result.rows):
         seg = _segment(row.a, row.b, y_top, h - 1, s)

@@ -372,6 +372,9 @@ def compare_colors(crbd: CRBD, indices: Sequence[int], colors: Mapping[str, Sequ
     from torchrow.nn.calibrate import load_training_set, mask_precision
 
     p = params or Params()
+    if not p.runs_section6():
+        raise ValueError(f"compare_colors compares section 2's vegetation colours, which mode {p.mode!r} with "
+                         f"lattice_vp {p.lattice_vp!r} does not use")
     det = CropRowDetector(p)
     data = load_training_set(crbd, indices, band)
     out = ColorComparison(data.names, {}, {}, {}, {}, {}, {})

@@ -149,8 +149,9 @@ def show_grid(pictures: Sequence[np.ndarray], titles: Sequence[str] | None = Non
 
 
 def result_summary(res: ImageResult) -> str:
-    """One line: status, valid rows, vanishing point, vegetation colour."""
+    """One line: status, valid rows, vanishing point, vegetation colour (improved mode: none)."""
     vp = "none" if res.vp is None else f"({res.vp[0]:.0f}, {res.vp[1]:.0f})"
+    colour = "none" if res.veg_color is None else tuple(res.veg_color)
     return (f"{res.name or ''} {res.status}: {sum(r.valid for r in res.rows)}/{len(res.rows)} valid rows, "
-            f"vp {vp}, colour {tuple(res.veg_color)}, sky {res.sky}").strip()
+            f"vp {vp}, colour {colour}, sky {res.sky}").strip()
 

@@ -349,13 +349,15 @@ def _arrow_types():
     f64, i32, i64, s = pa.float64(), pa.int32(), pa.int64(), pa.string()
     row = pa.struct([("a", f64), ("b", f64), ("c", f64), ("e", f64), ("valid", pa.bool_()), ("reason", s),
                      ("confidence", f64)])
+    lattice_row = pa.struct([("k", i32), ("a", f64), ("b", f64), ("c", f64), ("e", f64), ("confidence", f64)])
     return {
         "source": s, "frame": i64, "stamp_ns": i64, "name": s, "status": s, "width": i32, "height": i32,
         "sky": i32, "veg_color": pa.list_(i32), "k": i32, "bushy": pa.bool_(), "n_rows": i32,
         # [theta_rad, rho_px, votes]: one float64 list (rho and votes are exact in float64)
         "hough": pa.list_(pa.list_(f64)), "outliers": pa.list_(pa.list_(f64)), "vp": pa.list_(f64),
         "rows": pa.list_(row), "error": s, "hough_ran": pa.bool_(), "hough_redo": pa.bool_(),
-        "image_confidence": f64, "confidence": f64, "heading_px": f64, "heading_rad": f64, "lateral_px": f64, "lateral_frac": f64,
+        "image_confidence": f64, "lattice_rows": pa.list_(lattice_row),
+        "confidence": f64, "heading_px": f64, "heading_rad": f64, "lateral_px": f64, "lateral_frac": f64,
         "lateral_m": f64, "spacing_m": f64,
     }
 

@@ -21,7 +21,7 @@ import numpy as np
 
 __all__ = ["ImageError", "IMAGE_EXTENSIONS", "MAX_DECODE_PIXELS", "MAX_FILE_BYTES", "to_rgb8", "resize_to_width",
            "load_image", "decode_image", "check_file_size", "working_size", "check_working_size", "lattice_params",
-           "check_color", "header_size", "majority_working_size"]
+           "check_color", "check_color_used", "header_size", "majority_working_size"]
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 
@@ -260,6 +260,16 @@ def check_color(color: object, name: str = "veg_color", batched: bool = False) -
     if a.size and (a.min() < 0 or a.max() > 255):
         raise ValueError(f"{name} must be RGB integers in [0, 255], got {color!r}")
     return a
+
+
+def check_color_used(color: object, params: Any) -> None:
+    """A given vegetation colour must have a use: ``ValueError`` when ``color`` is not ``None``
+    but section 2 does not run (the improved mode with ``lattice_vp="search"`` masks excess green,
+    ALGORITHM.md 11.1; :meth:`torchrow.core.params.Params.runs_section6`). One rule for both paths."""
+    if color is not None and not params.runs_section6():
+        raise ValueError(f"veg_color is only used where section 2 runs (mode 'faithful', or 'improved' with "
+                         f"lattice_vp 'section6'); got a colour with mode {params.mode!r} and lattice_vp "
+                         f"{params.lattice_vp!r}")
 
 
 def majority_working_size(frames: Iterable[tuple[Callable[[], tuple[int, int] | None], Callable[[], np.ndarray]]],

@@ -154,6 +154,23 @@ class Params:
         d0, d1, d2)`` of section 11.3 (the refit's solution fills these, the others are 0)."""
         return [p if k == 0 else 4 + p for p, k in self.lattice_basis(straight)]
 
+    def runs_section6(self) -> bool:
+        """Whether sections 2-6 (colour, vegetation mask, Hough, vanishing point) run: always in
+        the faithful mode; in the improved mode only with ``lattice_vp="section6"``, whose comb
+        starts from section 6's VP (ALGORITHM.md 11)."""
+        return self.mode == "faithful" or self.lattice_vp == "section6"
+
+    def runs_sky(self) -> bool:
+        """Whether section 1 (the sky row) runs: for sections 2-6, or for the improved mode's
+        ``lattice_horizon="sky"`` (ALGORITHM.md 11.1)."""
+        return self.runs_section6() or self.lattice_horizon == "sky"
+
+    def lattice_visible_half(self, width: int) -> int:
+        """Section 11.4's static bound ``K_v`` on the visible rows ``k = -K_v .. K_v`` of a
+        ``width``-px image: ``ceil(3 W / (2 lattice_min_spacing))`` (the comb bins the bottom row
+        on ``[-W, 2W)``, its rows lie at least ``lattice_min_spacing`` apart), at least ``lattice_half``."""
+        return max(self.lattice_half, -(-3 * int(width) // (2 * self.lattice_min_spacing)))
+
     def hough_band_px(self, width: int) -> int:
         """Band (px) erased around each picked Hough line: ``int(W / 30)`` unless set."""
         return self.hough_band if self.hough_band is not None else int(width / 30)

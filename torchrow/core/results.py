@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-__all__ = ["HoughLine", "Row", "ImageResult", "STATUSES", "REASONS", "record_differences", "concat_batches"]
+__all__ = ["HoughLine", "Row", "LatticeRow", "ImageResult", "STATUSES", "REASONS", "record_differences", "concat_batches"]
 
 #: ``ok``: every row valid. ``invalid``: at least one row invalid. ``no_vp``: fewer than two
 #: Hough lines or a singular vanishing-point system, so no rows. ``no_vegetation``: the
@@ -60,24 +61,53 @@ class Row:
     e: float = 0.0
 
     def x_at(self, y: np.ndarray | float) -> np.ndarray | float:
-        x = (self.c * y) * y + self.a * y + self.b
-        return x if self.e == 0.0 else x + ((self.e * y) * y) * y
+        return _poly_x(self.a, self.b, self.c, self.e, y)
+
+
+def _poly_x(a: float, b: float, c: float, e: float, y: np.ndarray | float) -> np.ndarray | float:
+    """x of ``x = e*y**3 + c*y**2 + a*y + b`` at ``y`` (px, float64)."""
+    x = (c * y) * y + a * y + b
+    return x if e == 0.0 else x + ((e * y) * y) * y
+
+
+@dataclass(frozen=True)
+class LatticeRow:
+    """One visible row of the improved mode's lattice (ALGORITHM.md 11.4): ``k`` = its index
+    relative to the central row (negative to the left at the bottom when the spacing is
+    positive), ``x = e*y**3 + c*y**2 + a*y + b`` in working-image pixels, ``confidence`` in
+    ``(0, 1]`` (image rows holding one of its inliers / image rows from the lattice's top row)."""
+
+    k: int
+    a: float
+    b: float
+    c: float
+    e: float
+    confidence: float
+
+    def x_at(self, y: np.ndarray | float) -> np.ndarray | float:
+        return _poly_x(self.a, self.b, self.c, self.e, y)
 
 
 @dataclass
 class ImageResult:
-    """Everything the detector says about one image (ALGORITHM.md section 9)."""
+    """Everything the detector says about one image (ALGORITHM.md section 9).
+
+    The improved mode (section 11) runs none of sections 2-6 unless its comb starts from
+    section 6's VP, and reports none of their outputs in any case: ``veg_color``, ``k``,
+    ``bushy``, ``hough``, ``outliers`` are ``None`` and ``vp`` is ``None``; ``sky`` is the
+    lattice's first image row (0, or section 1's row with ``lattice_horizon="sky"``).
+    """
 
     width: int
     height: int
     status: str
     sky: int = 0
-    veg_color: tuple[int, int, int] = (0, 0, 0)
-    k: int = 4
-    bushy: bool = False
+    veg_color: tuple[int, int, int] | None = (0, 0, 0)
+    k: int | None = 4
+    bushy: bool | None = False
     n_rows: int = 0
-    hough: list[HoughLine] = field(default_factory=list)
-    outliers: list[HoughLine] = field(default_factory=list)
+    hough: list[HoughLine] | None = field(default_factory=list)
+    outliers: list[HoughLine] | None = field(default_factory=list)
     vp: tuple[float, float] | None = None
     rows: list[Row] = field(default_factory=list)
     name: str | None = None
@@ -85,6 +115,9 @@ class ImageResult:
     #: Image confidence (improved mode, ALGORITHM.md 11.4): mean of the rows'; NaN in faithful mode.
     #: (Not ``confidence``: a video frame's ``confidence`` is the tracker's, see torchrow.core.steering.)
     image_confidence: float = float("nan")
+    #: Every visible row of the lattice (improved mode, ALGORITHM.md 11.4), ``k`` ascending; ``None`` in
+    #: faithful mode.
+    lattice_rows: list[LatticeRow] | None = None
 
     @property
     def valid(self) -> bool:
@@ -105,16 +138,19 @@ class ImageResult:
             "width": int(self.width),
             "height": int(self.height),
             "sky": int(self.sky),
-            "veg_color": [int(c) for c in self.veg_color],
-            "k": int(self.k),
-            "bushy": bool(self.bushy),
+            "veg_color": None if self.veg_color is None else [int(c) for c in self.veg_color],
+            "k": None if self.k is None else int(self.k),
+            "bushy": None if self.bushy is None else bool(self.bushy),
             "n_rows": int(self.n_rows),
-            "hough": [h.to_list() for h in self.hough],
-            "outliers": [h.to_list() for h in self.outliers],
+            "hough": None if self.hough is None else [h.to_list() for h in self.hough],
+            "outliers": None if self.outliers is None else [h.to_list() for h in self.outliers],
             "vp": None if self.vp is None else [num(self.vp[0]), num(self.vp[1])],
             "rows": [{"a": num(r.a), "b": num(r.b), "c": num(r.c), "e": num(r.e), "valid": bool(r.valid), "reason": r.reason,
                       "confidence": num(r.confidence)} for r in self.rows],
             "image_confidence": num(self.image_confidence),
+            "lattice_rows": None if self.lattice_rows is None else [
+                {"k": int(r.k), "a": num(r.a), "b": num(r.b), "c": num(r.c), "e": num(r.e),
+                 "confidence": num(r.confidence)} for r in self.lattice_rows],
         }
         if self.error is not None:
             rec["error"] = self.error
@@ -131,18 +167,25 @@ class ImageResult:
         def f(v: Any) -> float:
             return float("nan") if v is None else float(v)
 
+        def opt(key: str, default: Any, conv: Callable[[Any], Any]) -> Any:
+            v = rec.get(key, default)  # absent: an older record's default; null: not computed
+            return None if v is None else conv(v)
+
+        lattice = rec.get("lattice_rows")
         return cls(
             width=int(rec.get("width", 0)), height=int(rec.get("height", 0)),
             status=rec["status"], sky=int(rec.get("sky", 0)),
-            veg_color=tuple(rec.get("veg_color", (0, 0, 0))),
-            k=int(rec.get("k", 4)), bushy=bool(rec.get("bushy", False)),
+            veg_color=opt("veg_color", (0, 0, 0), lambda v: tuple(int(c) for c in v)),
+            k=opt("k", 4, int), bushy=opt("bushy", False, bool),
             n_rows=int(rec.get("n_rows", 0)),
-            hough=[line(v) for v in rec.get("hough", [])],
-            outliers=[line(v) for v in rec.get("outliers", [])],
+            hough=opt("hough", [], lambda v: [line(x) for x in v]),
+            outliers=opt("outliers", [], lambda v: [line(x) for x in v]),
             vp=None if rec.get("vp") is None else (f(rec["vp"][0]), f(rec["vp"][1])),
             rows=[Row(f(r["a"]), f(r["b"]), bool(r["valid"]), r.get("reason", ""), -1, f(r.get("c", 0.0)),
                       f(r.get("confidence")), f(r.get("e", 0.0))) for r in rec.get("rows", [])],
             name=rec.get("name"), error=rec.get("error"), image_confidence=f(rec.get("image_confidence")),
+            lattice_rows=None if lattice is None else [
+                LatticeRow(int(r["k"]), f(r["a"]), f(r["b"]), f(r["c"]), f(r["e"]), f(r["confidence"])) for r in lattice],
         )
 
     @classmethod

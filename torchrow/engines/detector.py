@@ -1,6 +1,7 @@
 """The batched detector: composes the tensor stages of :mod:`torchrow.functional`.
 
-:class:`CropRowDetector` runs ALGORITHM.md sections 1-7 on ``uint8 (B, 3, H, W)`` batches and
+:class:`CropRowDetector` runs ALGORITHM.md sections 1-7 (improved mode: section 11 and the
+earlier stages it uses) on ``uint8 (B, 3, H, W)`` batches and
 returns a :class:`BatchResult` of padded tensors with masks; :meth:`BatchResult.results`
 turns it into the same per-image :class:`~torchrow.core.results.ImageResult` records as
 :func:`torchrow.reference.detect`.
@@ -12,14 +13,13 @@ import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
 from torch import nn
 
 from torchrow.core.batch import BatchResult
-from torchrow.core.io import check_working_size, load_image, resize_to_width, to_rgb8
+from torchrow.core.io import check_color_used, check_working_size, load_image, resize_to_width, to_rgb8
 from torchrow.core.params import Params
 from torchrow.core.results import STATUSES, concat_batches
 from torchrow.functional import color as fcolor
@@ -82,7 +82,7 @@ class CropRowDetector(nn.Module):
         ``veg_color`` (``(B, 3)`` or ``(3,)`` RGB integers in [0, 255]: a tensor of any
         integer dtype, an array or a list) replaces section 2's per-image colour
         clustering, e.g. a colour calibrated once for a field, or the frame-0 colour of a
-        video.
+        video; only where section 2 runs (:func:`torchrow.core.io.check_color_used`).
 
         On a CPU with ``workers > 1`` and more than one chunk, chunks of ``chunk`` images run
         in a thread pool with one torch thread each (the global intra-op thread count is
@@ -91,6 +91,7 @@ class CropRowDetector(nn.Module):
         """
         check_images(images)
         check_working_size(images.shape[3], images.shape[2], self.params.max_pixels)
+        check_color_used(veg_color, self.params)
         bsz = images.shape[0]
         color = None if veg_color is None else fcolor.color_override(veg_color, bsz, self.device)
         step = self.chunk or max(bsz, 1)
@@ -140,9 +141,36 @@ class CropRowDetector(nn.Module):
                 timings[name] = now - clock[0]
                 clock[0] = now
 
-        i64: dict[str, Any] = dict(dtype=torch.int64, device=x.device)
+        if p.mode == "improved":
+            return self._improved(x, veg_color, lap, timings)
         sky = fsky.sky_row(x, p)
         lap("sky")
+        veg, has_veg, hin, bushy, color, k = self._vegetation(x, sky, veg_color, lap)
+        band = fransac.ransac_band(bushy, w, p)
+        step = self.chunk or max(bsz, 1)
+        parts: list[tuple[fvan.LineSearch, fransac.Rows]] = []
+        for s0 in range(0, max(bsz, 1), step):  # chunks of images: memory and cache, never results
+            sl = slice(s0, s0 + step)
+            ls = fvan.find_lines(hin[sl], p)
+            present = ls.valid & ls.has_vp.unsqueeze(1)
+            fit = fransac.fit_rows(veg[sl], ls.theta, ls.rho, present, ls.vp, band[sl], p)
+            rows = fransac.validate_rows(fit, present, h, torch.full_like(band[sl], p.hough_band_px(w)), p)
+            parts.append((ls, rows))
+        ls = concat_batches([q[0] for q in parts])
+        rows = concat_batches([q[1] for q in parts])
+        lap("hough+vp+ransac")
+        status = fransac.image_status(rows, ls.has_vp, has_veg)
+        return BatchResult(
+            width=w, height=h, status=status, sky=sky.to(torch.int64), veg_color=color, k=k, bushy=bushy,
+            n_rows=ls.n_rows, hough_theta=ls.theta, hough_rho=ls.rho, hough_weight=ls.weight,
+            hough_valid=ls.valid, out_theta=ls.out_theta, out_rho=ls.out_rho, out_weight=ls.out_weight,
+            out_valid=ls.out_valid, vp=ls.vp, has_vp=ls.has_vp, row_a=rows.a, row_b=rows.b,
+            row_valid=rows.valid, row_reason=rows.reason, row_hypothesis=rows.hypothesis,
+            row_present=rows.present, theta_step=p.theta_step, timings=timings)
+
+    def _vegetation(self, x: torch.Tensor, sky: torch.Tensor, veg_color: torch.Tensor | None, lap):
+        """Sections 2-4: ``(veg, has_veg, hough input, bushy, colour, k)``."""
+        p = self.params
         if veg_color is None:
             # a GPU sorts and clusters the whole batch at once; a CPU in cache-sized chunks
             chunk_pixels = fcolor.DEFAULT_CHUNK_PIXELS if x.device.type == "cpu" else None
@@ -150,42 +178,43 @@ class CropRowDetector(nn.Module):
         else:
             color = veg_color.to(x.device)
         lap("color")
-        k = torch.full((bsz,), p.veg_tol, **i64)
+        k = torch.full((x.shape[0],), p.veg_tol, dtype=torch.int64, device=x.device)
         veg = fveg.remove_bushy(fveg.raw_mask(x, color, k, sky), sky, p)
         has_veg = veg.flatten(1).any(dim=1)
         hin, bushy = fveg.hough_input(veg, sky, p)
         lap("vegetation")
-        band = fransac.ransac_band(bushy, w, p)
+        return veg, has_veg, hin, bushy, color, k
+
+    def _improved(self, x: torch.Tensor, veg_color: torch.Tensor | None, lap, timings: dict[str, float]) -> BatchResult:
+        """Section 11 in place of section 7, running only the earlier stages it uses
+        (:meth:`Params.runs_sky`, :meth:`Params.runs_section6`); their outputs stay out of the result."""
+        p = self.params
+        bsz, _, h, w = x.shape
+        sky = fsky.sky_row(x, p) if p.runs_sky() else torch.zeros(bsz, dtype=torch.int64, device=x.device)
+        lap("sky")
+        hin = has_veg = None
+        if p.runs_section6():
+            _, has_veg, hin, _, _, _ = self._vegetation(x, sky, veg_color, lap)
         step = self.chunk or max(bsz, 1)
-        parts: list[tuple[fvan.LineSearch, fransac.Rows | flattice.LatticeRows]] = []
+        parts: list[flattice.LatticeRows] = []
         for s0 in range(0, max(bsz, 1), step):  # chunks of images: memory and cache, never results
             sl = slice(s0, s0 + step)
-            ls = fvan.find_lines(hin[sl], p)
-            present = ls.valid & ls.has_vp.unsqueeze(1)
-            if p.mode == "improved":  # section 11 replaces section 7
-                parts.append((ls, flattice.improved_rows(x[sl], sky[sl], ls.vp, ls.has_vp & has_veg[sl], p)))
-                continue
-            fit = fransac.fit_rows(veg[sl], ls.theta, ls.rho, present, ls.vp, band[sl], p)
-            rows = fransac.validate_rows(fit, present, h, torch.full_like(band[sl], p.hough_band_px(w)), p)
-            parts.append((ls, rows))
-        ls = concat_batches([q[0] for q in parts])
-        rows = concat_batches([q[1] for q in parts])
-        if p.mode == "improved":
-            rows, curved = flattice.as_row_fits(rows), rows
-        lap("hough+vp+ransac")
-        faithful = p.mode == "faithful"
-        status = fransac.image_status(rows, ls.has_vp if faithful else None, has_veg if faithful else None)
-        if not faithful:
-            status = flattice.improved_status(curved, status, p)
+            vp = has_vp = None
+            if hin is not None and has_veg is not None:
+                ls = fvan.find_lines(hin[sl], p)
+                vp, has_vp = ls.vp, ls.has_vp & has_veg[sl]
+            parts.append(flattice.improved_rows(x[sl], sky[sl], vp, has_vp, p))
+        curved = concat_batches(parts)
+        rows = flattice.as_row_fits(curved)
+        lap("lattice")
+        status = flattice.improved_status(curved, fransac.image_status(rows), p)
         return BatchResult(
-            width=w, height=h, status=status, sky=sky.to(torch.int64), veg_color=color, k=k, bushy=bushy,
-            n_rows=ls.n_rows if p.mode == "faithful" else torch.full_like(ls.n_rows, rows.a.shape[1]),
-            hough_theta=ls.theta, hough_rho=ls.rho, hough_weight=ls.weight,
-            hough_valid=ls.valid, out_theta=ls.out_theta, out_rho=ls.out_rho, out_weight=ls.out_weight,
-            out_valid=ls.out_valid, vp=ls.vp, has_vp=ls.has_vp, row_a=rows.a, row_b=rows.b,
+            width=w, height=h, status=status, sky=flattice.horizon_row(sky, p).to(torch.int64), veg_color=None,
+            k=None, bushy=None, n_rows=torch.full((bsz,), rows.a.shape[1], dtype=torch.int64, device=x.device),
+            hough_theta=None, hough_rho=None, hough_weight=None, hough_valid=None, out_theta=None, out_rho=None,
+            out_weight=None, out_valid=None, vp=None, has_vp=None, row_a=rows.a, row_b=rows.b,
             row_valid=rows.valid, row_reason=rows.reason, row_hypothesis=rows.hypothesis,
-            row_present=rows.present, theta_step=p.theta_step, timings=timings,
-            **(flattice.curve_fields(curved) if p.mode == "improved" else {}))
+            row_present=rows.present, theta_step=p.theta_step, timings=timings, **flattice.curve_fields(curved))
 
     def prepare(self, image: np.ndarray | str | Path) -> np.ndarray:
         """Section 0 for one input: load a path or convert an array, resize to the working width."""

@@ -23,7 +23,8 @@ from torchrow.core.results import STATUSES
 
 __all__ = ["LatticeRows", "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_table",
            "vp_search", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
-           "normal_equations", "refine", "fit_lattice", "improved_rows", "improved_status", "LatticeFitBatch"]
+           "normal_equations", "refine", "fit_lattice", "row_polynomials", "visible_rows", "VisibleRows", "improved_rows",
+           "improved_status", "LatticeFitBatch"]
 
 N_COEF = 7
 EXG_OFFSET = 510
@@ -36,7 +37,9 @@ class LatticeRows:
     a*y + b`` (float64), ``valid`` bool, ``confidence`` float64; ``image_confidence`` ``(B,)``
     float64; ``coef`` ``(B, 7)`` float64 (``c0, c1, c2, c3, d0, d1, d2``); ``spacing``/``phase``/
     ``found`` ``(B,)`` (the comb); ``vp`` ``(B, 2)`` int64 (the rounded VP it used); ``contrast``
-    ``(B,)`` float64 (the comb's best score per binned pixel) and ``curved`` ``(B,)`` bool (11.3.1)."""
+    ``(B,)`` float64 (the comb's best score per binned pixel) and ``curved`` ``(B,)`` bool (11.3.1);
+    ``visible_*``: every visible row, the fields of :class:`VisibleRows` (a dataclass of tensors
+    only, so that :func:`~torchrow.core.results.concat_batches` joins chunks)."""
 
     a: torch.Tensor
     b: torch.Tensor
@@ -52,6 +55,12 @@ class LatticeRows:
     vp: torch.Tensor
     contrast: torch.Tensor
     curved: torch.Tensor
+    visible_a: torch.Tensor
+    visible_b: torch.Tensor
+    visible_c: torch.Tensor
+    visible_e: torch.Tensor
+    visible_confidence: torch.Tensor
+    visible_present: torch.Tensor
 
 
 class LatticeFitBatch(NamedTuple):
@@ -311,9 +320,11 @@ def centre_spacing(t: torch.Tensor, coef: torch.Tensor) -> tuple[torch.Tensor, t
     return ((c0 + c1 * t) + c2 * tt) + c3 * (tt * t), (d0 + d1 * t) + d2 * tt
 
 
-def row_cells(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: Params):
+def row_cells(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: Params,
+              ks: torch.Tensor | None = None):
     """Batched :func:`torchrow.reference.lattice.row_cells` from :func:`prefix_sums`: inlier count
-    and x sum per image row and lattice row, ``(B, H, R)`` int64 each.
+    and x sum per image row and lattice row, ``(B, H, R)`` int64 each (rows ``k = -K .. K``;
+    ``ks``: these rows instead, ``(R,)`` float64).
 
     Each lattice row's inliers on an image row are one interval of columns, so a refit step
     reads ``2R`` prefix-sum entries per image row instead of every pixel: ``O(B H R)``.
@@ -324,8 +335,9 @@ def row_cells(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params
     cc, dd = centre_spacing(t, coef)
     ok = dd > params.lattice_min_spacing_px
     half = params.lattice_tolerance * dd
-    k = torch.arange(-params.lattice_half, params.lattice_half + 1, device=coef.device,
-                     dtype=torch.float64).view(1, 1, -1)
+    if ks is None:
+        ks = torch.arange(-params.lattice_half, params.lattice_half + 1, device=coef.device, dtype=torch.float64)
+    k = ks.view(1, 1, -1)
     centre = cc + k * dd  # (B, H, R)
     lo, hi = centre - half, centre + half
     good = ok & torch.isfinite(lo) & torch.isfinite(hi)
@@ -427,36 +439,86 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, 
     return LatticeFitBatch(coef, spacing, phase, found, v, cnt, contrast, curved)
 
 
-def improved_rows(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor, has_vp: torch.Tensor,
-                  params: Params) -> LatticeRows:
-    """Section 11 on ``uint8 (B, 3, H, W)`` working images; ``vp (B, 2)`` float64 with ``has_vp``.
+def _span(top: torch.Tensor, height: int) -> torch.Tensor:
+    """Section 11.4's denominator of a row's confidence: image rows from ``top`` down, at least 1,
+    ``(B,)`` float64."""
+    return torch.clamp(height - torch.clamp(top.to(torch.int64), min=0), min=1).to(torch.float64)
 
-    ``sky (B,)`` is section 2's row; the lattice starts at :func:`horizon_row`.
+
+def row_polynomials(coef: torch.Tensor, ks: torch.Tensor,
+                    height: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Batched :func:`torchrow.reference.lattice.row_polynomial`: rows ``ks`` (``(R,)`` float64) of
+    the lattices ``coef (B, 7)`` as ``(a, b, c, e)``, ``(B, R)`` float64 each."""
+    c0, c1, c2, c3, d0, d1, d2 = (coef[:, i].unsqueeze(1) for i in range(N_COEF))
+    kv = ks.unsqueeze(0)
+    yb = float(height - 1)
+    slope = c1 + kv * d1
+    curv = c2 + kv * d2
+    three = 3.0 * c3
+    a = (slope - (2.0 * curv) * yb) + three * (yb * yb)
+    b = (((c0 + kv * d0) - slope * yb) + curv * (yb * yb)) - c3 * (yb * yb * yb)
+    return a, b, curv - three * yb, c3.expand_as(curv).clone()
+
+
+class VisibleRows(NamedTuple):
+    """:func:`visible_rows`: rows ``k = -K_v .. K_v`` as ``(B, 2 K_v + 1)`` float64 ``a, b, c, e``
+    (``x = e*y**3 + c*y**2 + a*y + b``) and ``confidence``, and ``present`` bool (the rows reported)."""
+
+    a: torch.Tensor
+    b: torch.Tensor
+    c: torch.Tensor
+    e: torch.Tensor
+    confidence: torch.Tensor
+    present: torch.Tensor
+
+
+def visible_rows(mask: torch.Tensor, top: torch.Tensor, coef: torch.Tensor, found: torch.Tensor,
+                 params: Params) -> VisibleRows:
+    """Section 11.4 (:func:`torchrow.reference.lattice.visible_rows`): every row of the fitted
+    lattices ``coef (B, 7)`` that its image shows, over the static bound ``K_v`` of
+    :meth:`Params.lattice_visible_half` with a mask. ``mask (B, H, W)`` bool is the green mask,
+    ``top (B,)`` the first image row. Memory: two ``(B, H, W+1)`` int64 prefix sums (the fit's are
+    gone by then) and ``(B, H, 2 K_v + 1)`` cells."""
+    _, h, w = mask.shape
+    dev = mask.device
+    kv = params.lattice_visible_half(w)
+    ks = torch.arange(-kv, kv + 1, device=dev, dtype=torch.float64)
+    below = torch.arange(h, device=dev).view(1, h) >= top.to(torch.int64).view(-1, 1)  # (B, H)
+    cnt, _ = row_cells(prefix_sums(mask & below.unsqueeze(2)), coef, params, ks)
+    t = (torch.arange(h, device=dev, dtype=torch.float64) - (h - 1)).view(1, h, 1)
+    cc, dd = centre_spacing(t, coef)
+    centre = cc + ks.view(1, 1, -1) * dd  # (B, H, R)
+    defined = below.unsqueeze(2) & (dd > params.lattice_min_spacing_px)
+    inside = (defined & (centre >= 0) & (centre <= w - 1)).any(dim=1)
+    support = (cnt > 0).sum(dim=1)
+    conf = support.to(torch.float64) / _span(top, h).unsqueeze(1)
+    present = found.unsqueeze(1) & inside & (support > 0) & (conf >= params.lattice_min_confidence)
+    return VisibleRows(*row_polynomials(coef, ks, h), conf, present)
+
+
+def improved_rows(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Tensor | None,
+                  params: Params) -> LatticeRows:
+    """Section 11 on ``uint8 (B, 3, H, W)`` working images; ``vp (B, 2)`` float64 with ``has_vp``:
+    section 6's, for ``lattice_vp="section6"`` (``None`` otherwise).
+
+    ``sky (B,)`` is section 1's row (any values when ``lattice_horizon="image"``: not used); the
+    lattice starts at :func:`horizon_row`.
     """
     h = images.shape[2]
     top = horizon_row(sky, params)
     mask = green_mask(images, top, params)
     coef, spacing, phase, found, v, cnt, contrast, curved = fit_lattice(mask, top, vp, has_vp, params)
     support = (cnt > 0).sum(dim=1).to(torch.float64)  # (B, R)
-    span = torch.clamp(h - torch.clamp(top.to(torch.int64), min=0), min=1).to(torch.float64)
-    conf = support / span.unsqueeze(1)
-    c0, c1, c2, c3, d0, d1, d2 = (coef[:, i].unsqueeze(1) for i in range(N_COEF))
-    kv = torch.arange(-params.lattice_half, params.lattice_half + 1, device=images.device,
-                      dtype=torch.float64).unsqueeze(0)
-    yb = float(h - 1)
-    slope = c1 + kv * d1
-    curv = c2 + kv * d2
-    three = 3.0 * c3
-    a = (slope - (2.0 * curv) * yb) + three * (yb * yb)
-    b = (((c0 + kv * d0) - slope * yb) + curv * (yb * yb)) - c3 * (yb * yb * yb)
-    c = curv - three * yb
-    e = c3.expand_as(c).clone()
+    conf = support / _span(top, h).unsqueeze(1)
+    ks = torch.arange(-params.lattice_half, params.lattice_half + 1, device=images.device, dtype=torch.float64)
+    a, b, c, e = row_polynomials(coef, ks, h)
     valid = found.unsqueeze(1) & (conf >= params.lattice_min_confidence)
     img_conf = conf[:, 0]
     for i in range(1, conf.shape[1]):
         img_conf = img_conf + conf[:, i]
     img_conf = img_conf / float(conf.shape[1])
-    return LatticeRows(a, b, c, e, valid, conf, img_conf, coef, spacing, phase, found, v, contrast, curved)
+    return LatticeRows(a, b, c, e, valid, conf, img_conf, coef, spacing, phase, found, v, contrast, curved,
+                       *visible_rows(mask, top, coef, found, params))
 
 
 def improved_status(rows: LatticeRows, status: torch.Tensor, params: Params) -> torch.Tensor:
@@ -481,4 +543,5 @@ def as_row_fits(rows: LatticeRows):
 
 def curve_fields(rows: LatticeRows) -> dict[str, torch.Tensor]:
     """The :class:`~torchrow.engines.detector.BatchResult` fields only the improved mode has."""
-    return {"row_c": rows.c, "row_e": rows.e, "row_confidence": rows.confidence, "image_confidence": rows.image_confidence}
+    return {"row_c": rows.c, "row_e": rows.e, "row_confidence": rows.confidence, "image_confidence": rows.image_confidence,
+            **{f"lattice_{f}": getattr(rows, f"visible_{f}") for f in VisibleRows._fields}}

@@ -17,17 +17,20 @@ summation does not matter and the tensor path gets the same bits.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from torchrow.core.io import lattice_params
 from torchrow.core.params import Params
-from torchrow.core.results import Row
+from torchrow.core.results import LatticeRow, Row
 
 __all__ = ["LatticeFit", "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_grid",
            "vp_cells", "vp_search", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
-           "normal_equations", "refine", "fit_lattice", "improved_status", "lattice_rows", "N_COEF"]
+           "normal_equations", "refine", "fit_lattice", "improved_status", "lattice_rows", "row_polynomial",
+           "visible_rows", "improved_rows", "ImprovedRows", "N_COEF"]
 
 #: Coefficients ``(c0, c1, c2, c3, d0, d1, d2)`` of ``x = c(t) + k d(t)``, ``c(t) = c0 + c1 t + c2 t^2 +
 #: c3 t^3`` (``c3`` = 0 with ``lattice_center_degree`` 2), ``d(t) = d0 + d1 t + d2 t^2``.
@@ -331,8 +334,10 @@ def prefix_sums(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return pre, pre_x
 
 
-def row_cells(pre: tuple[np.ndarray, np.ndarray], coef: np.ndarray, params: Params) -> tuple[np.ndarray, np.ndarray]:
-    """Section 11.3: inlier count and sum of x per lattice row and image row, two ``(2K+1, H)`` int64.
+def row_cells(pre: tuple[np.ndarray, np.ndarray], coef: np.ndarray, params: Params,
+              ks: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Section 11.3: inlier count and sum of x per lattice row and image row, two ``(2K+1, H)`` int64
+    (rows ``k = -K .. K``; ``ks``: these rows instead, ``(len(ks), H)``).
 
     On image row ``y`` (``t = y - (H-1)``) where ``d(t) > lattice_min_spacing_px``, the inliers
     of row ``k`` are the mask pixels with ``lo < x < hi``: ``centre = c(t) + k d(t)``,
@@ -346,10 +351,11 @@ def row_cells(pre: tuple[np.ndarray, np.ndarray], coef: np.ndarray, params: Para
     ok = dd > params.lattice_min_spacing_px
     half = np.float64(params.lattice_tolerance) * dd
     yy = np.arange(h)
-    cnt = np.zeros((2 * params.lattice_half + 1, h), np.int64)
+    ks = range(-params.lattice_half, params.lattice_half + 1) if ks is None else ks
+    cnt = np.zeros((len(ks), h), np.int64)
     sx = np.zeros_like(cnt)
     with np.errstate(invalid="ignore", over="ignore"):
-        for i, k in enumerate(range(-params.lattice_half, params.lattice_half + 1)):
+        for i, k in enumerate(ks):
             centre = cc + np.float64(k) * dd
             lo, hi = centre - half, centre + half
             good = ok & np.isfinite(lo) & np.isfinite(hi)
@@ -447,30 +453,69 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
     return LatticeFit(tuple(float(c) for c in coef), d, phase, v, support, span, found, contrast, curved)
 
 
-def lattice_rows(fit: LatticeFit, height: int, params: Params) -> list[Row]:
-    """Section 11.4: rows ``k = -K .. K`` as ``x = e*y^3 + c*y^2 + a*y + b`` with a confidence.
+def row_polynomial(coef: Sequence[float], k: int, height: int) -> tuple[float, float, float, float]:
+    """Section 11.4: lattice row ``k`` as ``x = e*y^3 + c*y^2 + a*y + b``, returns ``(a, b, c, e)``.
 
     With ``Y = H-1``, ``s = c1 + k d1``, ``u = c2 + k d2``: ``e = c3``, ``c = u - (3 e) Y``,
-    ``a = (s - (2 u) Y) + (3 e) (Y Y)``, ``b = (((c0 + k d0) - s Y) + u (Y Y)) - e (Y Y Y)``.
+    ``a = (s - (2 u) Y) + (3 e) (Y Y)``, ``b = (((c0 + k d0) - s Y) + u (Y Y)) - e (Y Y Y)``
+    (float64, this order).
+    """
+    c0, c1, c2, c3, d0, d1, d2 = (np.float64(v) for v in coef)
+    yb = np.float64(height - 1)
+    kf = np.float64(k)
+    slope = c1 + kf * d1
+    curv = c2 + kf * d2
+    three = np.float64(3.0) * c3
+    a = (slope - (np.float64(2.0) * curv) * yb) + three * (yb * yb)
+    b = (((c0 + kf * d0) - slope * yb) + curv * (yb * yb)) - c3 * (yb * yb * yb)
+    return float(a), float(b), float(curv - three * yb), float(c3)
+
+
+def lattice_rows(fit: LatticeFit, height: int, params: Params) -> list[Row]:
+    """Section 11.4: rows ``k = -K .. K`` as ``x = e*y^3 + c*y^2 + a*y + b`` (:func:`row_polynomial`)
+    with a confidence.
+
     Confidence = image rows holding an inlier of the row / image rows below the horizon. A
     row is valid iff the comb found pixels and its confidence is ``>= lattice_min_confidence``
     (reason ``no_support`` otherwise).
     """
-    c0, c1, c2, c3, d0, d1, d2 = (np.float64(v) for v in fit.coef)
-    yb = np.float64(height - 1)
     rows = []
     for i in range(2 * params.lattice_half + 1):
-        k = np.float64(i - params.lattice_half)
-        slope = c1 + k * d1
-        curv = c2 + k * d2
-        three = np.float64(3.0) * c3
-        a = (slope - (np.float64(2.0) * curv) * yb) + three * (yb * yb)
-        b = (((c0 + k * d0) - slope * yb) + curv * (yb * yb)) - c3 * (yb * yb * yb)
+        a, b, c, e = row_polynomial(fit.coef, i - params.lattice_half, height)
         conf = float(np.float64(fit.support[i]) / np.float64(max(fit.span, 1)))
         ok = fit.found and conf >= params.lattice_min_confidence
-        rows.append(Row(float(a), float(b), ok, "" if ok else "no_support", -1, float(curv - three * yb), conf,
-                        float(c3)))
+        rows.append(Row(a, b, ok, "" if ok else "no_support", -1, c, conf, e))
     return rows
+
+
+def visible_rows(mask: np.ndarray, top: int, fit: LatticeFit, params: Params) -> list[LatticeRow]:
+    """Section 11.4: every row of the fitted lattice that the image shows, ``k`` ascending.
+
+    Rows ``k = -K_v .. K_v`` (:meth:`Params.lattice_visible_half`) take their inliers by the cells
+    of 11.3 (:func:`row_cells` on the green pixels of rows ``y >= top``); a row is reported when the
+    comb found pixels, its centre ``c(t) + k d(t)`` (float64, this order) lies in ``[0, W-1]`` on
+    some image row ``y >= top`` with ``d(t) > lattice_min_spacing_px``, and its confidence (as in
+    :func:`lattice_rows`) is above 0 and ``>= lattice_min_confidence``.
+    """
+    h, w = mask.shape
+    kv = params.lattice_visible_half(w)
+    ks = range(-kv, kv + 1)
+    below = np.arange(h) >= top
+    coef = np.array(fit.coef, np.float64)
+    cnt, _ = row_cells(prefix_sums(mask & below[:, None]), coef, params, ks)
+    cc, dd = centre_spacing(np.arange(h, dtype=np.float64) - np.float64(h - 1), coef)
+    defined = below & (dd > params.lattice_min_spacing_px)
+    span = np.float64(max(fit.span, 1))
+    out = []
+    with np.errstate(invalid="ignore", over="ignore"):
+        for i, k in enumerate(ks):
+            centre = cc + np.float64(k) * dd
+            inside = bool((defined & (centre >= 0) & (centre <= w - 1)).any())
+            support = int((cnt[i] > 0).sum())
+            conf = float(np.float64(support) / span)
+            if fit.found and inside and support > 0 and conf >= params.lattice_min_confidence:
+                out.append(LatticeRow(k, *row_polynomial(fit.coef, k, h), conf))
+    return out
 
 
 def improved_status(rows: list[Row], contrast: float, image_confidence: float, params: Params) -> str:
@@ -483,14 +528,25 @@ def improved_status(rows: list[Row], contrast: float, image_confidence: float, p
     return "ok" if strong else "weak"
 
 
-def improved_rows(rgb: np.ndarray, sky: int, vp: tuple[float, float] | None,
-                  params: Params) -> tuple[list[Row], float, LatticeFit]:
-    """Section 11 on one working image: rows, image confidence (mean of the rows') and the fit.
+class ImprovedRows(NamedTuple):
+    """:func:`improved_rows`' result: the ``2K+1`` rows of :func:`lattice_rows`, the image
+    confidence (mean of theirs), the fit, and every visible row (:func:`visible_rows`)."""
 
-    ``sky`` is section 2's row; the lattice starts at :func:`horizon_row`.
+    rows: list[Row]
+    image_confidence: float
+    fit: LatticeFit
+    visible: list[LatticeRow]
+
+
+def improved_rows(rgb: np.ndarray, sky: int, vp: tuple[float, float] | None, params: Params) -> ImprovedRows:
+    """Section 11 on one working image.
+
+    ``sky`` is section 1's row (any value when ``lattice_horizon="image"``: it is not used); the
+    lattice starts at :func:`horizon_row`. ``vp``: section 6's, for ``lattice_vp="section6"``.
     """
     top = horizon_row(sky, params)
-    fit = fit_lattice(green_mask(rgb, top, params), top, vp, params)
+    mask = green_mask(rgb, top, params)
+    fit = fit_lattice(mask, top, vp, params)
     rows = lattice_rows(fit, rgb.shape[0], params)
     conf = sum(r.confidence for r in rows) / len(rows)  # in row order, as the tensor path
-    return rows, conf, fit
+    return ImprovedRows(rows, conf, fit, visible_rows(mask, top, fit, params))

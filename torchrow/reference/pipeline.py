@@ -1,14 +1,14 @@
-"""Reference per-image pipeline (ALGORITHM.md sections 0-7 and 9): composes the stages."""
+"""Reference per-image pipeline (ALGORITHM.md sections 0-7, 9 and 11): composes the stages."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from torchrow.core.io import check_color, resize_to_width, to_rgb8
+from torchrow.core.io import check_color, check_color_used, resize_to_width, to_rgb8
 from torchrow.core.params import Params
 from torchrow.core.results import ImageResult
 from torchrow.reference.color import vegetation_color
-from torchrow.reference.lattice import improved_rows, improved_status
+from torchrow.reference.lattice import horizon_row, improved_rows, improved_status
 from torchrow.reference.ransac import fit_row, validate_rows
 from torchrow.reference.sky import sky_row
 from torchrow.reference.vanishing import find_lines
@@ -50,42 +50,65 @@ def detect(image: np.ndarray, params: Params | None = None, name: str | None = N
         RGB vegetation colour to use instead of section 2's clustering (a colour calibrated
         once for a field, or a video's frame-0 colour): integers in [0, 255], checked by
         :func:`torchrow.core.io.check_color` as in the tensor path (floats raise ``TypeError``).
+        Only where section 2 runs (:func:`torchrow.core.io.check_color_used`: not in the improved
+        mode with ``lattice_vp="search"``, whose green mask is excess green).
 
     Returns
     -------
     ImageResult
-        Rows ``x = a*y + b`` in working-image pixels, with validity and reasons.
+        Rows ``x = a*y + b`` in working-image pixels, with validity and reasons (improved mode:
+        the lattice's rows, every visible row in ``lattice_rows``, sections 2-6's fields ``None``).
     """
     params = params or Params()
+    check_color_used(veg_color, params)
     rgb = prepare(image, params)
     h, w = rgb.shape[:2]
+    if params.mode == "improved":
+        return _improved(rgb, params, name, veg_color)
     sky = sky_row(rgb, params)
-    if veg_color is None:
-        color, _ = vegetation_color(rgb, params)
-    else:
-        r, g, b = (int(c) for c in check_color(veg_color))
-        color = (r, g, b)
+    color = _color(rgb, params, veg_color)
     k = params.veg_tol
     veg = remove_bushy(raw_mask(rgb, color, k, sky), sky, params)
     res = ImageResult(width=w, height=h, status="no_vp", sky=sky, veg_color=color, k=k, name=name)
-    vp = None
-    if veg.any():
-        hin, res.bushy = hough_input(veg, sky, params)
-        search = find_lines(hin, params)
-        res.hough, res.outliers, res.n_rows, res.vp = search.lines, search.outliers, search.n_rows, search.vp
-        vp = search.vp
-    else:
+    if not veg.any():
         res.status = "no_vegetation"
         res.n_rows = 0
-    if params.mode == "improved":  # section 11 replaces section 7 (and runs without a VP too)
-        res.rows, res.image_confidence, fit = improved_rows(rgb, sky, vp, params)
-        res.n_rows = len(res.rows)  # the rows asked: 2K + 1
-        res.status = improved_status(res.rows, fit.contrast, res.image_confidence, params)
         return res
-    if vp is None:
+    hin, res.bushy = hough_input(veg, sky, params)
+    search = find_lines(hin, params)
+    res.hough, res.outliers, res.n_rows, res.vp = search.lines, search.outliers, search.n_rows, search.vp
+    if search.vp is None:
         return res
     band = params.ransac_band_px(w, res.bushy)
-    fits = [fit_row(veg, line, vp, band, params) for line in search.lines]
+    fits = [fit_row(veg, line, search.vp, band, params) for line in search.lines]
     res.rows = validate_rows(fits, h, w, params)
     res.status = "ok" if all(r.valid for r in res.rows) else "invalid"
     return res
+
+
+def _color(rgb: np.ndarray, params: Params, veg_color: tuple[int, int, int] | None) -> tuple[int, int, int]:
+    """Section 2's colour, or the one given."""
+    if veg_color is None:
+        return vegetation_color(rgb, params)[0]
+    r, g, b = (int(c) for c in check_color(veg_color))
+    return (r, g, b)
+
+
+def _improved(rgb: np.ndarray, params: Params, name: str | None,
+              veg_color: tuple[int, int, int] | None) -> ImageResult:
+    """Section 11 in place of section 7, running only the earlier stages it uses
+    (:meth:`Params.runs_sky`, :meth:`Params.runs_section6`); their outputs stay out of the record."""
+    h, w = rgb.shape[:2]
+    sky = sky_row(rgb, params) if params.runs_sky() else 0
+    vp = None
+    if params.runs_section6():
+        veg = remove_bushy(raw_mask(rgb, _color(rgb, params, veg_color), params.veg_tol, sky), sky, params)
+        if veg.any():
+            vp = find_lines(hough_input(veg, sky, params)[0], params).vp
+    imp = improved_rows(rgb, sky, vp, params)
+    return ImageResult(width=w, height=h, status=improved_status(imp.rows, imp.fit.contrast, imp.image_confidence,
+                                                                 params),
+                       sky=horizon_row(sky, params), veg_color=None, k=None, bushy=None,
+                       n_rows=len(imp.rows),  # the rows asked: 2K + 1
+                       hough=None, outliers=None, vp=None, rows=imp.rows, name=name,
+                       image_confidence=imp.image_confidence, lattice_rows=imp.visible)

@@ -201,7 +201,7 @@ class Tracker:
         res.hough, res.outliers, res.n_rows, res.vp = search.lines, search.outliers, search.n_rows, search.vp
         if search.vp is None:
             return res
-        band = p.ransac_band_px(state.width, res.bushy)
+        band = p.ransac_band_px(state.width, bool(res.bushy))  # a frame result is faithful: never None
         fits = [fit_row(veg, line, search.vp, band, p) for line in search.lines]
         res.rows = validate_rows(fits, state.height, state.width, p)
         res.status = "ok" if all(r.valid for r in res.rows) else "invalid"
