@@ -13,6 +13,7 @@ import math
 import numbers
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 __all__ = ["Params"]
 
@@ -181,8 +182,9 @@ class Params:
             return self.ransac_band_bushy if self.ransac_band_bushy is not None else int(width / 10)
         return self.ransac_band if self.ransac_band is not None else int(width / 20)
 
-    def replace(self, **changes: object) -> Params:
-        """A copy with some fields changed (validated like a new object)."""
+    def replace(self, **changes: Any) -> Params:
+        """A copy with some fields changed (validated like a new object, so any value type is
+        accepted here and checked by the field's rule)."""
         return dataclasses.replace(self, **changes)
 
 
@@ -192,7 +194,7 @@ class _Rule:
     """How one field is checked: ``kind`` (``int``, ``int?`` = int or None, ``float``, ``pair``
     = ``(width, height)`` of ints, ``ints`` = 1 to 64 ints), inclusive bounds ``lo``/``hi``
     (every numeric rule has both, within int64; for a pair or ``ints`` they bound each entry)
-    and an optional extra condition with its wording.
+    and an optional extra condition on a single number with its wording.
 
     A value of the wrong kind raises ``TypeError``; a value of the right kind outside the
     rule raises ``ValueError``; both name the field. Integral numbers (``numpy.int64``) become
@@ -202,7 +204,7 @@ class _Rule:
     kind: str  # also "choice": a str out of ``choices``
     lo: float | None = None
     hi: float | None = None
-    extra: tuple[Callable[[object], bool], str] | None = None
+    extra: tuple[Callable[[float], bool], str] | None = None
     why: str = ""  # reason for an upper bound, quoted in the error
     choices: tuple[str, ...] = ()
 
@@ -210,30 +212,34 @@ class _Rule:
         def f(b: float) -> str:
             return f"{b:d}" if isinstance(b, int) else f"{b:g}"
 
-        if self.lo is not None and self.hi is not None:
-            return f"in [{f(self.lo)}, {f(self.hi)}]"
-        return f">= {f(self.lo)}" if self.lo is not None else f"<= {f(self.hi)}"  # type: ignore[arg-type]
+        lo, hi = self.lo, self.hi
+        if lo is not None and hi is not None:
+            return f"in [{f(lo)}, {f(hi)}]"
+        if lo is not None:
+            return f">= {f(lo)}"
+        return f"<= {f(hi)}" if hi is not None else "unbounded"
 
-    def _number(self, field: str, v: object, integral: bool) -> object:
+    def _number(self, field: str, v: object, integral: bool) -> float:
+        """``v`` as an ``int`` (``integral``) or a finite ``float``, checked against the bounds."""
         what = "an integer" if integral else "a finite number"
-        if isinstance(v, bool) or not isinstance(v, numbers.Integral if integral else numbers.Real):
-            raise TypeError(f"Params.{field} must be {what}, not {type(v).__name__}; got {v!r}")
-        given = v
-        if integral:
-            v = int(v)  # type: ignore[call-overload]
-        else:
+        n: float
+        if integral and isinstance(v, numbers.Integral) and not isinstance(v, bool):
+            n = int(v)
+        elif not integral and isinstance(v, numbers.Real) and not isinstance(v, bool):
             # a float field holds a float (the tensor path makes float64 tensors of it); an
             # integer too large for float64 is out of range like any other
             try:
-                v = float(v)  # type: ignore[arg-type]
+                n = float(v)
             except OverflowError:
-                v = math.inf
-        if not integral and not math.isfinite(v):  # type: ignore[arg-type]
-            raise ValueError(f"Params.{field} must be {what} {self._bounds()}; got {given!r}")
-        if (self.lo is not None and v < self.lo) or (self.hi is not None and v > self.hi):  # type: ignore[operator]
-            why = f" ({self.why})" if self.why and self.hi is not None and v > self.hi else ""  # type: ignore[operator]
-            raise ValueError(f"Params.{field} must be {what} {self._bounds()}{why}; got {given!r}")
-        return v
+                n = math.inf
+            if not math.isfinite(n):
+                raise ValueError(f"Params.{field} must be {what} {self._bounds()}; got {v!r}")
+        else:
+            raise TypeError(f"Params.{field} must be {what}, not {type(v).__name__}; got {v!r}")
+        if (self.lo is not None and n < self.lo) or (self.hi is not None and n > self.hi):
+            why = f" ({self.why})" if self.why and self.hi is not None and n > self.hi else ""
+            raise ValueError(f"Params.{field} must be {what} {self._bounds()}{why}; got {v!r}")
+        return n
 
     def check(self, field: str, v: object) -> object:
         if self.kind == "int?" and v is None:
@@ -256,16 +262,15 @@ class _Rule:
                                 f"not {type(v).__name__}; got {v!r}")
             if len(v) != 2:
                 raise ValueError(f"Params.{field} must be a (width, height) tuple of 2 integers; got {v!r}")
-            v = tuple(self._number(f"{field}[{i}]", e, True) for i, e in enumerate(v))
-        else:
-            v = self._number(field, v, self.kind != "float")
-        if self.extra is not None and not self.extra[0](v):
-            raise ValueError(f"Params.{field} {self.extra[1]}; got {v!r}")
-        return v
+            return tuple(self._number(f"{field}[{i}]", e, True) for i, e in enumerate(v))
+        n = self._number(field, v, self.kind != "float")
+        if self.extra is not None and not self.extra[0](n):
+            raise ValueError(f"Params.{field} {self.extra[1]}; got {n!r}")
+        return n
 
 
-def _odd(v: object) -> bool:
-    return int(v) % 2 == 1  # type: ignore[call-overload]
+def _odd(v: float) -> bool:
+    return int(v) % 2 == 1
 
 
 _COST = "the tensor path's cost grows with it; ALGORITHM.md 0.1"
@@ -317,8 +322,8 @@ _RULES: dict[str, _Rule] = {
     # below ~1 LAB unit (the spacing of 8-bit colours) clusters degenerate to single colours
     # and section 2 loops once per distinct colour of the image
     "color_tol": _Rule("float", 1.0, 1000.0, why="CIE76 distances of 8-bit colours stay below 400"),
-    "crda_sigma": _Rule("float", 0, 1e6, extra=(lambda v: v > 0, "must be > 0")),  # type: ignore[operator]
-    "ransac_threshold": _Rule("float", 0, 1e6, extra=(lambda v: v > 0, "must be > 0")),  # type: ignore[operator]
+    "crda_sigma": _Rule("float", 0, 1e6, extra=(lambda v: v > 0, "must be > 0")),
+    "ransac_threshold": _Rule("float", 0, 1e6, extra=(lambda v: v > 0, "must be > 0")),
     "sky_blur": _Rule("pair", 1, 64, why="cv2.blur's division table has 255*w*h entries"),
     "sky_erode": _Rule("pair", 1, 255, why=_COST), "bushy_erode": _Rule("pair", 1, 255, why=_COST),
     # odd: x -> x*mult mod 2**32 is then a bijection, so subsampling keys never tie (section 7.2)
@@ -342,8 +347,8 @@ _RULES: dict[str, _Rule] = {
     "lattice_iterations": _Rule("int", 0, 1000, why=_COST),
     "lattice_center_degree": _Rule("int", 2, 3, why="the refit's int64 sums; the records hold x up to y**3"),
     "lattice_cell_grid": _Rule("int", 1, 2**16, why="the int64 sums stay exact"),
-    "lattice_window": _Rule("float", 0, 0.5, (lambda v: 0 < v < 0.5, "must lie in (0, 0.5)")),  # type: ignore[operator]
-    "lattice_tolerance": _Rule("float", 0, 0.5, (lambda v: 0 < v < 0.5, "must lie in (0, 0.5)")),  # type: ignore[operator]
+    "lattice_window": _Rule("float", 0, 0.5, (lambda v: 0 < v < 0.5, "must lie in (0, 0.5)")),
+    "lattice_tolerance": _Rule("float", 0, 0.5, (lambda v: 0 < v < 0.5, "must lie in (0, 0.5)")),
     "lattice_model": _Rule("choice", choices=("auto", "straight", "curved")),
     "lattice_curve_gain": _Rule("float", 0, 100, why="a fraction of the straight lattice's inlier pixels"),
     "lattice_min_contrast": _Rule("float", 0, 1, why="a fraction of the comb's binned pixels"),
