@@ -72,7 +72,7 @@ def check_image_equal(batch: torch.Tensor, params: Params = P, pipeline: bool = 
         assert kept.valid[i].tolist() == [True] * m + [False] * (params.n_colors - m)
         assert [tuple(s) for s in kept.seeds[i, :m].tolist()] == [c.seed for c in kept_ref]
         assert kept.counts[i, :m].tolist() == [c.count for c in kept_ref]
-        assert tuple(kept.seeds[i, int(kept.index[i])].tolist()) == col
+        assert tuple(kept.seeds[i, int(kept.chosen[i])].tolist()) == col
 
 
 def find_pair(base=(90, 140, 60), axis=1, tol=P.color_tol):
@@ -152,7 +152,7 @@ def test_lime_distance_tie_picks_first() -> None:
     img = np.array([[Y, X, X], [X, Y, Z]], dtype=np.uint8)
     assert lab_dist(X, Y) >= P.color_tol
     kept = fc.vegetation_clusters(to_batch([img]), P)
-    assert tuple(kept.color[0].tolist()) == X and int(kept.index[0]) == 0
+    assert tuple(kept.color[0].tolist()) == X and int(kept.chosen[0]) == 0
     check_image_equal(to_batch([img]))
 
 
@@ -353,7 +353,7 @@ def test_output_types() -> None:
     assert dc.codes[0].tolist() == [0, -1, -1, -1] and dc.counts[0].tolist() == [4, 0, 0, 0]
     out = fc.vegetation_clusters(batch, P)
     assert out.color.dtype == torch.uint8 and out.seeds.dtype == torch.uint8
-    assert out.counts.dtype == torch.int64 and out.valid.dtype == torch.bool and out.index.dtype == torch.int64
+    assert out.counts.dtype == torch.int64 and out.valid.dtype == torch.bool and out.chosen.dtype == torch.int64
     assert fc.unpack_codes(torch.tensor([0x123456, -1])).tolist() == [[0x12, 0x34, 0x56], [0, 0, 0]]
 
 

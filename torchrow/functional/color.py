@@ -111,14 +111,15 @@ class KeptClusters(NamedTuple):
 
     ``color`` uint8 ``(B, 3)``; ``seeds`` uint8 ``(B, n_colors, 3)`` RGB (0 on padding);
     ``counts`` int64 ``(B, n_colors)`` cluster totals (0 on padding); ``valid`` bool
-    ``(B, n_colors)``; ``index`` int64 ``(B,)``: position of the chosen cluster in the kept list.
+    ``(B, n_colors)``; ``chosen`` int64 ``(B,)``: position of the chosen cluster in the kept
+    list (not ``index``, which would shadow ``tuple.index``).
     """
 
     color: torch.Tensor
     seeds: torch.Tensor
     counts: torch.Tensor
     valid: torch.Tensor
-    index: torch.Tensor
+    chosen: torch.Tensor
 
 
 def unpack_codes(codes: torch.Tensor) -> torch.Tensor:

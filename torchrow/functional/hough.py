@@ -356,6 +356,19 @@ class StaticVoter(nn.Module):
     first :attr:`tier` entries, where chunks are 4x longer).
     """
 
+    # buffers (``register_buffer`` below); the scatter-free tables exist only when scatter_free
+    angles: torch.Tensor
+    cos: torch.Tensor
+    sin: torch.Tensor
+    cos_a: torch.Tensor
+    sin_a: torch.Tensor
+    xs: torch.Tensor
+    ys: torch.Tensor
+    cell0: torch.Tensor
+    order: torch.Tensor
+    ends: torch.Tensor
+    run_empty: torch.Tensor
+
     def __init__(self, height: int, width: int, params: Params, flow: str = "loop", scatter_free: bool = False,
                  chunk: int = 2048, tier: int | None = None) -> None:
         super().__init__()
