@@ -14,6 +14,7 @@ from __future__ import annotations
 import functools
 import itertools
 from dataclasses import dataclass
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -25,7 +26,7 @@ from torchrow.functional import _exact
 from torchrow.functional._checks import check_masks
 from torchrow.functional._flow import branch, check_flow, choose, keep
 
-__all__ = ["HoughState", "EagerVoter", "StaticVoter", "pickable_angles", "erase_bound", "pixel_list", "compact",
+__all__ = ["HoughState", "Voter", "EagerVoter", "StaticVoter", "pickable_angles", "erase_bound", "pixel_list", "compact",
            "trig", "rho_table", "line_distance", "accumulate", "votes", "excluded_angles", "peak",
            "VoteTables", "vote_tables", "prefix_votes"]
 
@@ -262,15 +263,36 @@ class HoughState:
         accumulate(self.acc, self.idx, hit, -1, self.table)
 
 
+class Voter(Protocol):
+    """How :func:`torchrow.functional.vanishing.find_lines` keeps votes (:class:`EagerVoter`,
+    :class:`StaticVoter`).
+
+    ``start(hin) -> (state, init)`` (``init``: what a restart needs, ``None`` for the eager
+    voter), ``votes(state) -> acc`` over the angle indices :attr:`angles` (``None``: all),
+    ``erase(state, init, theta, rho, active) -> state``, ``reset(state, init, which) -> state``,
+    and ``d`` (``D``, set by ``start``). ``state`` is a tuple (of tensors, for a static voter:
+    it passes through ``torch.cond``).
+    """
+
+    @property
+    def angles(self) -> torch.Tensor | None: ...
+
+    @property
+    def d(self) -> int: ...
+
+    def start(self, hin: torch.Tensor) -> tuple[tuple, Any]: ...
+
+    def votes(self, state: tuple) -> torch.Tensor: ...
+
+    def erase(self, state: tuple, init: Any, theta: torch.Tensor, rho: torch.Tensor,
+              active: torch.Tensor) -> tuple: ...
+
+    def reset(self, state: tuple, init: Any, which: torch.Tensor) -> tuple: ...
+
+
 class EagerVoter:
     """The eager voter of :func:`torchrow.functional.vanishing.find_lines`: a
-    :class:`HoughState` (compact pixel list, host-synchronised chunk loops).
-
-    The voter interface (shared with :class:`StaticVoter`): ``start(hin) -> (state, init)``
-    (``init``: what a restart needs), ``votes(state) -> acc`` over the angle indices
-    :attr:`angles` (``None``: all), ``erase(state, init, theta, rho, active) -> state``,
-    ``reset(state, init, which) -> state``, and ``d`` (``D``, set by ``start``). ``state``
-    is a tuple (of tensors, for a static voter: it passes through ``torch.cond``).
+    :class:`HoughState` (compact pixel list, host-synchronised chunk loops); a :class:`Voter`.
     """
 
     angles = None
@@ -330,7 +352,7 @@ def erase_bound(height: int, width: int, params: Params) -> int:
 
 
 class StaticVoter(nn.Module):
-    """Static-shape voter of the exportable graphs, with the :class:`EagerVoter` interface.
+    """Static-shape voter of the exportable graphs, a :class:`Voter` like :class:`EagerVoter`.
 
     * ``scatter_free=False`` (onnxruntime): as :class:`HoughState`, the state is the Hough
       input's compact pixel list (:func:`pixel_list`, ``(B, H*W)``, kept in ``init``) with

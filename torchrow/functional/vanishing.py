@@ -9,14 +9,14 @@ steps has a static bound; the loop stops early once every image is finished.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
-from torch import nn
 
 from torchrow.core.params import Params
 from torchrow.functional import _exact
 from torchrow.functional._flow import branch, check_flow, keep, repeat
-from torchrow.functional.hough import EagerVoter, excluded_angles, peak, trig
+from torchrow.functional.hough import EagerVoter, StaticVoter, Voter, excluded_angles, peak, trig
 
 __all__ = ["VPSolution", "vanishing_point", "LineSearch", "find_lines", "max_steps"]
 
@@ -136,7 +136,8 @@ def drop_outlier(theta, rho, weight, i, drop, out, n_out):
             n_out + drop.to(torch.int64))
 
 
-def find_lines(hough_in: torch.Tensor, params: Params, voter=None, flow: str = "sync") -> LineSearch:
+def find_lines(hough_in: torch.Tensor, params: Params, voter: Voter | None = None,
+               flow: str = "sync") -> LineSearch:
     """N-maximum extraction with outlier rejection and N-1 restarts, for every image at once.
 
     The one state machine of sections 5-6, for the eager detector and tracker and for the
@@ -162,11 +163,12 @@ def find_lines(hough_in: torch.Tensor, params: Params, voter=None, flow: str = "
     s_max = params.n_rows
     o_max = max(params.n_rows - 1, 1) * params.max_outliers
     vstate, init = voter.start(hough_in)
-    tables = (voter.cos, voter.sin) if isinstance(voter, nn.Module) else None
-    i64 = dict(dtype=torch.int64, device=dev)
+    tables = (voter.cos, voter.sin) if isinstance(voter, StaticVoter) else None
+    i64: dict[str, Any] = dict(dtype=torch.int64, device=dev)
     # an image without Hough pixels ends as its first extraction would leave it (N = 0, no
     # VP): done before the first step, so a search of only such images runs no step at all
     n = torch.where(hough_in.flatten(1).any(dim=1), params.n_rows, 0).to(torch.int64)
+    carry: tuple[Any, ...]  # grows by the voter's state below
     carry = (torch.zeros((bsz, s_max), **i64), torch.zeros((bsz, s_max), **i64), torch.zeros((bsz, s_max), **i64),
              torch.zeros(bsz, **i64), torch.zeros((bsz, o_max, 3), **i64), torch.zeros(bsz, **i64), n,
              torch.zeros(bsz, **i64), n < 2, torch.zeros((bsz, 2), dtype=torch.float64, device=dev),
@@ -215,10 +217,12 @@ def find_lines(hough_in: torch.Tensor, params: Params, voter=None, flow: str = "
         # eagerly a host check, in an exported graph an If (flow "always": both, masked)
         if flow == "sync":  # the eager voter's state is not a tuple of tensors
             if bool(fill.any()):
-                theta, rho, weight, held, n, *vs = extract(theta, rho, weight, held, n, *vs)
+                theta, rho, weight, held, n, *filled = extract(theta, rho, weight, held, n, *vs)
+                vs = tuple(filled)
         else:
-            theta, rho, weight, held, n, *vs = branch(flow, fill.any(), extract, keep,
-                                                      (theta, rho, weight, held, n, *vs))
+            theta, rho, weight, held, n, *filled = branch(flow, fill.any(), extract, keep,
+                                                          (theta, rho, weight, held, n, *vs))
+            vs = tuple(filled)
         checked = (theta, rho, weight, held, out, n_out, n, dropped, done, vp, has_vp)
         theta, rho, weight, held, out, n_out, n, dropped, done, vp, has_vp, restart = branch(
             flow, check.any(), verify, unchecked, checked)
