@@ -24,6 +24,7 @@ import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -91,8 +92,8 @@ class TrackerState:
     def empty(cls, batch: int, params: Params, device: torch.device | str = "cpu") -> TrackerState:
         """State of ``batch`` sequences that have not seen a frame yet."""
         dev = torch.device(device)
-        i64 = dict(dtype=torch.int64, device=dev)
-        f64 = dict(dtype=torch.float64, device=dev)
+        i64: dict[str, Any] = dict(dtype=torch.int64, device=dev)
+        f64: dict[str, Any] = dict(dtype=torch.float64, device=dev)
         s = params.n_rows
         return cls(sky=torch.zeros(batch, **i64), veg_color=torch.zeros((batch, 3), dtype=torch.uint8, device=dev),
                    info0=torch.zeros(batch, **f64), ready=torch.zeros(batch, dtype=torch.bool, device=dev),
@@ -311,7 +312,7 @@ def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: tor
     st = stages or eager_stages(p)
     bsz, h, w = veg.shape
     dev = veg.device
-    i64 = dict(dtype=torch.int64, device=dev)
+    i64: dict[str, Any] = dict(dtype=torch.int64, device=dev)
     s = p.n_rows
     o = max(p.n_rows - 1, 1) * p.max_outliers
     sky = state.sky
@@ -352,7 +353,7 @@ def advance(veg: torch.Tensor, k: torch.Tensor, bushy: torch.Tensor, active: tor
     def no_lines():
         z = torch.zeros((bsz, s), **i64)
         zo = torch.zeros((bsz, o), **i64)
-        b8 = dict(dtype=torch.bool, device=dev)
+        b8: dict[str, Any] = dict(dtype=torch.bool, device=dev)
         return fvan.LineSearch(z, z.clone(), z.clone(), torch.zeros((bsz, s), **b8), zo, zo.clone(), zo.clone(),
                                torch.zeros((bsz, o), **b8), torch.zeros(bsz, **i64),
                                torch.zeros((bsz, 2), dtype=torch.float64, device=dev), torch.zeros(bsz, **b8))
