@@ -22,12 +22,14 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
 from torchrow.core.batch import BatchResult
 from torchrow.core.camera import CameraModel
+from torchrow.core.params import Params
 from torchrow.core.results import concat_batches
 from torchrow.core.steering import check_optics
 from torchrow.onnx.metadata import model_meta
@@ -62,6 +64,14 @@ class OnnxDetector:
     redundant-node removal); the extended levels may fuse float64 multiply-adds, which would
     change the rounding the spec prescribes.
     """
+
+    # set by _open from the model's metadata
+    session: Any  # onnxruntime.InferenceSession
+    path: Path
+    height: int
+    width: int
+    batch: int
+    params: Params
 
     def __init__(self, model_path: str | Path, threads: int | None = None, cache: bool = True) -> None:
         _open(self, model_path, "detector", threads, cache)
@@ -106,7 +116,7 @@ class OnnxDetector:
         p = self.params
         b = color.shape[0]
         rows = finish_rows(o, self.height, self.width, p)
-        i64 = dict(dtype=torch.int64)
+        i64: dict[str, Any] = dict(dtype=torch.int64)
         status = fransac.image_status(rows, o["has_vp"], o["has_veg"])
         return BatchResult(
             width=self.width, height=self.height, status=status, sky=o["sky"], veg_color=color,
@@ -171,7 +181,7 @@ def ort_optimized(path: str | Path) -> Path | None:
     return out
 
 
-def _open(runner, model_path: str | Path, kind: str, threads: int | None, cache: bool = True) -> None:
+def _open(runner: OnnxDetector | OnnxTracker, model_path: str | Path, kind: str, threads: int | None, cache: bool = True) -> None:
     """Check ``model_path`` (present, a ``kind`` model), open an onnxruntime session on
     ``runner.session`` (from the :func:`ort_optimized` copy when ``cache``) and set
     ``runner.path``, ``height``, ``width``, ``batch``, ``params``."""
@@ -225,6 +235,14 @@ class OnnxTracker:
     cache : bool
         Open onnxruntime's pre-optimised copy of the model, as :class:`OnnxDetector`.
     """
+
+    # set by _open from the model's metadata
+    session: Any  # onnxruntime.InferenceSession
+    path: Path
+    height: int
+    width: int
+    batch: int
+    params: Params
 
     def __init__(self, model_path: str | Path, hfov_deg: float | None = None, threads: int | None = None,
                  cache: bool = True, camera: CameraModel | None = None) -> None:
