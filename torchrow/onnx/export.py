@@ -16,7 +16,9 @@ Outputs: :data:`torchrow.onnx.graphs.GRAPH_OUTPUTS`.
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -109,6 +111,7 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         raise FileNotFoundError(f"output folder does not exist: {path.parent}")
     images = torch.zeros((batch, 3, height, width), dtype=torch.uint8)
     veg_lab = torch.zeros((batch, 3), dtype=torch.float64)
+    module: torch.nn.Module
     if tracker:
         if width != params.video_width:
             raise ValueError(f"the tracker step works at params.video_width = {params.video_width} px, "
@@ -144,7 +147,7 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         # whose bit patterns equal their cast values: export them as Cast.
         if not control_flow:
             ep = ep.run_decompositions({torch.ops.aten.view.dtype: _view_as_cast})
-            table = None
+            table: dict[Callable[..., Any], Callable[..., Any]] | None = None
         else:  # re-decomposing a program with torch.cond subgraphs fails validation: translate instead
             table = {torch.ops.aten.view.dtype: _view_dtype_onnx}
         note("onnx")
@@ -152,6 +155,8 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
             prog = torch.onnx.export(ep, dynamo=True, opset_version=opset, input_names=names,
                                      output_names=outputs, verbose=False, optimize=False,
                                      custom_translation_table=table)
+        if prog is None:  # only the TorchScript exporter (dynamo=False) returns None
+            raise RuntimeError("torch.onnx.export(dynamo=True) returned no ONNXProgram")
         if optimize:
             # Constant folding and dead-node removal only: the exporter's default optimizer
             # also runs onnxscript's pattern rewriter, which took ~80% of a 9-minute export
