@@ -34,12 +34,17 @@ import os
 import pickle
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from torchrow.core.camera import CameraModel
 from torchrow.core.params import Params
 from torchrow.core.results import ImageResult
+
+if TYPE_CHECKING:  # imported by the workers that use them
+    from torchrow.engines.detector import CropRowDetector
+    from torchrow.onnx.runtime import OnnxDetector
 
 __all__ = ["init", "check_address", "run", "track", "read_binary", "RECORDS_PER_CHUNK", "BATCHES_IN_FLIGHT",
            "CONNECT_TIMEOUT_S"]
@@ -127,15 +132,18 @@ class _Detect:
 
         torch.set_num_threads(threads)
         self.impl, self.params = impl, params
-        self.det = None
+        self.det: CropRowDetector | OnnxDetector | None = None
+        self.model_batch: int | None = None  # the ONNX model's static batch
         if impl == "tensor":
             from torchrow.engines.detector import CropRowDetector
 
             self.det = CropRowDetector(params, device=device, workers=threads)
         elif impl == "onnx":
+            from torchrow.engines.runner import onnx_model
             from torchrow.onnx.runtime import OnnxDetector
 
-            self.det = OnnxDetector(model)
+            onnx = OnnxDetector(onnx_model(model))
+            self.det, self.model_batch = onnx, onnx.batch
 
     def detect(self, batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """The remote method (an actor's ``__call__`` is not one)."""
@@ -145,7 +153,7 @@ class _Detect:
         from torchrow.engines.runner import run
 
         items = [(str(n), pickle.loads(b)) for n, b in zip(batch["name"], batch["loader"])]
-        bs = self.det.batch if self.impl == "onnx" else max(len(items), 1)
+        bs = self.model_batch if self.model_batch is not None else max(len(items), 1)
         out = list(run(items, self.impl, self.params, batch_size=bs, progress=False, window=max(len(items), bs),
                        detector=self.det))
         return {"index": np.asarray(batch["index"], dtype=np.int64),

@@ -25,6 +25,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -35,7 +36,11 @@ from torchrow.core.progress import progress as progress_bar
 from torchrow.core.results import ImageResult
 from torchrow.core.steering import FrameResult
 
-__all__ = ["IMPLS", "run", "default_window", "onnx_workers", "track", "track_batches", "source_size",
+if TYPE_CHECKING:  # the run imports them when it needs them (import time of the CLI)
+    from torchrow.engines.detector import CropRowDetector
+    from torchrow.onnx.runtime import OnnxDetector
+
+__all__ = ["IMPLS", "run", "default_window", "onnx_model", "onnx_workers", "track", "track_batches", "source_size",
            "native_size", "load_camera"]
 
 IMPLS = ("tensor", "reference", "onnx")
@@ -43,11 +48,12 @@ IMPLS = ("tensor", "reference", "onnx")
 Loader = Callable[[], np.ndarray]
 
 
-def _load(name: str, loader: Loader) -> tuple[np.ndarray | None, ImageResult | None]:
+def _load(name: str, loader: Loader) -> np.ndarray | ImageResult:
+    """The working RGB image, or the ``error`` result of an input that cannot be loaded."""
     try:
-        return loader(), None
+        return loader()
     except (ImageError, OSError) as exc:
-        return None, ImageResult.failed(name, str(exc))
+        return ImageResult.failed(name, str(exc))
 
 
 def default_window(batch_size: int) -> int:
@@ -58,7 +64,8 @@ def default_window(batch_size: int) -> int:
 def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Params | None = None,
         batch_size: int = 64, device: str | None = None, progress: bool = True,
         desc: str = "detect", model: str | None = None, window: int | None = None,
-        total: int | None = None, detector=None, workers: int | None = None
+        total: int | None = None, detector: CropRowDetector | OnnxDetector | None = None,
+        workers: int | None = None
         ) -> Iterator[tuple[int, np.ndarray | None, ImageResult, float]]:
     """Detect every ``(name, loader)`` item; ``loader()`` returns the working RGB image.
 
@@ -83,16 +90,21 @@ def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Param
         raise ValueError(f"impl must be one of {IMPLS}, got {impl!r}")
     if total is None and hasattr(items, "__len__"):
         total = len(items)  # type: ignore[arg-type]
+    det: CropRowDetector | OnnxDetector | None
     if impl == "onnx":
-        if model is None:
-            raise ValueError("impl='onnx' needs model= (an ONNX file written by torchrow.onnx.export.to_onnx)")
+        model = onnx_model(model)
         from torchrow.onnx.runtime import OnnxDetector
 
         if workers is None:
             workers = 1 if detector is not None else onnx_workers()
         if workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
-        det = detector if detector is not None else OnnxDetector(model, threads=1 if workers > 1 else None)
+        if detector is None:
+            det = OnnxDetector(model, threads=1 if workers > 1 else None)
+        elif isinstance(detector, OnnxDetector):
+            det = detector
+        else:
+            raise TypeError(f"impl='onnx' runs an OnnxDetector, got {type(detector).__name__}")
         batch_size = det.batch
     else:
         if workers not in (None, 1):
@@ -109,19 +121,30 @@ def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Param
             from torchrow.reference import detect
 
             for i, (name, loader) in enumerate(items):
-                rgb, err = _load(name, loader)
+                got = _load(name, loader)
                 t0 = time.perf_counter()
-                if err is None:
+                rgb: np.ndarray | None = None
+                if isinstance(got, ImageResult):
+                    res = got
+                else:
+                    rgb = got
                     try:
-                        err = detect(rgb, params, name=name)
+                        res = detect(got, params, name=name)
                     except Exception as exc:  # a detector failure is a record, not a crash
-                        err = ImageResult.failed(name, f"{type(exc).__name__}: {exc}", rgb.shape[1], rgb.shape[0])
+                        res = ImageResult.failed(name, f"{type(exc).__name__}: {exc}", got.shape[1], got.shape[0])
                 bar.update(1)
-                yield i, rgb, err, time.perf_counter() - t0
+                yield i, rgb, res, time.perf_counter() - t0
             return
         yield from _run_tensor(items, params, batch_size, window, device, bar, det, workers)
     finally:
         bar.close()
+
+
+def onnx_model(model: str | None) -> str:
+    """``model`` of an ``impl="onnx"`` run, or the error saying that it is missing."""
+    if model is None:
+        raise ValueError("impl='onnx' needs model= (an ONNX file written by torchrow.onnx.export.to_onnx)")
+    return model
 
 
 def onnx_workers() -> int:
@@ -133,7 +156,9 @@ def onnx_workers() -> int:
     return max(1, min(cores, 4))
 
 
-def _run_tensor(items, params, batch_size, window, device, bar, det=None, workers: int = 1):
+def _run_tensor(items: Iterable[tuple[str, Loader]], params: Params, batch_size: int, window: int, device: str | None,
+                bar: Any, det: CropRowDetector | OnnxDetector | None = None, workers: int = 1
+                ) -> Iterator[tuple[int, np.ndarray | None, ImageResult, float]]:
     from collections import deque
     from concurrent.futures import ThreadPoolExecutor
 
@@ -202,12 +227,12 @@ def _run_tensor(items, params, batch_size, window, device, bar, det=None, worker
         for i, (name, loader) in enumerate(items):
             n = i + 1
             names[i] = name
-            rgb, err = _load(name, loader)
-            if err is not None:
-                done[i] = (None, err, 0.0)
+            got = _load(name, loader)
+            if isinstance(got, ImageResult):
+                done[i] = (None, got, 0.0)
                 bar.update(1)
             else:
-                rgbs[i] = rgb
+                rgb = rgbs[i] = got
                 groups.setdefault(rgb.shape, []).append(i)
                 if len(groups[rgb.shape]) >= batch_size:
                     flush(rgb.shape)
