@@ -488,7 +488,8 @@ def visible_rows(mask: torch.Tensor, top: torch.Tensor, coef: torch.Tensor, foun
     t = (torch.arange(h, device=dev, dtype=torch.float64) - (h - 1)).view(1, h, 1)
     cc, dd = centre_spacing(t, coef)
     centre = cc + ks.view(1, 1, -1) * dd  # (B, H, R)
-    defined = below.unsqueeze(2) & (dd > params.lattice_min_spacing_px)
+    # a row counts as shown only where the rows are resolvable: near the VP they all converge inside the image
+    defined = below.unsqueeze(2) & (dd >= float(params.lattice_min_spacing))
     inside = (defined & (centre >= 0) & (centre <= w - 1)).any(dim=1)
     support = (cnt > 0).sum(dim=1)
     conf = support.to(torch.float64) / _span(top, h).unsqueeze(1)

@@ -494,7 +494,7 @@ def visible_rows(mask: np.ndarray, top: int, fit: LatticeFit, params: Params) ->
     Rows ``k = -K_v .. K_v`` (:meth:`Params.lattice_visible_half`) take their inliers by the cells
     of 11.3 (:func:`row_cells` on the green pixels of rows ``y >= top``); a row is reported when the
     comb found pixels, its centre ``c(t) + k d(t)`` (float64, this order) lies in ``[0, W-1]`` on
-    some image row ``y >= top`` with ``d(t) > lattice_min_spacing_px``, and its confidence (as in
+    some image row ``y >= top`` with ``d(t) >= lattice_min_spacing``, and its confidence (as in
     :func:`lattice_rows`) is above 0 and ``>= lattice_min_confidence``.
     """
     h, w = mask.shape
@@ -504,7 +504,8 @@ def visible_rows(mask: np.ndarray, top: int, fit: LatticeFit, params: Params) ->
     coef = np.array(fit.coef, np.float64)
     cnt, _ = row_cells(prefix_sums(mask & below[:, None]), coef, params, ks)
     cc, dd = centre_spacing(np.arange(h, dtype=np.float64) - np.float64(h - 1), coef)
-    defined = below & (dd > params.lattice_min_spacing_px)
+    # a row counts as shown only where the rows are resolvable: near the VP they all converge inside the image
+    defined = below & (dd >= np.float64(params.lattice_min_spacing))
     span = np.float64(max(fit.span, 1))
     out = []
     with np.errstate(invalid="ignore", over="ignore"):
