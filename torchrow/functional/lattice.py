@@ -17,8 +17,8 @@ from typing import NamedTuple
 
 import torch
 
-from torchrow.core.io import lattice_params
-from torchrow.core.params import Params
+from torchrow.core.io import check_lattice_size, lattice_params
+from torchrow.core.params import VP_SLICE, Params
 from torchrow.core.results import STATUSES
 
 __all__ = ["LatticeRows", "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_table",
@@ -138,6 +138,7 @@ def vp_table(height: int, width: int, params: Params, device: torch.device) -> t
            params.lattice_vp_margin, str(device))
     table = _VP_TABLES.get(key)
     if table is None:
+        check_lattice_size(width, height, params)
         s = params.lattice_vp_cell
         hc, wc = -(-height // s), -(-width // s)
         yc = (torch.arange(hc, dtype=torch.float64, device=device) * s + (s - 1) / 2).repeat_interleave(wc)
@@ -145,11 +146,14 @@ def vp_table(height: int, width: int, params: Params, device: torch.device) -> t
         xs = torch.arange(0, width + 1, params.lattice_vp_step, dtype=torch.int64, device=device)
         hs = torch.tensor(params.lattice_vp_heights, dtype=torch.int64, device=device)
         grid = torch.stack([xs.repeat(hs.numel()), hs.repeat_interleave(xs.numel())], dim=1)
-        xv = grid[:, :1].to(torch.float64)
-        yv = grid[:, 1:].to(torch.float64)
-        b = torch.floor(xv + ((xc - xv) * (float(height - 1) - yv)) / (yc - yv))
-        keep = ((yc - yv) > params.lattice_vp_margin) & (b >= -width) & (b < 2 * width)
-        idx = torch.where(keep, b + width, torch.full_like(b, 3 * width)).to(torch.int64)
+        idx = torch.empty((grid.shape[0], yc.numel()), dtype=torch.int64, device=device)
+        step = max(1, VP_SLICE // max(yc.numel(), 1))  # VPs per slice: bounded float64 temporaries
+        for v0 in range(0, grid.shape[0], step):
+            xv = grid[v0:v0 + step, :1].to(torch.float64)
+            yv = grid[v0:v0 + step, 1:].to(torch.float64)
+            b = torch.floor(xv + ((xc - xv) * (float(height - 1) - yv)) / (yc - yv))
+            keep = ((yc - yv) > params.lattice_vp_margin) & (b >= -width) & (b < 2 * width)
+            idx[v0:v0 + step] = torch.where(keep, b + width, torch.full_like(b, 3 * width)).to(torch.int64)
         table = _VP_TABLES[key] = (grid, idx)
     return table
 
