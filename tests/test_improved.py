@@ -108,7 +108,7 @@ def test_params_lattice_bound_admits_the_wide_comb_and_its_formula_holds() -> No
     q, j = sum(range(5, 61)), 3 * 64 // 5 + 1
     assert all(a.shape == (q, j) for a in rlat._comb_tables(64, p)[3:]) and comb == q * (64 * j + 320)
     grid, idx = flat.vp_table(48, 64, p, torch.device("cpu"))
-    assert idx.numel() * 8 + 16 * grid.shape[0] * (3 * 64 + 61) == vp
+    assert 8 * (idx.numel() + grid.shape[0] * (3 * 64 + 8 * 60)) == vp
     assert p.replace(lattice_vp="section6").lattice_table_bytes(64, 48) == (comb, 0)
     # a batch wider than image_width is checked at its own size, before any table is built
     q = Params(mode="improved", lattice_vp_step=4)  # 8 V C = 0.6 GB at 320 x 1638, 1.2 GB at 640 x 819

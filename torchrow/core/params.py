@@ -165,9 +165,9 @@ class Params:
         ``J = 3W // lattice_min_spacing + 1`` teeth. The tensor path keeps ``16 Q`` bytes of
         scores per image.
 
-        ``vp = 8 V C + 16 V (3W + lattice_max_spacing + 1)`` (0 unless ``lattice_vp ==
-        "search"``): the tensor path's cached ``(V, C)`` int64 bin table and the ``(V, 3W)``
-        histograms with their folds; ``V = (W // lattice_vp_step + 1) * len(lattice_vp_heights)``
+        ``vp = 8 V (C + 3W + 8 lattice_max_spacing)`` (0 unless ``lattice_vp ==
+        "search"``): the tensor path's cached ``(V, C)`` int64 bin table, the ``(V, 3W)``
+        histograms and the folds of one spacing (about eight ``(V, d)`` arrays); ``V = (W // lattice_vp_step + 1) * len(lattice_vp_heights)``
         grid VPs, ``C = ceil(H / lattice_vp_cell) * ceil(W / lattice_vp_cell)`` cells.
         Both paths build their per-VP projections in slices of bounded size.
         """
@@ -178,7 +178,7 @@ class Params:
         s = self.lattice_vp_cell
         nv = (width // self.lattice_vp_step + 1) * len(self.lattice_vp_heights)
         cells = -(-height // s) * -(-width // s)
-        return comb, 8 * nv * cells + 16 * nv * (3 * width + self.lattice_max_spacing + 1)
+        return comb, 8 * nv * (cells + 3 * width + 8 * self.lattice_max_spacing)
 
     def hough_band_px(self, width: int) -> int:
         """Band (px) erased around each picked Hough line: ``int(W / 30)`` unless set."""
@@ -387,7 +387,7 @@ def _vp_what(p: Params) -> str:
     w, h = _lattice_size(p)
     nv = (w // p.lattice_vp_step + 1) * len(p.lattice_vp_heights)
     cells = -(-h // p.lattice_vp_cell) * -(-w // p.lattice_vp_cell)
-    return (f"makes the improved mode's VP search tables too large: 8 V C + 16 V (3W + lattice_max_spacing + 1) = "
+    return (f"makes the improved mode's VP search tables too large: 8 V (C + 3W + 8 lattice_max_spacing) = "
             f"{p.lattice_table_bytes(w, h)[1]} bytes > 2**30 at the largest working image W x H = {w} x {h} "
             f"(image_width x max_pixels // image_width; V = (W // lattice_vp_step + 1) * len(lattice_vp_heights) = "
             f"{nv} VPs, C = ceil(H / lattice_vp_cell) * ceil(W / lattice_vp_cell) = {cells} cells; ALGORITHM.md 11.2)"
