@@ -167,8 +167,9 @@ class Params:
 
         ``vp = 8 V (C + 3W + 8 lattice_max_spacing)`` (0 unless ``lattice_vp ==
         "search"``): the tensor path's cached ``(V, C)`` int64 bin table, the ``(V, 3W)``
-        histograms and the folds of one spacing (about eight ``(V, d)`` arrays); ``V = (W // lattice_vp_step + 1) * len(lattice_vp_heights)``
-        grid VPs, ``C = ceil(H / lattice_vp_cell) * ceil(W / lattice_vp_cell)`` cells.
+        histograms and the folds of one spacing (about eight ``(V, d)`` arrays);
+        ``V = (W // lattice_vp_step + 1) * len(lattice_vp_heights)`` grid VPs,
+        ``C = ceil(H / lattice_vp_cell) * ceil(W / lattice_vp_cell)`` cells.
         Both paths build their per-VP projections in slices of bounded size.
         """
         q = (self.lattice_min_spacing + self.lattice_max_spacing) * (self.lattice_max_spacing - self.lattice_min_spacing + 1) // 2
