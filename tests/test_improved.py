@@ -106,7 +106,7 @@ def test_params_lattice_bound_admits_the_wide_comb_and_its_formula_holds() -> No
     p = Params(mode="improved", lattice_min_spacing=5, lattice_max_spacing=60, lattice_vp_step=7, lattice_vp_cell=3)
     comb, vp = p.lattice_table_bytes(64, 48)
     q, j = sum(range(5, 61)), 3 * 64 // 5 + 1
-    assert all(a.shape == (q, j) for a in rlat._comb_tables(64, p)[3:]) and comb == q * (64 * j + 320)
+    assert all(a.shape == (q, j) for a in rlat._comb_tables(64, p)[3:]) and comb == q * (64 * j + 400)
     grid, idx = flat.vp_table(48, 64, p, torch.device("cpu"))
     assert 8 * (idx.numel() + grid.shape[0] * (3 * 64 + 8 * 60)) == vp
     assert p.replace(lattice_vp="section6").lattice_table_bytes(64, 48) == (comb, 0)

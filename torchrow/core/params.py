@@ -158,8 +158,8 @@ class Params:
     def lattice_table_bytes(self, width: int, height: int) -> tuple[int, int]:
         """Section 11.2's tables for one ``width x height`` working image, in bytes: ``(comb, vp)``.
 
-        ``comb = Q (64 J + 320)``: the reference's comb builds four ``(Q, J)`` int64 index
-        tables from ``Q`` per-candidate pieces (so twice while stacking them) with about 320
+        ``comb = Q (64 J + 400)``: the reference's comb builds four ``(Q, J)`` int64 index
+        tables from ``Q`` per-candidate pieces (so twice while stacking them) with about 400
         bytes of per-candidate overhead; ``Q`` = the sum of the spacings
         ``lattice_min_spacing .. lattice_max_spacing`` (one candidate per spacing and phase),
         ``J = 3W // lattice_min_spacing + 1`` teeth. The tensor path keeps ``16 Q`` bytes of
@@ -173,7 +173,7 @@ class Params:
         Both paths build their per-VP projections in slices of bounded size.
         """
         q = (self.lattice_min_spacing + self.lattice_max_spacing) * (self.lattice_max_spacing - self.lattice_min_spacing + 1) // 2
-        comb = q * (64 * (3 * width // self.lattice_min_spacing + 1) + 320)
+        comb = q * (64 * (3 * width // self.lattice_min_spacing + 1) + 400)
         if self.lattice_vp != "search":
             return comb, 0
         s = self.lattice_vp_cell
@@ -378,7 +378,7 @@ def _lattice_size(p: Params) -> tuple[int, int]:
 def _comb_what(p: Params) -> str:
     w, h = _lattice_size(p)
     q = (p.lattice_min_spacing + p.lattice_max_spacing) * (p.lattice_max_spacing - p.lattice_min_spacing + 1) // 2
-    return (f"makes the improved mode's comb tables too large: Q (64 J + 320) = {p.lattice_table_bytes(w, h)[0]} "
+    return (f"makes the improved mode's comb tables too large: Q (64 J + 400) = {p.lattice_table_bytes(w, h)[0]} "
             f"bytes > 2**30 at image_width {w} (Q = {q}, the sum of the spacings lattice_min_spacing.."
             f"lattice_max_spacing; J = 3 * image_width // lattice_min_spacing + 1 = {3 * w // p.lattice_min_spacing + 1}"
             f"; ALGORITHM.md 11.2)")

@@ -133,7 +133,9 @@ def vp_table(height: int, width: int, params: Params, device: torch.device) -> t
     """The search's grid ``(V, 2)`` int64 (:func:`torchrow.reference.lattice.vp_grid`'s order) and
     the bin of every cell under every grid VP, ``(V, C)`` int64, ``3W`` where a cell is not
     binned (a spill bin). It depends on the sizes and the grid only, so it is built once
-    (float64, the reference's expression) and cached: ``8 V C`` bytes, 18 MB at 320x240."""
+    (float64, the reference's expression, ``VP_SLICE`` (VP, cell) pairs at a time) and cached:
+    ``8 V C`` bytes, 18 MB at 320x240; sizes whose tables exceed the bound of
+    :meth:`Params.lattice_table_bytes` raise :class:`~torchrow.core.io.ImageError` first."""
     key = (height, width, params.lattice_vp_step, params.lattice_vp_heights, params.lattice_vp_cell,
            params.lattice_vp_margin, str(device))
     table = _VP_TABLES.get(key)
