@@ -366,8 +366,8 @@ _RULES: dict[str, _Rule] = {
 #: with them an image of ``max_pixels`` pixels at ``image_width`` runs under 3 GiB in either path.
 LATTICE_TABLE_BYTES = 1 << 30
 #: The VP search projects its cells through this many (VP, cell) pairs at a time (both paths),
-#: so its temporaries stay ~50 bytes each, ~100 MB, whatever the grid and the image size.
-VP_SLICE = 1 << 21
+#: so its temporaries stay ~50 bytes each, ~200 MB, whatever the grid and the image size.
+VP_SLICE = 1 << 22
 
 
 def _lattice_size(p: Params) -> tuple[int, int]:
