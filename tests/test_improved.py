@@ -75,6 +75,64 @@ def test_params_validate_improved_fields(change, field) -> None:
         Params(**change)
 
 
+#: A wide comb and a dense VP grid (spacings 12..320 px, VPs every 10 px at 15 heights): inside the bound.
+WIDE = {"lattice_min_spacing": 12, "lattice_max_spacing": 320, "lattice_vp_step": 10,
+        "lattice_vp_heights": (-10, -20, -30, -40, -50, -60, -75, -90, -110, -130, -155, -180, -215, -250, -300)}
+
+
+@pytest.mark.parametrize(("change", "field"), [
+    ({"lattice_max_spacing": 4096}, "lattice_max_spacing"),  # Q = 8.4e6 candidates
+    ({"lattice_min_spacing": 1, "lattice_max_spacing": 186}, "lattice_max_spacing"),  # J = 961 teeth
+    ({"lattice_vp_step": 1}, "lattice_vp_step"), ({"lattice_vp_heights": tuple(range(-64, 0))}, "lattice_vp_step"),
+    ({**WIDE, "lattice_vp_cell": 1}, "lattice_vp_step"),
+])
+def test_params_refuse_lattice_tables_over_the_bound(change, field) -> None:
+    # ALGORITHM.md 11.2: tables above 2**30 bytes at the largest image max_pixels admits at image_width
+    with pytest.raises(ValueError, match=rf"^Params\.{field} makes the improved mode's .* > 2\*\*30 .*; got "):
+        Params(mode="improved", **change)
+    Params(**change)  # the faithful mode builds no lattice tables
+    # the VP grid's bound follows the largest image: max_pixels at 320 x 240 admits the grid
+    if field == "lattice_vp_step":
+        Params(mode="improved", max_pixels=320 * 240, **change)
+
+
+def test_params_lattice_bound_admits_the_wide_comb_and_its_formula_holds() -> None:
+    from torchrow.core.io import ImageError, check_lattice_size, lattice_params
+    from torchrow.core.params import LATTICE_TABLE_BYTES
+
+    for change in (WIDE, {"lattice_min_spacing": 1, "lattice_max_spacing": 185}, {"lattice_vp_cell": 1},
+                   {"lattice_vp_step": 3}):
+        p = Params(mode="improved", **change)
+        assert max(p.lattice_table_bytes(320, p.max_pixels // 320)) <= LATTICE_TABLE_BYTES
+    # the formula bounds what the code builds (small sizes: cheap to build)
+    p = Params(mode="improved", lattice_min_spacing=5, lattice_max_spacing=60, lattice_vp_step=7, lattice_vp_cell=3)
+    comb, vp = p.lattice_table_bytes(64, 48)
+    q, j = sum(range(5, 61)), 3 * 64 // 5 + 1
+    assert all(a.shape == (q, j) for a in rlat._comb_tables(64, p)[3:]) and comb == q * (64 * j + 400)
+    grid, idx = flat.vp_table(48, 64, p, torch.device("cpu"))
+    assert 8 * (idx.numel() + grid.shape[0] * (3 * 64 + 8 * 60)) == vp
+    assert p.replace(lattice_vp="section6").lattice_table_bytes(64, 48) == (comb, 0)
+    # a batch wider than image_width is checked at its own size, before any table is built
+    q = Params(mode="improved", lattice_vp_step=4)  # 8 V C = 0.6 GB at 320 x 1638, 1.2 GB at 640 x 819
+    check_lattice_size(320, 1638, q)
+    for call in (lambda: check_lattice_size(640, 819, q), lambda: lattice_params(640, 819, q),
+                 lambda: flat.vp_table(819, 640, q, torch.device("cpu"))):
+        with pytest.raises(ImageError, match=r"working size 640x819 needs \d+ bytes of improved-mode tables"):
+            call()
+
+
+def test_vp_search_in_slices_equals_one_slice(monkeypatch) -> None:
+    # the VP search projects a few VPs at a time (bounded memory); the slicing changes nothing
+    masks = _search_masks()[:3]
+    want = [rlat.vp_search(m, IMPROVED) for m in masks]
+    monkeypatch.setattr(rlat, "VP_SLICE", 1000)
+    monkeypatch.setattr(flat, "VP_SLICE", 1000)
+    monkeypatch.setattr(flat, "_VP_TABLES", {})
+    assert [rlat.vp_search(m, IMPROVED) for m in masks] == want
+    got = flat.vp_search(torch.from_numpy(np.stack(masks)), IMPROVED)
+    assert [tuple(v) for v in got.tolist()] == want
+
+
 def test_params_mode_of_the_wrong_kind_is_a_type_error() -> None:
     with pytest.raises(TypeError, match=r"Params\.mode must be a str"):
         Params(mode=1)  # type: ignore[arg-type]
@@ -198,7 +256,9 @@ def test_tall_images_fall_back_to_a_quadratic_where_cubic_sums_could_overflow() 
     assert lattice_params(320, 240, IMPROVED) is IMPROVED
     assert lattice_params(640, 578, IMPROVED) is IMPROVED
     assert lattice_params(800, 579, IMPROVED) == IMPROVED.replace(lattice_center_degree=2)
-    assert lattice_params(4096, 4096, IMPROVED.replace(lattice_center_degree=2)).lattice_center_degree == 2
+    # section 6's VP: no VP search, whose tables at 4096 x 4096 exceed their bound (ALGORITHM.md 11.5)
+    quadratic = IMPROVED.replace(lattice_center_degree=2, lattice_vp="section6")
+    assert lattice_params(4096, 4096, quadratic).lattice_center_degree == 2
     with pytest.raises(ImageError, match="too large"):
         lattice_params(64, 4096, IMPROVED.replace(lattice_half=64, lattice_cell_grid=2**16))
     mask = np.zeros((600, 120), bool)

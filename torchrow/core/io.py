@@ -21,6 +21,7 @@ import numpy as np
 
 __all__ = ["ImageError", "IMAGE_EXTENSIONS", "MAX_DECODE_PIXELS", "MAX_FILE_BYTES", "to_rgb8", "resize_to_width",
            "load_image", "decode_image", "check_file_size", "working_size", "check_working_size", "lattice_params",
+           "check_lattice_size",
            "check_color", "check_color_used", "header_size", "majority_working_size"]
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
@@ -69,6 +70,27 @@ def _lattice_sums_fit(height: int, width: int, basis: tuple[tuple[int, int], ...
     return rows * top_m < 2**63 and rows * grid * max(width - 1, 1) * top_r < 2**63
 
 
+def check_lattice_size(width: int, height: int, params: Any) -> None:
+    """The improved mode's table bound (ALGORITHM.md 11.2) at the actual working size.
+
+    ``Params`` refuses parameters whose tables exceed ``LATTICE_TABLE_BYTES`` at its largest
+    working image (``image_width`` wide); a batch of another width (the tensor path takes any)
+    is checked here, before anything is allocated.
+
+    Raises
+    ------
+    ImageError
+        If :meth:`Params.lattice_table_bytes` exceeds ``LATTICE_TABLE_BYTES`` (2**30).
+    """
+    from torchrow.core.params import LATTICE_TABLE_BYTES
+
+    comb, vp = params.lattice_table_bytes(int(width), int(height))
+    if max(comb, vp) > LATTICE_TABLE_BYTES:
+        raise ImageError(f"working size {width}x{height} needs {max(comb, vp)} bytes of improved-mode tables "
+                         f"(comb {comb}, VP search {vp}: Params.lattice_table_bytes) > 2**30 (ALGORITHM.md 11.2); "
+                         f"use a smaller working size or Params.image_width")
+
+
 def lattice_params(width: int, height: int, params: Any) -> Any:
     """The improved mode's refit parameters for a ``width x height`` image (ALGORITHM.md 11.3):
     one rule for both paths.
@@ -82,8 +104,10 @@ def lattice_params(width: int, height: int, params: Any) -> Any:
     ------
     ImageError
         If even the quadratic sums could overflow (``lattice_half`` and ``lattice_cell_grid``
-        near their bounds on a very tall image).
+        near their bounds on a very tall image), or section 11.2's tables would exceed their
+        bound (:func:`check_lattice_size`).
     """
+    check_lattice_size(width, height, params)
     for degree in range(params.lattice_center_degree, 1, -1):
         p = params if degree == params.lattice_center_degree else params.replace(lattice_center_degree=degree)
         if _lattice_sums_fit(int(height), int(width), p.lattice_basis(), p.lattice_half, p.lattice_cell_grid):

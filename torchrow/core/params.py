@@ -131,7 +131,8 @@ class Params:
             object.__setattr__(self, f.name, rule.check(f.name, getattr(self, f.name)))
         for field, ok, what in _CROSS_RULES:
             if not ok(self):
-                raise ValueError(f"Params.{field} {what}; got {getattr(self, field)!r}")
+                said = what(self) if callable(what) else what
+                raise ValueError(f"Params.{field} {said}; got {getattr(self, field)!r}")
 
     # --- derived quantities -------------------------------------------------------------
     @property
@@ -171,6 +172,32 @@ class Params:
         ``width``-px image: ``ceil(3 W / (2 lattice_min_spacing))`` (the comb bins the bottom row
         on ``[-W, 2W)``, its rows lie at least ``lattice_min_spacing`` apart), at least ``lattice_half``."""
         return max(self.lattice_half, -(-3 * int(width) // (2 * self.lattice_min_spacing)))
+
+    def lattice_table_bytes(self, width: int, height: int) -> tuple[int, int]:
+        """Section 11.2's tables for one ``width x height`` working image, in bytes: ``(comb, vp)``.
+
+        ``comb = Q (64 J + 400)``: the reference's comb builds four ``(Q, J)`` int64 index
+        tables from ``Q`` per-candidate pieces (so twice while stacking them) with about 400
+        bytes of per-candidate overhead; ``Q`` = the sum of the spacings
+        ``lattice_min_spacing .. lattice_max_spacing`` (one candidate per spacing and phase),
+        ``J = 3W // lattice_min_spacing + 1`` teeth. The tensor path keeps ``16 Q`` bytes of
+        scores per image.
+
+        ``vp = 8 V (C + 3W + 8 lattice_max_spacing)`` (0 unless ``lattice_vp ==
+        "search"``): the tensor path's cached ``(V, C)`` int64 bin table, the ``(V, 3W)``
+        histograms and the folds of one spacing (about eight ``(V, d)`` arrays);
+        ``V = (W // lattice_vp_step + 1) * len(lattice_vp_heights)`` grid VPs,
+        ``C = ceil(H / lattice_vp_cell) * ceil(W / lattice_vp_cell)`` cells.
+        Both paths build their per-VP projections in slices of bounded size.
+        """
+        q = (self.lattice_min_spacing + self.lattice_max_spacing) * (self.lattice_max_spacing - self.lattice_min_spacing + 1) // 2
+        comb = q * (64 * (3 * width // self.lattice_min_spacing + 1) + 400)
+        if self.lattice_vp != "search":
+            return comb, 0
+        s = self.lattice_vp_cell
+        nv = (width // self.lattice_vp_step + 1) * len(self.lattice_vp_heights)
+        cells = -(-height // s) * -(-width // s)
+        return comb, 8 * nv * (cells + 3 * width + 8 * self.lattice_max_spacing)
 
     def hough_band_px(self, width: int) -> int:
         """Band (px) erased around each picked Hough line: ``int(W / 30)`` unless set."""
@@ -357,10 +384,49 @@ _RULES: dict[str, _Rule] = {
     "lattice_min_confidence": _Rule("float", 0, 1),
 }
 
-#: Rules that tie fields together: (field named in the error, condition, wording).
-_CROSS_RULES: tuple[tuple[str, Callable[[Params], bool], str], ...] = (
+#: Bytes section 11.2's tables may take for one working image (:meth:`Params.lattice_table_bytes`):
+#: with them an image of ``max_pixels`` pixels at ``image_width`` runs under 3 GiB in either path.
+LATTICE_TABLE_BYTES = 1 << 30
+#: The VP search projects its cells through this many (VP, cell) pairs at a time (both paths),
+#: so its temporaries stay ~50 bytes each, ~200 MB, whatever the grid and the image size.
+VP_SLICE = 1 << 22
+
+
+def _lattice_size(p: Params) -> tuple[int, int]:
+    """The largest working image of improved mode: ``image_width x max_pixels // image_width``."""
+    return p.image_width, p.max_pixels // p.image_width
+
+
+def _comb_what(p: Params) -> str:
+    w, h = _lattice_size(p)
+    q = (p.lattice_min_spacing + p.lattice_max_spacing) * (p.lattice_max_spacing - p.lattice_min_spacing + 1) // 2
+    return (f"makes the improved mode's comb tables too large: Q (64 J + 400) = {p.lattice_table_bytes(w, h)[0]} "
+            f"bytes > 2**30 at image_width {w} (Q = {q}, the sum of the spacings lattice_min_spacing.."
+            f"lattice_max_spacing; J = 3 * image_width // lattice_min_spacing + 1 = {3 * w // p.lattice_min_spacing + 1}"
+            f"; ALGORITHM.md 11.2)")
+
+
+def _vp_what(p: Params) -> str:
+    w, h = _lattice_size(p)
+    nv = (w // p.lattice_vp_step + 1) * len(p.lattice_vp_heights)
+    cells = -(-h // p.lattice_vp_cell) * -(-w // p.lattice_vp_cell)
+    return (f"makes the improved mode's VP search tables too large: 8 V (C + 3W + 8 lattice_max_spacing) = "
+            f"{p.lattice_table_bytes(w, h)[1]} bytes > 2**30 at the largest working image W x H = {w} x {h} "
+            f"(image_width x max_pixels // image_width; V = (W // lattice_vp_step + 1) * len(lattice_vp_heights) = "
+            f"{nv} VPs, C = ceil(H / lattice_vp_cell) * ceil(W / lattice_vp_cell) = {cells} cells; ALGORITHM.md 11.2)"
+            f": raise lattice_vp_step or lattice_vp_cell, use fewer lattice_vp_heights, or lower max_pixels")
+
+
+#: Rules that tie fields together: (field named in the error, condition, wording or a function
+#: of the parameters giving it).
+_CROSS_RULES: tuple[tuple[str, Callable[[Params], bool], str | Callable[[Params], str]], ...] = (
     ("ransac_subsample", lambda p: p.ransac_subsample <= p.ransac_max_points, "must be <= ransac_max_points"),
     ("video_k_start", lambda p: p.video_k_min <= p.video_k_start <= p.video_k_max,
      "must lie in [video_k_min, video_k_max]"),
     ("lattice_max_spacing", lambda p: p.lattice_max_spacing >= p.lattice_min_spacing, "must be >= lattice_min_spacing"),
+    # improved mode only (section 11): the faithful mode never builds these tables
+    ("lattice_max_spacing", lambda p: p.mode != "improved"
+     or p.lattice_table_bytes(*_lattice_size(p))[0] <= LATTICE_TABLE_BYTES, _comb_what),
+    ("lattice_vp_step", lambda p: p.mode != "improved"
+     or p.lattice_table_bytes(*_lattice_size(p))[1] <= LATTICE_TABLE_BYTES, _vp_what),
 )

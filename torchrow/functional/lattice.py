@@ -6,7 +6,15 @@ other float is the reference's expression in its order, so the results are ident
 
 Memory: a few ``(B, H, W)`` int64/float64/bool temporaries (about 40 bytes per pixel,
 ~200 MB for a batch of 64 images of 320x240: the mask, the VP search's cells, the comb's
-projections, the refit's two prefix sums) plus ``(B, 3W)`` comb histograms.
+projections, the refit's two prefix sums) plus ``(B, 3W)`` comb histograms. Section 11.2's
+tables (``V``, ``C``, ``Q`` as in :meth:`Params.lattice_table_bytes`, which ``Params`` bounds):
+the VP search's ``(V, C)`` bin table, ``8 V C`` bytes once per size and grid; per image its
+``(V, 3W + 1 + lattice_max_spacing)`` int32 histograms and one spacing's folds, ``4 V (3W + 8
+lattice_max_spacing)``, the comb's scores ``16 Q`` and its tooth windows, ``24 W`` per distinct
+tooth half-width. Measured peak RSS of :class:`~torchrow.engines.detector.CropRowDetector`
+(the whole detection, CPU: chunks of 8 images on 2 workers) for a batch of 64 images of
+320x240: 0.6 GiB with the defaults, 0.8-1.0 GiB with spacings 12..320, ``lattice_vp_step``
+10 and 15 VP heights; one image of 320x1638 (the largest ``max_pixels`` admits): 1.3 and 1.6 GiB.
 """
 
 from __future__ import annotations
@@ -17,8 +25,8 @@ from typing import NamedTuple
 
 import torch
 
-from torchrow.core.io import lattice_params
-from torchrow.core.params import Params
+from torchrow.core.io import check_lattice_size, lattice_params
+from torchrow.core.params import VP_SLICE, Params
 from torchrow.core.results import STATUSES
 
 __all__ = ["LatticeRows", "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_table",
@@ -142,11 +150,14 @@ def vp_table(height: int, width: int, params: Params, device: torch.device) -> t
     """The search's grid ``(V, 2)`` int64 (:func:`torchrow.reference.lattice.vp_grid`'s order) and
     the bin of every cell under every grid VP, ``(V, C)`` int64, ``3W`` where a cell is not
     binned (a spill bin). It depends on the sizes and the grid only, so it is built once
-    (float64, the reference's expression) and cached: ``8 V C`` bytes, 18 MB at 320x240."""
+    (float64, the reference's expression, ``VP_SLICE`` (VP, cell) pairs at a time) and cached:
+    ``8 V C`` bytes, 18 MB at 320x240; sizes whose tables exceed the bound of
+    :meth:`Params.lattice_table_bytes` raise :class:`~torchrow.core.io.ImageError` first."""
     key = (height, width, params.lattice_vp_step, params.lattice_vp_heights, params.lattice_vp_cell,
            params.lattice_vp_margin, str(device))
     table = _VP_TABLES.get(key)
     if table is None:
+        check_lattice_size(width, height, params)
         s = params.lattice_vp_cell
         hc, wc = -(-height // s), -(-width // s)
         yc = (torch.arange(hc, dtype=torch.float64, device=device) * s + (s - 1) / 2).repeat_interleave(wc)
@@ -154,11 +165,14 @@ def vp_table(height: int, width: int, params: Params, device: torch.device) -> t
         xs = torch.arange(0, width + 1, params.lattice_vp_step, dtype=torch.int64, device=device)
         hs = torch.tensor(params.lattice_vp_heights, dtype=torch.int64, device=device)
         grid = torch.stack([xs.repeat(hs.numel()), hs.repeat_interleave(xs.numel())], dim=1)
-        xv = grid[:, :1].to(torch.float64)
-        yv = grid[:, 1:].to(torch.float64)
-        b = torch.floor(xv + ((xc - xv) * (float(height - 1) - yv)) / (yc - yv))
-        keep = ((yc - yv) > params.lattice_vp_margin) & (b >= -width) & (b < 2 * width)
-        idx = torch.where(keep, b + width, torch.full_like(b, 3 * width)).to(torch.int64)
+        idx = torch.empty((grid.shape[0], yc.numel()), dtype=torch.int64, device=device)
+        step = max(1, VP_SLICE // max(yc.numel(), 1))  # VPs per slice: bounded float64 temporaries
+        for v0 in range(0, grid.shape[0], step):
+            xv = grid[v0:v0 + step, :1].to(torch.float64)
+            yv = grid[v0:v0 + step, 1:].to(torch.float64)
+            b = torch.floor(xv + ((xc - xv) * (float(height - 1) - yv)) / (yc - yv))
+            keep = ((yc - yv) > params.lattice_vp_margin) & (b >= -width) & (b < 2 * width)
+            idx[v0:v0 + step] = torch.where(keep, b + width, torch.full_like(b, 3 * width)).to(torch.int64)
         table = _VP_TABLES[key] = (grid, idx)
     return table
 

@@ -24,7 +24,7 @@ from typing import NamedTuple
 import numpy as np
 
 from torchrow.core.io import lattice_params
-from torchrow.core.params import Params
+from torchrow.core.params import VP_SLICE, Params
 from torchrow.core.results import LatticeRow, Row
 
 __all__ = ["LatticeFit", "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_grid",
@@ -174,16 +174,20 @@ def vp_search(mask: np.ndarray, params: Params) -> tuple[int, int]:
     padded[:h, :w] = mask
     cnt = padded.reshape(hc, s, wc, s).sum(axis=(1, 3)).ravel()
     yc, xc = vp_cells(h, w, params)
+    occupied = cnt > 0  # only counted cells are binned
+    yc, xc, cnt = yc[occupied], xc[occupied], cnt[occupied]
     grid = vp_grid(w, params)
     nb = 3 * w
-    xv = grid[:, :1].astype(np.float64)
-    yv = grid[:, 1:].astype(np.float64)
-    proj = xv + ((xc - xv) * (np.float64(h - 1) - yv)) / (yc - yv)
-    b = np.floor(proj)
-    keep = ((yc - yv) > params.lattice_vp_margin) & (b >= -w) & (b < 2 * w) & (cnt > 0)
-    hist = np.zeros(grid.shape[0] * nb, np.int64)
-    np.add.at(hist, np.nonzero(keep)[0] * nb + b[keep].astype(np.int64) + w, np.broadcast_to(cnt, keep.shape)[keep])
-    hist = hist.reshape(grid.shape[0], nb)
+    hist = np.zeros((grid.shape[0], nb), np.int64)
+    step = max(1, VP_SLICE // max(cnt.size, 1))  # VPs per slice: the projections stay ~VP_SLICE entries
+    for v0 in range(0, grid.shape[0], step):
+        xv = grid[v0:v0 + step, :1].astype(np.float64)
+        yv = grid[v0:v0 + step, 1:].astype(np.float64)
+        proj = xv + ((xc - xv) * (np.float64(h - 1) - yv)) / (yc - yv)
+        b = np.floor(proj)
+        keep = ((yc - yv) > params.lattice_vp_margin) & (b >= -w) & (b < 2 * w)
+        np.add.at(hist[v0:v0 + step].reshape(-1), np.nonzero(keep)[0] * nb + b[keep].astype(np.int64) + w,
+                  np.broadcast_to(cnt, keep.shape)[keep])
     total = hist.sum(axis=1)
     if not (total > 0).any():
         return w // 2, params.lattice_vp_fallback_y
