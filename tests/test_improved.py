@@ -296,7 +296,7 @@ def test_comb_and_fit_recover_a_synthetic_lattice(spacing: float, shift: float) 
 def test_curved_lattice_gets_its_curvature() -> None:
     # the rows bend 17 px by the top row, where they are 18 px apart (more would alias)
     img = _field(curve=0.0003)
-    rows, _, _fit, _ = rlat.improved_rows(img, 0, (160.0, -60.0), IMPROVED)
+    rows, _, _fit, _ = rlat.improved_rows(img, 0, (160.0, -60.0), IMPROVED.replace(lattice_model="curved"))
     assert all(r.valid for r in rows)
     assert all(abs(r.c - 0.0003) < 3e-5 for r in rows)
     y = np.arange(240.0)

@@ -441,10 +441,11 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, 
     rows = torch.arange(h, device=dev).view(1, h, 1)
     pre = prefix_sums(mask & (rows >= sky.to(torch.int64).view(-1, 1, 1)))
     is_curved = params.lattice_model == "curved"
-    coef = refine(pre, coef, params, straight=not is_curved)
+    start = coef
+    coef = refine(pre, start, params, straight=not is_curved)
     curved = torch.full((bsz,), is_curved, dtype=torch.bool, device=dev)
     if params.lattice_model == "auto":
-        bent = refine(pre, coef, params, straight=False)
+        bent = refine(pre, start, params, straight=False)
         n_straight = row_cells(pre, coef, params)[0].sum(dim=(1, 2)).to(torch.float64)
         n_bent = row_cells(pre, bent, params)[0].sum(dim=(1, 2)).to(torch.float64)
         curved = n_bent > (1.0 + params.lattice_curve_gain) * n_straight

@@ -428,7 +428,7 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
     Start: ``c(t) = phase + ((phase - xv) / (H-1 - yv)) t``, ``d(t) = d + (d / (H-1 - yv)) t``,
     no higher terms (straight rows through the VP). ``lattice_model`` ``"curved"``: one curved
     :func:`refine` from the start. ``"straight"``: one straight refine. ``"auto"`` (default):
-    the straight refine, then a curved refine from its result, kept only where its inlier
+    a straight and a curved refine, both from the start, the curved one kept only where its inlier
     pixels exceed ``(1 + lattice_curve_gain)`` times the straight lattice's (float64), so
     straight rows stay straight unless the pixels demand a bend.
     """
@@ -444,9 +444,12 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
     mask[:max(sky, 0)] = False
     pre = prefix_sums(mask)
     curved = params.lattice_model == "curved"
-    coef = refine(pre, coef, h, params, straight=not curved)
+    start = coef
+    coef = refine(pre, start, h, params, straight=not curved)
     if params.lattice_model == "auto":
-        bent = refine(pre, coef, h, params, straight=False)
+        # from the comb's start too: started from the straight fit, the curved refit keeps the
+        # straight fit's cells where a bend has already lost the far pixels
+        bent = refine(pre, start, h, params, straight=False)
         n_straight = int(row_cells(pre, coef, params)[0].sum())
         n_bent = int(row_cells(pre, bent, params)[0].sum())
         if np.float64(n_bent) > (np.float64(1.0) + np.float64(params.lattice_curve_gain)) * np.float64(n_straight):
