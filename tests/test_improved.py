@@ -16,6 +16,7 @@ from torchrow.reference import detect
 from torchrow.reference import lattice as rlat
 
 IMPROVED = Params(mode="improved")
+CURVED = IMPROVED.replace(lattice_model="curved")
 
 
 def _t(images: list[np.ndarray]) -> torch.Tensor:
@@ -208,7 +209,8 @@ def test_row_cells_are_the_per_pixel_rule_on_both_paths(seed: int) -> None:
 def _refit_every_iteration(mask: np.ndarray, params: Params) -> np.ndarray:
     """Sections 11.3 and 11.3.1 without the fixed-point stop: every iteration runs unless the
     inliers are too few or the system is singular; ``"auto"`` keeps the curved refit where it
-    holds more than ``1 + lattice_curve_gain`` times the straight lattice's inlier pixels."""
+    holds more than ``1 + lattice_curve_gain`` times the straight lattice's inlier pixels (both
+    refits from the comb's start)."""
     h, _w = mask.shape
     xv, yv = rlat.vp_search(mask, params)
     d, phase, _, _ = rlat.comb_search(mask, (xv, yv), params)
@@ -229,10 +231,11 @@ def _refit_every_iteration(mask: np.ndarray, params: Params) -> np.ndarray:
 
     if params.lattice_model == "curved":
         return every(coef, False)
-    coef = every(coef, True)
+    start = coef
+    coef = every(start, True)
     if params.lattice_model == "straight":
         return coef
-    bent = every(coef, False)
+    bent = every(start, False)
     n_s, n_b = (int(rlat.row_cells(pre, c, params)[0].sum()) for c in (coef, bent))
     return bent if n_b > (1 + params.lattice_curve_gain) * n_s else coef
 
@@ -257,7 +260,8 @@ def test_tall_images_fall_back_to_a_quadratic_where_cubic_sums_could_overflow() 
     assert lattice_params(640, 578, IMPROVED) is IMPROVED
     assert lattice_params(800, 579, IMPROVED) == IMPROVED.replace(lattice_center_degree=2)
     # section 6's VP: no VP search, whose tables at 4096 x 4096 exceed their bound (ALGORITHM.md 11.5)
-    quadratic = IMPROVED.replace(lattice_center_degree=2, lattice_vp="section6")
+    quadratic = IMPROVED.replace(lattice_center_degree=2, lattice_vp="section6", lattice_min_spacing=40,
+                                 lattice_max_spacing=180)  # and a comb range whose tables fit at that size
     assert lattice_params(4096, 4096, quadratic).lattice_center_degree == 2
     with pytest.raises(ImageError, match="too large"):
         lattice_params(64, 4096, IMPROVED.replace(lattice_half=64, lattice_cell_grid=2**16))
@@ -537,6 +541,7 @@ def test_row_mean_green_keeps_merged_far_rows_apart() -> None:
 def test_lattice_horizon_image_uses_rows_above_section_2_sky() -> None:
     # section 2 may put its horizon inside a sky-less field; "image" (the default) ignores it
     img = _field(curve=0.0003)
+    IMPROVED = CURVED  # the bend is visible only far ahead: "auto" would keep straight rows (11.3.1)
     sky = 80
     assert IMPROVED.lattice_horizon == "image" and rlat.horizon_row(sky, IMPROVED) == 0
     old = IMPROVED.replace(lattice_horizon="sky")
@@ -615,7 +620,7 @@ def test_cli_mode_improved_detect_and_video_error(tmp_path, capsys) -> None:
 
 
 def test_improved_record_round_trip() -> None:
-    res = detect(_field(curve=0.0002), IMPROVED)
+    res = detect(_field(curve=0.0002), CURVED)
     rec = res.to_record()
     assert ImageResult.from_record(rec).to_record() == rec
     back = ImageResult.from_record(rec)
@@ -723,4 +728,5 @@ def test_lattice_rows_agree_between_paths_on_crdld(data_dir) -> None:
     images = [ds.image(i) for i in (0, 7)]
     for ref, got in _both(images, IMPROVED):
         _records_equal(ref, got)
-        assert got.lattice_rows and len(got.lattice_rows) >= 3
+        # forward rows 150-330 px apart at the bottom of a 320-px image: two or three are shown
+        assert got.lattice_rows and len(got.lattice_rows) >= 2
