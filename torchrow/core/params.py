@@ -108,8 +108,8 @@ class Params:
     lattice_vp_max_y: int = 0  # a section-6 VP below this image row is not trusted
     lattice_vp_fallback_y: int = -60  # y of the VP used instead, at x = W // 2
     lattice_vp_margin: int = 10  # px: only pixels this far below the VP are projected
-    lattice_min_spacing: int = 16  # px, smallest bottom-row spacing the comb tries
-    lattice_max_spacing: int = 320  # px, largest (forward cameras see 2-3 rows across the bottom row)
+    lattice_min_spacing: int = 40  # px, smallest bottom-row spacing the comb tries
+    lattice_max_spacing: int = 180  # px, largest (forward cameras: 320, ALGORITHM.md 11.3.1)
     lattice_window: float = 0.1  # comb tooth half-width, fraction of the spacing
     lattice_iterations: int = 20  # least-squares refits at most (a refit whose cells repeat stops early)
     lattice_center_degree: int = 3  # degree of the central row c(t): 3 (S-bends; 2 above 578 rows) or 2
@@ -120,7 +120,7 @@ class Params:
     lattice_min_spacing_px: float = 2.0  # pixels where d(t) <= this are not assigned
     lattice_pivot_tol: float = 1e-12  # pivot <= this * max(its diagonal entry, 1): singular normal equations
     lattice_min_confidence: float = 0.0  # rows below this confidence are invalid
-    lattice_model: str = "auto"  # "curved" (one curved refit); "straight"; "auto": straight, curved where it gains support
+    lattice_model: str = "curved"  # "curved" (one curved refit); "straight"; "auto": straight, curved where it gains support
     lattice_curve_gain: float = 0.02  # "auto": the curved refit must hold this fraction more inlier pixels
     lattice_min_contrast: float = 0.2  # status ok needs the comb's contrast per binned pixel at least this
     lattice_min_image_confidence: float = 0.0  # status ok needs the image confidence at least this
