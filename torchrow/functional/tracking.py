@@ -22,12 +22,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from torchrow.core.batch import BatchResult
+from torchrow.core.frames import LoadedFrame, load_items
 from torchrow.core.params import Params
 from torchrow.core.steering import FrameResult
 from torchrow.functional import color as fcolor
@@ -39,7 +42,7 @@ from torchrow.functional._checks import check_images
 from torchrow.functional._flow import branch
 
 __all__ = ["TrackerState", "TrackStep", "init_state", "merge_state", "segment", "finish_segment", "advance",
-           "coverage", "Stages", "eager_stages", "records",
+           "coverage", "Stages", "eager_stages", "records", "ChunkItem", "FrameChunk", "ChunkStep", "lockstep",
            "STATUS_OK", "STATUS_INVALID", "STATUS_NO_VP", "STATUS_NO_VEGETATION"]
 
 # codes into torchrow.core.results.STATUSES
@@ -433,3 +436,124 @@ def records(step: TrackStep, state: TrackerState, width: int, height: int, param
                                      hough_ran=ran[b], hough_redo=redo[b], confidence=conf[b],
                                      hfov_deg=hfov_deg))
     return out
+
+
+# ------------------------------------------------------------------------------------------
+# The lock-step frame loop of both trackers' ``track_iter``
+# ------------------------------------------------------------------------------------------
+
+class ChunkItem(NamedTuple):
+    """One loaded item of a sequence: its place in the sequence and the loaded frame."""
+
+    index: int
+    frame: LoadedFrame
+
+
+@dataclass(frozen=True)
+class FrameChunk:
+    """Up to ``chunk`` consecutive items of each of ``B`` sequences, all of working size
+    ``size`` = ``(H, W)`` or unreadable (``frame.rgb`` is ``None``)."""
+
+    items: list[list[ChunkItem]]
+    size: tuple[int, int]
+
+    @property
+    def length(self) -> int:
+        """Frames of the longest sequence in the chunk (the lock-step frames ``t``)."""
+        return max((len(g) for g in self.items), default=0)
+
+    def rgb(self, b: int, t: int) -> np.ndarray | None:
+        """Working RGB ``uint8 (H, W, 3)`` of frame ``t`` of sequence ``b``; ``None`` when the
+        sequence has no readable frame ``t`` in this chunk."""
+        g = self.items[b]
+        return g[t].frame.rgb if t < len(g) else None
+
+    def active(self, t: int) -> list[bool]:
+        """Per sequence: it has a readable frame ``t``."""
+        return [self.rgb(b, t) is not None for b in range(len(self.items))]
+
+
+#: A tracker's part of :func:`lockstep`: given a chunk, yields for every frame ``t`` of it
+#: (in order) the step and state after that frame, or ``None`` when no sequence was active.
+ChunkStep = Callable[[FrameChunk], Iterator["tuple[TrackStep, TrackerState] | None"]]
+
+
+def lockstep(sequences: Sequence[Iterable[object]], step: ChunkStep, params: Params, *, chunk: int = 1,
+             size: tuple[int, int] | None = None, sources: Sequence[str | None] | None = None,
+             hfov_deg: float | None = None, size_note: str = ""
+             ) -> Iterator[tuple[int, FrameResult, np.ndarray | None]]:
+    """Track ``B`` sequences in lock-step, lazily: the frame loop of the eager and the ONNX
+    trackers' ``track_iter``, which differ only in ``step``.
+
+    Parameters
+    ----------
+    sequences : sequence of iterables
+        One iterable of items per sequence (:mod:`torchrow.core.frames`); lengths may differ.
+    step : ChunkStep
+        Advances the tracker over a :class:`FrameChunk` (it holds the tracker state).
+    params : Params
+        ``video_width`` and ``max_pixels`` load the items; records use the rest.
+    chunk : int
+        Items pulled from every sequence per call of ``step``.
+    size : (int, int), optional
+        Working ``(H, W)`` of the batch; default: the first readable frame's.
+    sources : sequence of str, optional
+        Sequence names stored in the records.
+    hfov_deg : float, optional
+        Horizontal field of view of the records' ``heading_rad``.
+    size_note : str
+        Appended to the error of a frame of another working size (e.g. where the size comes from).
+
+    Yields
+    ------
+    (sequence index, FrameResult, working RGB or None)
+        Frame ``t`` of every sequence before frame ``t + 1``. Every item gets a record:
+        unreadable frames, and frames whose working size differs from the batch's, get
+        ``error`` records and are skipped (their sequence is inactive at that frame).
+    """
+    bsz = len(sequences)
+    iters = [load_items(s, params.video_width, params.max_pixels) for s in sequences]
+    alive = [True] * bsz
+    next_index = [0] * bsz
+    srcs: list[str | None] = list(sources) if sources is not None else [None] * bsz
+    while any(alive):
+        got: list[list[ChunkItem]] = [[] for _ in range(bsz)]
+        for b in range(bsz):
+            while alive[b] and len(got[b]) < chunk:
+                fr = next(iters[b], None)
+                if fr is None:
+                    alive[b] = False
+                    break
+                if fr.rgb is not None:
+                    if size is None:
+                        size = (int(fr.rgb.shape[0]), int(fr.rgb.shape[1]))
+                    elif fr.rgb.shape[:2] != size:
+                        fr.error = (f"frame of working size {fr.rgb.shape[1]}x{fr.rgb.shape[0]} in a batch of "
+                                    f"{size[1]}x{size[0]}{size_note}")
+                        fr.rgb = None
+                got[b].append(ChunkItem(next_index[b], fr))
+                next_index[b] += 1
+        part = FrameChunk(got, size if size is not None else (0, 0))
+        if part.length == 0:
+            break
+        # nothing readable yet (no size): only error records, the tracker never runs
+        steps = step(part) if size is not None else iter(())
+        for t in range(part.length):
+            done = next(steps, None)
+            recs: list[FrameResult | None] = [None] * bsz
+            if done is not None:
+                stepped, state = done
+                pad = [None] * (len(state) - bsz)  # a static batch larger than the sequences
+                names = [g[t].frame.name if t < len(g) else None for g in got]
+                idxs = [g[t].index if t < len(g) else 0 for g in got]
+                recs = records(stepped, state, part.size[1], part.size[0], params, hfov_deg, names + pad,
+                               srcs + pad, idxs + [0] * len(pad))
+            for b in range(bsz):
+                if t >= len(got[b]):
+                    continue
+                i, fr = got[b][t]
+                rec = recs[b]
+                if rec is not None:
+                    yield b, rec, fr.rgb
+                else:
+                    yield b, FrameResult.failed_frame(srcs[b], i, fr.name, fr.error or "unreadable frame"), None
