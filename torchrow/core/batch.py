@@ -6,14 +6,23 @@ and the ONNX runners.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import dataclasses
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 
 from torchrow.core.results import REASONS, STATUSES, HoughLine, ImageResult, Row
 
 __all__ = ["BatchResult"]
+
+#: Field of :class:`BatchResult` <- attribute of a row table (:meth:`BatchResult.build`).
+_ROW_FIELDS = {"row_a": "a", "row_b": "b", "row_valid": "valid", "row_reason": "reason",
+               "row_hypothesis": "hypothesis", "row_present": "present"}
+#: Field of :class:`BatchResult` <- attribute of a line search (:meth:`BatchResult.build`).
+_LINE_FIELDS = {"hough_theta": "theta", "hough_rho": "rho", "hough_weight": "weight", "hough_valid": "valid",
+                **{f: f for f in ("out_theta", "out_rho", "out_weight", "out_valid", "n_rows", "vp", "has_vp")}}
 
 
 @dataclass
@@ -61,6 +70,47 @@ class BatchResult:
     row_e: torch.Tensor | None = None
     row_confidence: torch.Tensor | None = None
     image_confidence: torch.Tensor | None = None
+
+    @classmethod
+    def build(cls, width: int, height: int, theta_step: int, *, lines: Any = None, rows: Any = None,
+              fields: Mapping[str, torch.Tensor] | Any = None, **given: Any) -> BatchResult:
+        """The one way the engines assemble a batch result from their stages' outputs.
+
+        Each tensor field comes from the first of: ``given`` by name; ``rows`` (an object with
+        ``a, b, valid, reason, hypothesis, present``, e.g.
+        :class:`~torchrow.functional.ransac.Rows`: ``row_a = rows.a``, ...); ``lines`` (with
+        ``theta, rho, weight, valid, out_*, n_rows, vp, has_vp``, e.g.
+        :class:`~torchrow.functional.vanishing.LineSearch`: ``hough_theta = lines.theta``, ...);
+        ``fields`` by the field's own name (a mapping, or an object with those attributes such
+        as a tracker step). ``given`` also sets the optional fields (``timings``, ``row_c``...).
+
+        Raises
+        ------
+        TypeError
+            Naming the first tensor field that none of them provides.
+        """
+        out = {}
+        for f in dataclasses.fields(cls):
+            name = f.name
+            if name in given:
+                out[name] = given.pop(name)
+            elif f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING:
+                continue
+            elif name in ("width", "height", "theta_step"):
+                continue
+            elif rows is not None and name in _ROW_FIELDS:
+                out[name] = getattr(rows, _ROW_FIELDS[name])
+            elif lines is not None and name in _LINE_FIELDS:
+                out[name] = getattr(lines, _LINE_FIELDS[name])
+            elif isinstance(fields, Mapping) and name in fields:
+                out[name] = fields[name]
+            elif fields is not None and not isinstance(fields, Mapping) and hasattr(fields, name):
+                out[name] = getattr(fields, name)
+            else:
+                raise TypeError(f"BatchResult.build: no value for the field {name!r}")
+        if given:
+            raise TypeError(f"BatchResult.build: unknown fields {sorted(given)}")
+        return cls(width=width, height=height, theta_step=theta_step, **out)
 
     def __len__(self) -> int:
         return int(self.status.shape[0])

@@ -177,15 +177,10 @@ class CropRowDetector(nn.Module):
         status = fransac.image_status(rows, ls.has_vp if faithful else None, has_veg if faithful else None)
         if not faithful:
             status = flattice.improved_status(curved, status, p)
-        return BatchResult(
-            width=w, height=h, status=status, sky=sky.to(torch.int64), veg_color=color, k=k, bushy=bushy,
-            n_rows=ls.n_rows if p.mode == "faithful" else torch.full_like(ls.n_rows, rows.a.shape[1]),
-            hough_theta=ls.theta, hough_rho=ls.rho, hough_weight=ls.weight,
-            hough_valid=ls.valid, out_theta=ls.out_theta, out_rho=ls.out_rho, out_weight=ls.out_weight,
-            out_valid=ls.out_valid, vp=ls.vp, has_vp=ls.has_vp, row_a=rows.a, row_b=rows.b,
-            row_valid=rows.valid, row_reason=rows.reason, row_hypothesis=rows.hypothesis,
-            row_present=rows.present, theta_step=p.theta_step, timings=timings,
-            **(flattice.curve_fields(curved) if p.mode == "improved" else {}))
+        return BatchResult.build(
+            w, h, p.theta_step, lines=ls, rows=rows, status=status, sky=sky.to(torch.int64), veg_color=color, k=k,
+            bushy=bushy, n_rows=ls.n_rows if p.mode == "faithful" else torch.full_like(ls.n_rows, rows.a.shape[1]),
+            timings=timings, **(flattice.curve_fields(curved) if p.mode == "improved" else {}))
 
     def prepare(self, image: np.ndarray | str | Path) -> np.ndarray:
         """Section 0 for one input: load a path or convert an array, resize to the working width."""

@@ -414,14 +414,8 @@ def records(step: TrackStep, state: TrackerState, width: int, height: int, param
     ``indices`` default to the frame count of ``state`` minus one; ``hfov_deg`` gives the
     records' heading (:meth:`~torchrow.core.steering.FrameResult.build`).
     """
-    batch = BatchResult(
-        width=width, height=height, status=step.status, sky=state.sky, veg_color=state.veg_color, k=step.k,
-        bushy=step.bushy, n_rows=step.n_rows, hough_theta=step.hough_theta, hough_rho=step.hough_rho,
-        hough_weight=step.hough_weight, hough_valid=step.hough_valid, out_theta=step.out_theta,
-        out_rho=step.out_rho, out_weight=step.out_weight, out_valid=step.out_valid, vp=step.vp,
-        has_vp=step.has_vp, row_a=step.row_a, row_b=step.row_b, row_valid=step.row_valid,
-        row_reason=step.row_reason, row_hypothesis=step.row_hypothesis, row_present=step.row_present,
-        theta_step=params.theta_step)
+    batch = BatchResult.build(width, height, params.theta_step, fields=step, sky=state.sky,
+                              veg_color=state.veg_color)
     base = batch.results(names)
     active = step.active.cpu().tolist()
     ran, redo = step.hough_ran.cpu().tolist(), step.hough_redo.cpu().tolist()

@@ -106,14 +106,8 @@ class OnnxDetector:
         rows = finish_rows(o, self.height, self.width, p)
         i64 = dict(dtype=torch.int64)
         status = fransac.image_status(rows, o["has_vp"], o["has_veg"])
-        return BatchResult(
-            width=self.width, height=self.height, status=status, sky=o["sky"], veg_color=color,
-            k=torch.full((b,), p.veg_tol, **i64), bushy=o["bushy"], n_rows=o["n_rows"],
-            hough_theta=o["hough_theta"], hough_rho=o["hough_rho"], hough_weight=o["hough_weight"],
-            hough_valid=o["hough_valid"], out_theta=o["out_theta"], out_rho=o["out_rho"],
-            out_weight=o["out_weight"], out_valid=o["out_valid"], vp=o["vp"], has_vp=o["has_vp"],
-            row_a=rows.a, row_b=rows.b, row_valid=rows.valid, row_reason=rows.reason,
-            row_hypothesis=rows.hypothesis, row_present=rows.present, theta_step=p.theta_step)
+        return BatchResult.build(self.width, self.height, p.theta_step, rows=rows, fields=o, status=status,
+                                 veg_color=color, k=torch.full((b,), p.veg_tol, **i64))
 
     def detect(self, images: Sequence[np.ndarray]) -> BatchResult:
         """Detect rows in a list of same-sized working-size RGB arrays ``(H, W, 3)``."""
