@@ -20,7 +20,7 @@ import torch
 from torch import nn
 
 from torchrow.core.params import Params
-from torchrow.core.tables import hough_trig, rho_index_table, rho_offset
+from torchrow.core.tables import hough_pickable, hough_trig, near_angle, near_horizontal, rho_index_table, rho_offset
 from torchrow.functional import _exact
 from torchrow.functional._checks import check_masks
 from torchrow.functional._flow import branch, check_flow, choose, keep
@@ -181,8 +181,8 @@ def excluded_angles(held_theta: torch.Tensor, held_valid: torch.Tensor, params: 
     """
     dev = held_theta.device
     deg = torch.arange(params.n_theta, device=dev) * params.theta_step
-    ex = (deg - 90).abs() < params.horizontal_excl
-    near = ((deg.view(1, 1, -1) - (held_theta * params.theta_step).unsqueeze(-1)).abs() < params.angle_excl)
+    ex = near_horizontal(deg, params.horizontal_excl)
+    near = near_angle(deg.view(1, 1, -1), (held_theta * params.theta_step).unsqueeze(-1), params.angle_excl)
     return ex.unsqueeze(0) | (near & held_valid.unsqueeze(-1)).any(dim=1)
 
 
@@ -301,8 +301,7 @@ class EagerVoter:
 def pickable_angles(params: Params) -> np.ndarray:
     """Angle indices ``j`` with ``|j*theta_step - 90| >= horizontal_excl``, int64 ``(A,)``: the
     only ones step 5.1 ever lets be a peak, so the only ones a static voter votes for."""
-    return np.array([j for j in range(params.n_theta) if abs(j * params.theta_step - 90) >= params.horizontal_excl],
-                    dtype=np.int64)
+    return hough_pickable(params.theta_step, params.horizontal_excl).copy()
 
 
 @functools.lru_cache(maxsize=8)
@@ -313,9 +312,7 @@ def _erase_bound(height: int, width: int, theta_step: int, horizontal_excl: int,
     rho = np.arange(-d, d + 1, dtype=np.float64)
     half = band / 2 + 1e-6  # slack: the band test rounds |p - rho|, these bounds round p +- half
     best = 0
-    for j in range(n_theta):
-        if abs(j * theta_step - 90) < horizontal_excl:
-            continue
+    for j in hough_pickable(theta_step, horizontal_excl):
         p = np.sort(xs * cos[j] + ys * sin[j])
         best = max(best, int((np.searchsorted(p, rho + half, "right") - np.searchsorted(p, rho - half, "left")).max()))
     return best
@@ -529,8 +526,7 @@ class VoteTables:
 @functools.lru_cache(maxsize=2)
 def _vote_arrays(height: int, width: int, theta_step: int, horizontal_excl: int):
     idx = rho_index_table(height, width, theta_step)  # (n_theta, HW)
-    n_theta = idx.shape[0]
-    angles = np.array([j for j in range(n_theta) if abs(j * theta_step - 90) >= horizontal_excl], dtype=np.int64)
+    angles = hough_pickable(theta_step, horizontal_excl).copy()  # torch.from_numpy needs it writable
     d = rho_offset(height, width)
     n_rho = 2 * d + 1
     sub = idx[angles].astype(np.int64)

@@ -38,7 +38,7 @@ from torchrow.functional import ransac as fransac
 from torchrow.functional import sky as fsky
 from torchrow.functional import vanishing as fvan
 from torchrow.functional import vegetation as fveg
-from torchrow.functional._checks import check_images
+from torchrow.functional._checks import below_horizon, check_images
 from torchrow.functional._flow import branch
 
 __all__ = ["TrackerState", "TrackStep", "init_state", "merge_state", "segment", "finish_segment", "advance",
@@ -238,8 +238,7 @@ def coverage(veg: torch.Tensor, a: torch.Tensor, b: torch.Tensor, valid: torch.T
         idx = (ys.view(1, 1, h) * w + xs.clamp(0, w - 1)).reshape(bsz, s * h)
         on = torch.gather(flat, 1, idx).view(bsz, s, h)
         hit |= inside & near & on
-    below = ys.view(1, 1, h) >= sky.view(-1, 1, 1)
-    count = (hit & below).sum(2)
+    count = (hit & below_horizon(sky, h, as_bool=True).view(-1, 1, h)).sum(2)
     rows_below = (h - sky.clamp(0, h)).view(-1, 1)
     cov = count.to(torch.float64) / rows_below.clamp(min=1).to(torch.float64)
     cov = torch.where(rows_below > 0, cov, torch.zeros_like(cov))
