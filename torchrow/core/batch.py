@@ -15,13 +15,13 @@ import torch
 
 from torchrow.core.results import REASONS, STATUSES, HoughLine, ImageResult, Row
 
-__all__ = ["BatchResult"]
+__all__ = ["BatchResult", "ROW_FIELDS", "LINE_FIELDS"]
 
 #: Field of :class:`BatchResult` <- attribute of a row table (:meth:`BatchResult.build`).
-_ROW_FIELDS = {"row_a": "a", "row_b": "b", "row_valid": "valid", "row_reason": "reason",
+ROW_FIELDS = {"row_a": "a", "row_b": "b", "row_valid": "valid", "row_reason": "reason",
                "row_hypothesis": "hypothesis", "row_present": "present"}
 #: Field of :class:`BatchResult` <- attribute of a line search (:meth:`BatchResult.build`).
-_LINE_FIELDS = {"hough_theta": "theta", "hough_rho": "rho", "hough_weight": "weight", "hough_valid": "valid",
+LINE_FIELDS = {"hough_theta": "theta", "hough_rho": "rho", "hough_weight": "weight", "hough_valid": "valid",
                 **{f: f for f in ("out_theta", "out_rho", "out_weight", "out_valid", "n_rows", "vp", "has_vp")}}
 
 
@@ -98,10 +98,10 @@ class BatchResult:
                 continue
             elif name in ("width", "height", "theta_step"):
                 continue
-            elif rows is not None and name in _ROW_FIELDS:
-                out[name] = getattr(rows, _ROW_FIELDS[name])
-            elif lines is not None and name in _LINE_FIELDS:
-                out[name] = getattr(lines, _LINE_FIELDS[name])
+            elif rows is not None and name in ROW_FIELDS:
+                out[name] = getattr(rows, ROW_FIELDS[name])
+            elif lines is not None and name in LINE_FIELDS:
+                out[name] = getattr(lines, LINE_FIELDS[name])
             elif isinstance(fields, Mapping) and name in fields:
                 out[name] = fields[name]
             elif fields is not None and not isinstance(fields, Mapping) and hasattr(fields, name):

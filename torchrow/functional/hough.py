@@ -14,6 +14,7 @@ from __future__ import annotations
 import functools
 import itertools
 from dataclasses import dataclass
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -25,7 +26,7 @@ from torchrow.functional import _exact
 from torchrow.functional._checks import check_masks
 from torchrow.functional._flow import branch, check_flow, choose, keep
 
-__all__ = ["HoughState", "EagerVoter", "StaticVoter", "pickable_angles", "erase_bound", "pixel_list", "compact",
+__all__ = ["HoughState", "Voter", "EagerVoter", "StaticVoter", "pickable_angles", "erase_bound", "pixel_list", "compact",
            "trig", "rho_table", "line_distance", "accumulate", "votes", "excluded_angles", "peak",
            "VoteTables", "vote_tables", "prefix_votes"]
 
@@ -262,16 +263,38 @@ class HoughState:
         accumulate(self.acc, self.idx, hit, -1, self.table)
 
 
-class EagerVoter:
-    """The eager voter of :func:`torchrow.functional.vanishing.find_lines`: a
-    :class:`HoughState` (compact pixel list, host-synchronised chunk loops).
+class Voter(Protocol):
+    """How :func:`torchrow.functional.vanishing.find_lines` keeps Hough votes
+    (:class:`EagerVoter`, :class:`StaticVoter`).
 
-    The voter interface (shared with :class:`StaticVoter`): ``start(hin) -> (state, init)``
-    (``init``: what a restart needs), ``votes(state) -> acc`` over the angle indices
-    :attr:`angles` (``None``: all), ``erase(state, init, theta, rho, active) -> state``,
-    ``reset(state, init, which) -> state``, and ``d`` (``D``, set by ``start``). ``state``
-    is a tuple (of tensors, for a static voter: it passes through ``torch.cond``).
+    ``state`` is a tuple (of tensors, for a static voter: it passes through ``torch.cond``);
+    ``init`` is what a restart needs.
     """
+
+    @property
+    def angles(self) -> torch.Tensor | None:
+        """int64 ``(A,)``: the angle indices :meth:`votes` holds (``None``: all ``n_theta``)."""
+
+    @property
+    def d(self) -> int:
+        """``D`` of the accumulator (a cell's rho is its index minus ``D``); set by :meth:`start`."""
+
+    def start(self, hin: torch.Tensor) -> tuple[tuple, Any]:
+        """``(state, init)`` of the Hough input bool ``(B, H, W)``, every pixel voted."""
+
+    def votes(self, state: tuple) -> torch.Tensor:
+        """int32 ``(B, A, 2D+1)``: the votes of the pixels not yet erased."""
+
+    def erase(self, state: tuple, init: Any, theta: torch.Tensor, rho: torch.Tensor, active: torch.Tensor) -> tuple:
+        """Step 5.3: the state after erasing the band of line ``(theta, rho)`` int64 ``(B,)`` where ``active``."""
+
+    def reset(self, state: tuple, init: Any, which: torch.Tensor) -> tuple:
+        """The state of a restart (every pixel voted again) where ``which`` bool ``(B,)``."""
+
+
+class EagerVoter:
+    """The eager :class:`Voter` of :func:`torchrow.functional.vanishing.find_lines`: a
+    :class:`HoughState` (compact pixel list, host-synchronised chunk loops)."""
 
     angles = None
 
@@ -327,7 +350,7 @@ def erase_bound(height: int, width: int, params: Params) -> int:
 
 
 class StaticVoter(nn.Module):
-    """Static-shape voter of the exportable graphs, with the :class:`EagerVoter` interface.
+    """Static-shape :class:`Voter` of the exportable graphs.
 
     * ``scatter_free=False`` (onnxruntime): as :class:`HoughState`, the state is the Hough
       input's compact pixel list (:func:`pixel_list`, ``(B, H*W)``, kept in ``init``) with

@@ -41,6 +41,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from torchrow.core.batch import LINE_FIELDS
 from torchrow.core.params import Params
 from torchrow.core.tables import hypothesis_table, rgb_code
 from torchrow.functional import ransac as fransac
@@ -189,12 +190,15 @@ class StaticDetector(nn.Module):
         has_veg = veg.flatten(1).any(dim=1)
         hin, bushy = fveg.hough_input(veg, sky, p)
         ls = self.find_lines(hin)
-        n = ls.n_rows
         band = fransac.ransac_band(bushy, w, p)
         present = ls.valid & ls.has_vp.unsqueeze(1)
         fit = self.fit_rows(veg, ls.theta, ls.rho, present, ls.vp, band)
-        return (sky, bushy, has_veg, n, ls.theta, ls.rho, ls.weight, ls.valid, ls.out_theta, ls.out_rho,
-                ls.out_weight, ls.out_valid, ls.vp, ls.has_vp) + fit.astuple() + (present,)
+        # outputs matched to GRAPH_OUTPUTS by name; a flat tuple, the form every exporter takes
+        named = {"sky": sky, "bushy": bushy, "has_veg": has_veg, "row_present": present,
+                 **{f: getattr(ls, a) for f, a in LINE_FIELDS.items()},
+                 **{"fit_" + f: getattr(fit, f) for f in ("cx", "cy", "sxx", "syy", "sxy")},
+                 "row_hypothesis": fit.hypothesis, "row_support": fit.support}
+        return tuple(named[f] for f in GRAPH_OUTPUTS)
 
 
 def finish_rows(outputs: dict, height: int, width: int, params: Params) -> fransac.Rows:
