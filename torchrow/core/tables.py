@@ -26,7 +26,7 @@ import tempfile
 import warnings
 import zlib
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -249,7 +249,7 @@ def lab_table_torch(device: str | torch.device = "cpu"):
     return t
 
 
-def rgb_code(r, g, b):  # type: ignore[no-untyped-def]
+def rgb_code(r: Any, g: Any, b: Any) -> Any:
     """The 24-bit colour code ``(R<<16)|(G<<8)|B`` (the row of the LAB table) of channels ``r``,
     ``g``, ``b`` in ``0..255``: NumPy arrays, tensors or numbers of an integer type that holds
     ``2**24`` (widen ``uint8`` first), broadcast together.
@@ -294,7 +294,7 @@ def hough_trig(theta_step: int = 1) -> tuple[np.ndarray, np.ndarray]:
     return c, s
 
 
-def near_horizontal(deg, horizontal_excl: int):  # type: ignore[no-untyped-def]
+def near_horizontal(deg: Any, horizontal_excl: int) -> Any:
     """Step 5.1's fixed rule: Hough angles ``deg`` (degrees: a number, a NumPy array or a
     tensor) with ``|deg - 90| < horizontal_excl`` are never picked (a bool of ``deg``'s kind).
 
@@ -303,7 +303,7 @@ def near_horizontal(deg, horizontal_excl: int):  # type: ignore[no-untyped-def]
     return abs(deg - 90) < horizontal_excl
 
 
-def near_angle(deg, held_deg, angle_excl: int):  # type: ignore[no-untyped-def]
+def near_angle(deg: Any, held_deg: Any, angle_excl: int) -> Any:
     """Step 5.1's rule around a held line: angles ``deg`` with ``|deg - held_deg| < angle_excl``
     (degrees, on the integer grid, no wrap-around at 0/180) are not picked while it is held."""
     return abs(deg - held_deg) < angle_excl

@@ -263,16 +263,16 @@ class Tracker(nn.Module):
                     0, idx.cpu(), x0).to(self.device), state,
                     torch.zeros(bsz, dtype=torch.bool, device=self.device).index_fill_(0, idx, True))
             # segment every readable frame of the chunk in one call
-            where = [(b, t) for t in range(t_max) for b in range(bsz) if chunk.rgb(b, t) is not None]
+            where = [(b, t, rgb) for t in range(t_max) for b in range(bsz) if (rgb := chunk.rgb(b, t)) is not None]
             veg = torch.zeros((bsz, t_max, h, w), dtype=torch.bool, device=self.device)
             kk = torch.zeros((bsz, t_max), dtype=torch.int64, device=self.device)
             bushy = torch.zeros((bsz, t_max), dtype=torch.bool, device=self.device)
             if where:
-                seq = torch.tensor([b for b, _ in where], dtype=torch.int64, device=self.device)
-                x = torch.from_numpy(np.stack([chunk.rgb(b, t) for b, t in where])).permute(0, 3, 1, 2)
+                seq = torch.tensor([b for b, _, _ in where], dtype=torch.int64, device=self.device)
+                x = torch.from_numpy(np.stack([rgb for _, _, rgb in where])).permute(0, 3, 1, 2)
                 v, k1, b1 = self._segment(x.contiguous().to(self.device), state.sky[seq], state.veg_color[seq],
                                           state.info0[seq])
-                flat = seq * t_max + torch.tensor([t for _, t in where], dtype=torch.int64, device=self.device)
+                flat = seq * t_max + torch.tensor([t for _, t, _ in where], dtype=torch.int64, device=self.device)
                 veg.view(bsz * t_max, h, w)[flat] = v
                 kk.view(-1)[flat] = k1
                 bushy.view(-1)[flat] = b1

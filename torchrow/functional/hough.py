@@ -376,6 +376,8 @@ class StaticVoter(nn.Module):
     first :attr:`tier` entries, where chunks are 4x longer).
     """
 
+    angles: torch.Tensor  # buffer: the pickable angle indices
+
     def __init__(self, height: int, width: int, params: Params, flow: str = "loop", scatter_free: bool = False,
                  chunk: int = 2048, tier: int | None = None) -> None:
         super().__init__()
