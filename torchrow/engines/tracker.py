@@ -239,6 +239,13 @@ class Tracker(nn.Module):
             In lock-step order: frame ``t`` of every sequence before frame ``t + 1``. Every
             item gets a record: unreadable frames, and frames whose working size differs from
             the batch's, get ``error`` records and are skipped.
+
+        Notes
+        -----
+        The frame loop is :func:`torchrow.functional.tracking.lockstep` (shared with
+        :class:`torchrow.onnx.runtime.OnnxTracker`); this tracker's step starts the sequences
+        whose frame 0 is in a chunk, segments the chunk's readable frames in one call, then
+        advances frame by frame.
         """
         bsz = len(sequences)
         state = TrackerState.empty(bsz, self.params, self.device)
