@@ -15,7 +15,7 @@ import torch
 
 from torchrow.core.results import REASONS, STATUSES, HoughLine, ImageResult, Row
 
-__all__ = ["BatchResult", "ROW_FIELDS", "LINE_FIELDS"]
+__all__ = ["BatchResult", "Detections", "ROW_FIELDS", "LINE_FIELDS"]
 
 #: Field of :class:`BatchResult` <- attribute of a row table (:meth:`BatchResult.build`).
 ROW_FIELDS = {"row_a": "a", "row_b": "b", "row_valid": "valid", "row_reason": "reason",
@@ -26,23 +26,18 @@ LINE_FIELDS = {"hough_theta": "theta", "hough_rho": "rho", "hough_weight": "weig
 
 
 @dataclass
-class BatchResult:
-    """Detections of a batch of ``B`` images of one working size ``width x height``.
-
-    Per image: ``status`` int64 (code into :data:`torchrow.core.results.STATUSES`), ``sky``,
-    ``k``, ``n_rows`` int64, ``bushy`` bool, ``veg_color`` uint8 ``(B, 3)``, ``vp`` float64
-    ``(B, 2)`` with ``has_vp``. Hough lines ``hough_*`` ``(B, n_rows)`` with ``hough_valid``;
-    dropped outliers ``out_*`` ``(B, O)`` with ``out_valid``; rows ``row_a``/``row_b`` float64
-    ``(B, n_rows)`` (``x = a*y + b``), ``row_valid``, ``row_reason`` (code into
+class Detections:
+    """The per-image detections of a batch, the fields every batched result shares
+    (:class:`BatchResult` of the detectors, :class:`~torchrow.functional.tracking.TrackStep`
+    of the tracker): ``status`` int64 (code into :data:`torchrow.core.results.STATUSES`),
+    ``k``, ``n_rows`` int64, ``bushy`` bool ``(B,)``; Hough lines ``hough_*`` ``(B, n_rows)``
+    with ``hough_valid``; dropped outliers ``out_*`` ``(B, O)`` with ``out_valid``; ``vp``
+    float64 ``(B, 2)`` with ``has_vp``; rows ``row_a``/``row_b`` float64 ``(B, n_rows)``
+    (``x = a*y + b``), ``row_valid``, ``row_reason`` (code into
     :data:`torchrow.core.results.REASONS`), ``row_hypothesis``, ``row_present``.
-    ``timings`` holds seconds per stage when the detector was asked to profile.
     """
 
-    width: int
-    height: int
     status: torch.Tensor
-    sky: torch.Tensor
-    veg_color: torch.Tensor
     k: torch.Tensor
     bushy: torch.Tensor
     n_rows: torch.Tensor
@@ -62,6 +57,19 @@ class BatchResult:
     row_reason: torch.Tensor
     row_hypothesis: torch.Tensor
     row_present: torch.Tensor
+
+
+@dataclass
+class BatchResult(Detections):
+    """Detections of a batch of ``B`` images of one working size ``width x height``: the
+    :class:`Detections` fields, and per image ``sky`` int64 and ``veg_color`` uint8 ``(B, 3)``.
+    ``timings`` holds seconds per stage when the detector was asked to profile.
+    """
+
+    width: int
+    height: int
+    sky: torch.Tensor
+    veg_color: torch.Tensor
     theta_step: int = 1
     timings: dict[str, float] = field(default_factory=dict)
     #: Improved mode only (None in faithful mode): ``row_c``/``row_e``/``row_confidence`` ``(B, R)``

@@ -29,7 +29,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from torchrow.core.batch import BatchResult
+from torchrow.core.batch import BatchResult, Detections
 from torchrow.core.frames import LoadedFrame, load_items
 from torchrow.core.params import Params
 from torchrow.core.steering import FrameResult
@@ -123,38 +123,14 @@ def merge_state(old: TrackerState, new: TrackerState, mask: torch.Tensor) -> Tra
 
 
 @dataclass
-class TrackStep:
-    """One lock-step frame of ``B`` sequences; rows (B, S), everything else (B,) unless said.
-
-    ``status`` int64 code into :data:`torchrow.core.results.STATUSES`; ``k`` int64; ``bushy``
-    bool; ``n_rows`` int64; Hough lines ``hough_*`` (B, S) with ``hough_valid`` and dropped
-    outliers ``out_*`` (B, O) with ``out_valid`` (all invalid on tracked frames); ``vp``
-    float64 (B, 2) with ``has_vp``; rows ``row_a``/``row_b`` float64, ``row_valid``,
-    ``row_reason`` (code into REASONS), ``row_hypothesis``, ``row_present``; ``hough_ran``,
-    ``hough_redo`` bool; ``confidence`` float64 in [0, 1]; ``active`` bool (sequences that
-    processed a frame in this step; the other entries are meaningless for the rest).
+class TrackStep(Detections):
+    """One lock-step frame of ``B`` sequences: the :class:`~torchrow.core.batch.Detections`
+    fields (rows ``(B, S)``; Hough lines and outliers all invalid on tracked frames), then
+    ``hough_ran``, ``hough_redo`` bool ``(B,)``, ``confidence`` float64 ``(B,)`` in [0, 1] and
+    ``active`` bool ``(B,)`` (sequences that processed a frame in this step; the other
+    entries are meaningless for the rest).
     """
 
-    status: torch.Tensor
-    k: torch.Tensor
-    bushy: torch.Tensor
-    n_rows: torch.Tensor
-    hough_theta: torch.Tensor
-    hough_rho: torch.Tensor
-    hough_weight: torch.Tensor
-    hough_valid: torch.Tensor
-    out_theta: torch.Tensor
-    out_rho: torch.Tensor
-    out_weight: torch.Tensor
-    out_valid: torch.Tensor
-    vp: torch.Tensor
-    has_vp: torch.Tensor
-    row_a: torch.Tensor
-    row_b: torch.Tensor
-    row_valid: torch.Tensor
-    row_reason: torch.Tensor
-    row_hypothesis: torch.Tensor
-    row_present: torch.Tensor
     hough_ran: torch.Tensor
     hough_redo: torch.Tensor
     confidence: torch.Tensor
