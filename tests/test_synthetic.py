@@ -315,6 +315,19 @@ def test_spec_validation():
         FieldSpec(spacing_px=float("nan"))
 
 
+def test_spec_fields_follow_the_params_rule_machinery():
+    """FieldSpec checks its fields with :class:`torchrow.core.params.Rule`, as Params does: a value
+    of the wrong kind is a TypeError naming the field; lists become tuples, numbers their kind."""
+    with pytest.raises(TypeError, match=r"FieldSpec\.width must be an integer, not float"):
+        FieldSpec(width=20.0)
+    with pytest.raises(ValueError, match=r"FieldSpec\.soil_color must be an \(R, G, B\) triple"):
+        FieldSpec(soil_color=(1, 2))
+    spec = FieldSpec(soil_color=[1, 2, 3], missing_rows=[2], spacing_px=60, width=np.int64(320))
+    assert spec == FieldSpec(soil_color=(1, 2, 3), missing_rows=(2,)) and hash(spec) == hash(FieldSpec(
+        soil_color=(1, 2, 3), missing_rows=(2,)))
+    assert type(spec.spacing_px) is float and type(spec.width) is int
+
+
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     seed=st.integers(0, 2**32),

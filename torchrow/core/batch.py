@@ -6,37 +6,40 @@ and the ONNX runners.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import dataclasses
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 
 from torchrow.core.results import REASONS, STATUSES, HoughLine, ImageResult, LatticeRow, Row
 
-__all__ = ["BatchResult"]
+__all__ = ["BatchResult", "Detections", "ROW_FIELDS", "LINE_FIELDS"]
+
+#: Field of :class:`BatchResult` <- attribute of a row table (:meth:`BatchResult.build`).
+ROW_FIELDS = {"row_a": "a", "row_b": "b", "row_valid": "valid", "row_reason": "reason",
+               "row_hypothesis": "hypothesis", "row_present": "present"}
+#: Field of :class:`BatchResult` <- attribute of a line search (:meth:`BatchResult.build`).
+LINE_FIELDS = {"hough_theta": "theta", "hough_rho": "rho", "hough_weight": "weight", "hough_valid": "valid",
+                **{f: f for f in ("out_theta", "out_rho", "out_weight", "out_valid", "n_rows", "vp", "has_vp")}}
 
 
 @dataclass
-class BatchResult:
-    """Detections of a batch of ``B`` images of one working size ``width x height``.
-
-    Per image: ``status`` int64 (code into :data:`torchrow.core.results.STATUSES`), ``sky``,
-    ``k``, ``n_rows`` int64, ``bushy`` bool, ``veg_color`` uint8 ``(B, 3)``, ``vp`` float64
-    ``(B, 2)`` with ``has_vp``. Hough lines ``hough_*`` ``(B, n_rows)`` with ``hough_valid``;
-    dropped outliers ``out_*`` ``(B, O)`` with ``out_valid``; rows ``row_a``/``row_b`` float64
-    ``(B, n_rows)`` (``x = a*y + b``), ``row_valid``, ``row_reason`` (code into
+class Detections:
+    """The per-image detections of a batch, the fields every batched result shares
+    (:class:`BatchResult` of the detectors, :class:`~torchrow.functional.tracking.TrackStep`
+    of the tracker): ``status`` int64 (code into :data:`torchrow.core.results.STATUSES`),
+    ``k``, ``n_rows`` int64, ``bushy`` bool ``(B,)``; Hough lines ``hough_*`` ``(B, n_rows)``
+    with ``hough_valid``; dropped outliers ``out_*`` ``(B, O)`` with ``out_valid``; ``vp``
+    float64 ``(B, 2)`` with ``has_vp``; rows ``row_a``/``row_b`` float64 ``(B, n_rows)``
+    (``x = a*y + b``), ``row_valid``, ``row_reason`` (code into
     :data:`torchrow.core.results.REASONS`), ``row_hypothesis``, ``row_present``.
-    ``timings`` holds seconds per stage when the detector was asked to profile.
-    The improved mode reports none of sections 2-6: ``veg_color``, ``k``, ``bushy``,
-    ``hough_*``, ``out_*``, ``vp`` and ``has_vp`` are ``None`` (the records' nulls), and ``sky``
-    is the lattice's first image row.
+    The improved mode reports none of sections 2-6: ``k``, ``bushy``, ``hough_*``, ``out_*``,
+    ``vp`` and ``has_vp`` are ``None`` there (the records' nulls).
     """
 
-    width: int
-    height: int
     status: torch.Tensor
-    sky: torch.Tensor
-    veg_color: torch.Tensor | None
     k: torch.Tensor | None
     bushy: torch.Tensor | None
     n_rows: torch.Tensor
@@ -56,6 +59,20 @@ class BatchResult:
     row_reason: torch.Tensor
     row_hypothesis: torch.Tensor
     row_present: torch.Tensor
+
+
+@dataclass
+class BatchResult(Detections):
+    """Detections of a batch of ``B`` images of one working size ``width x height``: the
+    :class:`Detections` fields, and per image ``sky`` int64 and ``veg_color`` uint8 ``(B, 3)``.
+    ``timings`` holds seconds per stage when the detector was asked to profile. In the improved
+    mode ``veg_color`` is ``None`` and ``sky`` is the lattice's first image row.
+    """
+
+    width: int
+    height: int
+    sky: torch.Tensor
+    veg_color: torch.Tensor | None
     theta_step: int = 1
     timings: dict[str, float] = field(default_factory=dict)
     #: Improved mode only (None in faithful mode): ``row_c``/``row_e``/``row_confidence`` ``(B, R)``
@@ -73,6 +90,47 @@ class BatchResult:
     lattice_e: torch.Tensor | None = None
     lattice_confidence: torch.Tensor | None = None
     lattice_present: torch.Tensor | None = None
+
+    @classmethod
+    def build(cls, width: int, height: int, theta_step: int, *, lines: Any = None, rows: Any = None,
+              fields: Mapping[str, torch.Tensor] | Any = None, **given: Any) -> BatchResult:
+        """The one way the engines assemble a batch result from their stages' outputs.
+
+        Each tensor field comes from the first of: ``given`` by name; ``rows`` (an object with
+        ``a, b, valid, reason, hypothesis, present``, e.g.
+        :class:`~torchrow.functional.ransac.Rows`: ``row_a = rows.a``, ...); ``lines`` (with
+        ``theta, rho, weight, valid, out_*, n_rows, vp, has_vp``, e.g.
+        :class:`~torchrow.functional.vanishing.LineSearch`: ``hough_theta = lines.theta``, ...);
+        ``fields`` by the field's own name (a mapping, or an object with those attributes such
+        as a tracker step). ``given`` also sets the optional fields (``timings``, ``row_c``...).
+
+        Raises
+        ------
+        TypeError
+            Naming the first tensor field that none of them provides.
+        """
+        out = {}
+        for f in dataclasses.fields(cls):
+            name = f.name
+            if name in given:
+                out[name] = given.pop(name)
+            elif f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING:
+                continue
+            elif name in ("width", "height", "theta_step"):
+                continue
+            elif rows is not None and name in ROW_FIELDS:
+                out[name] = getattr(rows, ROW_FIELDS[name])
+            elif lines is not None and name in LINE_FIELDS:
+                out[name] = getattr(lines, LINE_FIELDS[name])
+            elif isinstance(fields, Mapping) and name in fields:
+                out[name] = fields[name]
+            elif fields is not None and not isinstance(fields, Mapping) and hasattr(fields, name):
+                out[name] = getattr(fields, name)
+            else:
+                raise TypeError(f"BatchResult.build: no value for the field {name!r}")
+        if given:
+            raise TypeError(f"BatchResult.build: unknown fields {sorted(given)}")
+        return cls(width=width, height=height, theta_step=theta_step, **out)
 
     def __len__(self) -> int:
         return int(self.status.shape[0])

@@ -11,11 +11,11 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["Params"]
+__all__ = ["Params", "Rule", "check_fields"]
 
 
 @dataclass(frozen=True)
@@ -26,7 +26,7 @@ class Params:
     Bands given as ``None`` are derived from the working width ``W`` as the table says:
     ``hough_band = int(W / 30)``, ``ransac_band = int(W / 20)`` (``int(W / 10)`` when bushy).
 
-    Every field is checked on construction by its rule in ``_RULES`` (below the class);
+    Every field is checked on construction by its :class:`Rule` in ``_RULES`` (below the class);
     integral numbers become ``int`` and lists for ``(width, height)`` fields become tuples.
 
     Raises
@@ -126,13 +126,7 @@ class Params:
     lattice_min_image_confidence: float = 0.0  # status ok needs the image confidence at least this
 
     def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            rule = _RULES[f.name]
-            object.__setattr__(self, f.name, rule.check(f.name, getattr(self, f.name)))
-        for field, ok, what in _CROSS_RULES:
-            if not ok(self):
-                said = what(self) if callable(what) else what
-                raise ValueError(f"Params.{field} {said}; got {getattr(self, field)!r}")
+        check_fields(self, _RULES, _CROSS_RULES)
 
     # --- derived quantities -------------------------------------------------------------
     @property
@@ -216,88 +210,117 @@ class Params:
 
 
 # --- validation: one rule per field ---------------------------------------------------------
+#: Kinds of :class:`Rule` that hold a fixed number of entries: (entries, integers?, wording).
+_TUPLES = {"pair": (2, True, "a (width, height) tuple of 2 integers"),
+           "rgb": (3, True, "an (R, G, B) triple of integers"),
+           "xy": (2, False, "a pair of finite numbers (x, y)")}
+
+
 @dataclass(frozen=True)
-class _Rule:
-    """How one field is checked: ``kind`` (``int``, ``int?`` = int or None, ``float``, ``pair``
-    = ``(width, height)`` of ints, ``ints`` = 1 to 64 ints), inclusive bounds ``lo``/``hi``
-    (every numeric rule has both, within int64; for a pair or ``ints`` they bound each entry)
-    and an optional extra condition on a single number with its wording.
+class Rule:
+    """How one field of a frozen settings object (:class:`Params`,
+    :class:`torchrow.evaluation.synthetic.FieldSpec`) is checked: ``kind`` (``int``, ``float``,
+    ``pair`` = ``(width, height)`` of ints, ``rgb`` = ``(R, G, B)`` of ints, ``xy`` = two
+    floats, ``ints`` = ``count`` ints, ``choice`` = a str out of ``choices``; a trailing ``?``
+    also allows ``None``), inclusive bounds ``lo``/``hi`` (for a tuple kind they bound each
+    entry) and an optional extra condition with its wording.
 
     A value of the wrong kind raises ``TypeError``; a value of the right kind outside the
-    rule raises ``ValueError``; both name the field. Integral numbers (``numpy.int64``) become
-    ``int``, a list for a pair becomes a tuple, so equal parameters compare and hash equal.
+    rule raises ``ValueError``; both name ``owner.field``. Integral numbers (``numpy.int64``)
+    become ``int``, float fields ``float``, lists for tuple kinds tuples, so equal settings
+    compare and hash equal.
     """
 
-    kind: str  # also "choice": a str out of ``choices``
+    kind: str
     lo: float | None = None
     hi: float | None = None
-    extra: tuple[Callable[[float], bool], str] | None = None
+    extra: tuple[Callable[[Any], bool], str] | None = None
     why: str = ""  # reason for an upper bound, quoted in the error
     choices: tuple[str, ...] = ()
+    count: tuple[int, int] = (1, 64)  # ``ints``: how many entries
+    count_why: str = ""  # ``ints``: reason for the count, quoted in the error
 
     def _bounds(self) -> str:
         def f(b: float) -> str:
             return f"{b:d}" if isinstance(b, int) else f"{b:g}"
 
-        lo, hi = self.lo, self.hi
-        if lo is not None and hi is not None:
-            return f"in [{f(lo)}, {f(hi)}]"
-        if lo is not None:
-            return f">= {f(lo)}"
-        return f"<= {f(hi)}" if hi is not None else "unbounded"
+        if self.lo is not None and self.hi is not None:
+            return f" in [{f(self.lo)}, {f(self.hi)}]"
+        if self.lo is None and self.hi is None:
+            return ""
+        return f" >= {f(self.lo)}" if self.lo is not None else f" <= {f(self.hi)}"  # type: ignore[arg-type]
 
-    def _number(self, field: str, v: object, integral: bool) -> float:
-        """``v`` as an ``int`` (``integral``) or a finite ``float``, checked against the bounds."""
+    def _number(self, name: str, v: object, integral: bool) -> object:
         what = "an integer" if integral else "a finite number"
-        n: float
-        if integral and isinstance(v, numbers.Integral) and not isinstance(v, bool):
-            n = int(v)
-        elif not integral and isinstance(v, numbers.Real) and not isinstance(v, bool):
+        if isinstance(v, bool) or not isinstance(v, numbers.Integral if integral else numbers.Real):
+            raise TypeError(f"{name} must be {what}, not {type(v).__name__}; got {v!r}")
+        given = v
+        if integral:
+            v = int(v)  # type: ignore[call-overload]
+        else:
             # a float field holds a float (the tensor path makes float64 tensors of it); an
             # integer too large for float64 is out of range like any other
             try:
-                n = float(v)
+                v = float(v)
             except OverflowError:
-                n = math.inf
-            if not math.isfinite(n):
-                raise ValueError(f"Params.{field} must be {what} {self._bounds()}; got {v!r}")
-        else:
-            raise TypeError(f"Params.{field} must be {what}, not {type(v).__name__}; got {v!r}")
-        if (self.lo is not None and n < self.lo) or (self.hi is not None and n > self.hi):
-            why = f" ({self.why})" if self.why and self.hi is not None and n > self.hi else ""
-            raise ValueError(f"Params.{field} must be {what} {self._bounds()}{why}; got {v!r}")
-        return n
+                v = math.inf
+        if not integral and not math.isfinite(v):  # type: ignore[arg-type]
+            raise ValueError(f"{name} must be {what}{self._bounds()}; got {given!r}")
+        if (self.lo is not None and v < self.lo) or (self.hi is not None and v > self.hi):  # type: ignore[operator]
+            why = f" ({self.why})" if self.why and self.hi is not None and v > self.hi else ""  # type: ignore[operator]
+            raise ValueError(f"{name} must be {what}{self._bounds()}{why}; got {given!r}")
+        return v
 
-    def check(self, field: str, v: object) -> object:
-        if self.kind == "int?" and v is None:
+    def check(self, field: str, v: object, owner: str = "Params") -> object:
+        """``v`` checked and normalised for the field ``field`` of ``owner`` (named in errors)."""
+        name = f"{owner}.{field}"
+        kind = self.kind.rstrip("?")
+        if v is None and kind != self.kind:
             return v
-        if self.kind == "choice":
+        if kind == "choice":
             if not isinstance(v, str):
-                raise TypeError(f"Params.{field} must be a str, not {type(v).__name__}; got {v!r}")
+                raise TypeError(f"{name} must be a str, not {type(v).__name__}; got {v!r}")
             if v not in self.choices:
-                raise ValueError(f"Params.{field} must be one of {', '.join(map(repr, self.choices))}; got {v!r}")
+                raise ValueError(f"{name} must be one of {', '.join(map(repr, self.choices))}; got {v!r}")
             return v
-        if self.kind == "ints":
+        if kind == "ints":
             if not isinstance(v, (tuple, list)):
-                raise TypeError(f"Params.{field} must be a tuple of integers, not {type(v).__name__}; got {v!r}")
-            if not 1 <= len(v) <= 64:
-                raise ValueError(f"Params.{field} must hold 1 to 64 integers (the search runs one comb per VP); got {len(v)}")
-            return tuple(self._number(f"{field}[{i}]", e, True) for i, e in enumerate(v))
-        if self.kind == "pair":
+                raise TypeError(f"{name} must be a tuple of integers, not {type(v).__name__}; got {v!r}")
+            if not self.count[0] <= len(v) <= self.count[1]:
+                why = f" ({self.count_why})" if self.count_why else ""
+                raise ValueError(f"{name} must hold {self.count[0]} to {self.count[1]} integers{why}; got {len(v)}")
+            return tuple(self._number(f"{name}[{i}]", e, True) for i, e in enumerate(v))
+        if kind in _TUPLES:
+            n, integral, wording = _TUPLES[kind]
             if not isinstance(v, (tuple, list)):
-                raise TypeError(f"Params.{field} must be a (width, height) tuple of integers, "
-                                f"not {type(v).__name__}; got {v!r}")
-            if len(v) != 2:
-                raise ValueError(f"Params.{field} must be a (width, height) tuple of 2 integers; got {v!r}")
-            return tuple(self._number(f"{field}[{i}]", e, True) for i, e in enumerate(v))
-        n = self._number(field, v, self.kind != "float")
-        if self.extra is not None and not self.extra[0](n):
-            raise ValueError(f"Params.{field} {self.extra[1]}; got {n!r}")
-        return n
+                raise TypeError(f"{name} must be {wording}, not {type(v).__name__}; got {v!r}")
+            if len(v) != n:
+                raise ValueError(f"{name} must be {wording}; got {v!r}")
+            v = tuple(self._number(f"{name}[{i}]", e, integral) for i, e in enumerate(v))
+        else:
+            v = self._number(name, v, kind != "float")
+        if self.extra is not None and not self.extra[0](v):
+            raise ValueError(f"{name} {self.extra[1]}; got {v!r}")
+        return v
 
 
-def _odd(v: float) -> bool:
-    return int(v) % 2 == 1
+def check_fields(obj: Any, rules: dict[str, Rule],
+                 cross: Sequence[tuple[str, Callable[[Any], bool], str | Callable[[Any], str]]] = ()) -> None:
+    """Check and normalise every field of the frozen dataclass ``obj`` by its rule in ``rules``,
+    then the ``cross`` rules that tie fields together: ``(field named in the error, condition
+    on obj, wording or a function of obj giving it)``. Called by ``__post_init__``; errors name
+    ``TypeName.field``."""
+    owner = type(obj).__name__
+    for f in dataclasses.fields(obj):
+        object.__setattr__(obj, f.name, rules[f.name].check(f.name, getattr(obj, f.name), owner))
+    for field, ok, what in cross:
+        if not ok(obj):
+            said = what(obj) if callable(what) else what
+            raise ValueError(f"{owner}.{field} {said}; got {getattr(obj, field)!r}")
+
+
+def _odd(v: object) -> bool:
+    return int(v) % 2 == 1  # type: ignore[call-overload]
 
 
 _COST = "the tensor path's cost grows with it; ALGORITHM.md 0.1"
@@ -309,79 +332,80 @@ _PX = 1 << 22
 _BAND = 4096
 _PXS = "a working image holds at most 2**22 pixels (max_pixels)"
 _BANDS = "wider than the widest working image (4096 px)"
-_INT_PX = _Rule("int", 0, _PX, why=_PXS)
-_DEG = _Rule("int", 0, 180, why="an angle in degrees")
+_INT_PX = Rule("int", 0, _PX, why=_PXS)
+_DEG = Rule("int", 0, 180, why="an angle in degrees")
 #: ratios and tolerances that have no natural bound: far beyond any meaningful value
-_F0 = _Rule("float", 0, 1e6, why="far beyond any meaningful value")
+_F0 = Rule("float", 0, 1e6, why="far beyond any meaningful value")
 
 #: Every field's rule. Upper bounds exist where the tensor path's cost grows with the value
 #: faster than the reference's (ALGORITHM.md section 0, "Bounds"); defaults are far inside.
-_RULES: dict[str, _Rule] = {
+_RULES: dict[str, Rule] = {
     # shapes of the padded tensors and static loop bounds grow with these (max_steps ~ n_rows**2)
-    "n_rows": _Rule("int", 1, 64, why=_COST), "max_outliers": _Rule("int", 1, 64, why=_COST),
-    "n_colors": _Rule("int", 1, 1024, why=_COST),
-    "ransac_trials": _Rule("int", 1, 100_000, why="the hypothesis table holds 16 bytes per trial"),
-    "hough_every": _Rule("int", 1, 1_000_000, why="frames; a day of video at 10 fps has 864,000"),
-    "theta_step": _Rule("int", 1, 180, (lambda v: 180 % v == 0, "must divide 180 degrees")),
-    "ransac_subsample": _Rule("int", 1, _PX, why=_PXS), "ransac_max_points": _Rule("int", 1, _PX, why=_PXS),
-    "image_width": _Rule("int", 1, 4096, why=_COST), "video_width": _Rule("int", 1, 4096, why=_COST),
-    "sky_median": _Rule("int", 1, 15, (_odd, "must be odd (cv2.medianBlur)"),
+    "n_rows": Rule("int", 1, 64, why=_COST), "max_outliers": Rule("int", 1, 64, why=_COST),
+    "n_colors": Rule("int", 1, 1024, why=_COST),
+    "ransac_trials": Rule("int", 1, 100_000, why="the hypothesis table holds 16 bytes per trial"),
+    "hough_every": Rule("int", 1, 1_000_000, why="frames; a day of video at 10 fps has 864,000"),
+    "theta_step": Rule("int", 1, 180, (lambda v: 180 % v == 0, "must divide 180 degrees")),
+    "ransac_subsample": Rule("int", 1, _PX, why=_PXS), "ransac_max_points": Rule("int", 1, _PX, why=_PXS),
+    "image_width": Rule("int", 1, 4096, why=_COST), "video_width": Rule("int", 1, 4096, why=_COST),
+    "sky_median": Rule("int", 1, 15, (_odd, "must be odd (cv2.medianBlur)"),
                         why="the exact median network's cost explodes above 15"),
-    "sky_col_median": _Rule("int", 1, 255, (_odd, "must be odd (medfilt)"), why=_COST),
+    "sky_col_median": Rule("int", 1, 255, (_odd, "must be odd (medfilt)"), why=_COST),
     # the tracker's band search takes one step per pixel of band
-    "track_band": _Rule("int", 0, _BAND, why=_BANDS), "ransac_min_points": _INT_PX,
+    "track_band": Rule("int", 0, _BAND, why=_BANDS), "ransac_min_points": _INT_PX,
     "horizontal_excl": _DEG, "angle_excl": _DEG,
-    "sky_lap_max": _Rule("int", 0, 256, why="the Laplacian is uint8"), "sky_min_zero_row": _INT_PX,
+    "sky_lap_max": Rule("int", 0, 256, why="the Laplacian is uint8"), "sky_min_zero_row": _INT_PX,
     # adaptive k evaluates every k in [video_k_min, video_k_max]; 255 already boxes all of LAB
-    "veg_tol": _Rule("int", 0, 255, why="255 already boxes all of LAB"),
-    "video_k_start": _Rule("int", 0, 255, why=_COST), "video_k_min": _Rule("int", 0, 255, why=_COST),
-    "video_k_max": _Rule("int", 0, 255, why=_COST),
-    "canny_low": _Rule("int", 0, 1 << 16, why="Sobel gradients of uint8 images stay far below"),
-    "canny_high": _Rule("int", 0, 1 << 16, why="Sobel gradients of uint8 images stay far below"),
-    "seed": _Rule("int", 0, 2**63 - 1),
-    "hough_band": _Rule("int?", 0, _BAND, why=_BANDS), "ransac_band": _Rule("int?", 0, _BAND, why=_BANDS),
-    "ransac_band_bushy": _Rule("int?", 0, _BAND, why=_BANDS),
-    "bushy_ratio": _Rule("float", 0, 1, why="a fraction of the image's pixels"),
-    "horizon_angle": _Rule("float", 0, math.pi, why="an angle in radians"),
-    "min_angle_diff": _Rule("float", 0, math.pi, why="an angle in radians"), "outlier_ratio": _F0,
-    "outlier_min_px": _F0, "singular_tol": _Rule("float", 0, 1, why="a fraction of trace**2"),
+    "veg_tol": Rule("int", 0, 255, why="255 already boxes all of LAB"),
+    "video_k_start": Rule("int", 0, 255, why=_COST), "video_k_min": Rule("int", 0, 255, why=_COST),
+    "video_k_max": Rule("int", 0, 255, why=_COST),
+    "canny_low": Rule("int", 0, 1 << 16, why="Sobel gradients of uint8 images stay far below"),
+    "canny_high": Rule("int", 0, 1 << 16, why="Sobel gradients of uint8 images stay far below"),
+    "seed": Rule("int", 0, 2**63 - 1),
+    "hough_band": Rule("int?", 0, _BAND, why=_BANDS), "ransac_band": Rule("int?", 0, _BAND, why=_BANDS),
+    "ransac_band_bushy": Rule("int?", 0, _BAND, why=_BANDS),
+    "bushy_ratio": Rule("float", 0, 1, why="a fraction of the image's pixels"),
+    "horizon_angle": Rule("float", 0, math.pi, why="an angle in radians"),
+    "min_angle_diff": Rule("float", 0, math.pi, why="an angle in radians"), "outlier_ratio": _F0,
+    "outlier_min_px": _F0, "singular_tol": Rule("float", 0, 1, why="a fraction of trace**2"),
     "video_shrink_above": _F0, "video_grow_below": _F0,
     # below ~1 LAB unit (the spacing of 8-bit colours) clusters degenerate to single colours
     # and section 2 loops once per distinct colour of the image
-    "color_tol": _Rule("float", 1.0, 1000.0, why="CIE76 distances of 8-bit colours stay below 400"),
-    "crda_sigma": _Rule("float", 0, 1e6, extra=(lambda v: v > 0, "must be > 0")),
-    "ransac_threshold": _Rule("float", 0, 1e6, extra=(lambda v: v > 0, "must be > 0")),
-    "sky_blur": _Rule("pair", 1, 64, why="cv2.blur's division table has 255*w*h entries"),
-    "sky_erode": _Rule("pair", 1, 255, why=_COST), "bushy_erode": _Rule("pair", 1, 255, why=_COST),
+    "color_tol": Rule("float", 1.0, 1000.0, why="CIE76 distances of 8-bit colours stay below 400"),
+    "crda_sigma": Rule("float", 0, 1e6, extra=(lambda v: v > 0, "must be > 0")),
+    "ransac_threshold": Rule("float", 0, 1e6, extra=(lambda v: v > 0, "must be > 0")),
+    "sky_blur": Rule("pair", 1, 64, why="cv2.blur's division table has 255*w*h entries"),
+    "sky_erode": Rule("pair", 1, 255, why=_COST), "bushy_erode": Rule("pair", 1, 255, why=_COST),
     # odd: x -> x*mult mod 2**32 is then a bijection, so subsampling keys never tie (section 7.2)
-    "subsample_hash": _Rule("int", 1, 2**32 - 1, (_odd, "must be odd (distinct subsampling keys)")),
-    "max_pixels": _Rule("int", 1, 1 << 22, why="peak memory is about 2.5 KB per working pixel"),
+    "subsample_hash": Rule("int", 1, 2**32 - 1, (_odd, "must be odd (distinct subsampling keys)")),
+    "max_pixels": Rule("int", 1, 1 << 22, why="peak memory is about 2.5 KB per working pixel"),
     # section 11 (torchrow extension): the improved mode's row lattice
-    "mode": _Rule("choice", choices=("faithful", "improved")),
-    "lattice_horizon": _Rule("choice", choices=("image", "sky")),
-    "lattice_green": _Rule("choice", choices=("row_mean", "otsu")),
-    "lattice_comb": _Rule("choice", choices=("contrast", "uniform")),
-    "lattice_vp": _Rule("choice", choices=("search", "section6")),
-    "lattice_vp_step": _Rule("int", 1, 4096), "lattice_vp_cell": _Rule("int", 1, 64),
-    "lattice_vp_spacing_step": _Rule("int", 1, 4096),
-    "lattice_vp_heights": _Rule("ints", -(2**20), -1, why="the grid's VPs lie above the image"),
-    "green_floor": _Rule("int", -(2**31) + 1, 2**31 - 1),
-    "lattice_vp_max_y": _Rule("int", -(2**31) + 1, 2**31 - 1),
-    "lattice_vp_fallback_y": _Rule("int", -(2**31) + 1, -1, why="the fallback VP lies above the image"),
+    "mode": Rule("choice", choices=("faithful", "improved")),
+    "lattice_horizon": Rule("choice", choices=("image", "sky")),
+    "lattice_green": Rule("choice", choices=("row_mean", "otsu")),
+    "lattice_comb": Rule("choice", choices=("contrast", "uniform")),
+    "lattice_vp": Rule("choice", choices=("search", "section6")),
+    "lattice_vp_step": Rule("int", 1, 4096), "lattice_vp_cell": Rule("int", 1, 64),
+    "lattice_vp_spacing_step": Rule("int", 1, 4096),
+    "lattice_vp_heights": Rule("ints", -(2**20), -1, why="the grid's VPs lie above the image",
+                               count_why="the search runs one comb per VP"),
+    "green_floor": Rule("int", -(2**31) + 1, 2**31 - 1),
+    "lattice_vp_max_y": Rule("int", -(2**31) + 1, 2**31 - 1),
+    "lattice_vp_fallback_y": Rule("int", -(2**31) + 1, -1, why="the fallback VP lies above the image"),
     "lattice_vp_margin": _INT_PX,
-    "lattice_min_spacing": _Rule("int", 1, 4096, why=_COST), "lattice_max_spacing": _Rule("int", 1, 4096, why=_COST),
-    "lattice_half": _Rule("int", 1, 64, why=_COST), "lattice_min_points": _Rule("int", 1, _PX, why=_PXS),
-    "lattice_iterations": _Rule("int", 0, 1000, why=_COST),
-    "lattice_center_degree": _Rule("int", 2, 3, why="the refit's int64 sums; the records hold x up to y**3"),
-    "lattice_cell_grid": _Rule("int", 1, 2**16, why="the int64 sums stay exact"),
-    "lattice_window": _Rule("float", 0, 0.5, (lambda v: 0 < v < 0.5, "must lie in (0, 0.5)")),
-    "lattice_tolerance": _Rule("float", 0, 0.5, (lambda v: 0 < v < 0.5, "must lie in (0, 0.5)")),
-    "lattice_model": _Rule("choice", choices=("auto", "straight", "curved")),
-    "lattice_curve_gain": _Rule("float", 0, 100, why="a fraction of the straight lattice's inlier pixels"),
-    "lattice_min_contrast": _Rule("float", 0, 1, why="a fraction of the comb's binned pixels"),
-    "lattice_min_image_confidence": _Rule("float", 0, 1, why="a fraction of the image rows"),
-    "lattice_min_spacing_px": _F0, "lattice_pivot_tol": _Rule("float", 0, 1, why="a fraction of a pivot"),
-    "lattice_min_confidence": _Rule("float", 0, 1),
+    "lattice_min_spacing": Rule("int", 1, 4096, why=_COST), "lattice_max_spacing": Rule("int", 1, 4096, why=_COST),
+    "lattice_half": Rule("int", 1, 64, why=_COST), "lattice_min_points": Rule("int", 1, _PX, why=_PXS),
+    "lattice_iterations": Rule("int", 0, 1000, why=_COST),
+    "lattice_center_degree": Rule("int", 2, 3, why="the refit's int64 sums; the records hold x up to y**3"),
+    "lattice_cell_grid": Rule("int", 1, 2**16, why="the int64 sums stay exact"),
+    "lattice_window": Rule("float", 0, 0.5, (lambda v: 0 < v < 0.5, "must lie in (0, 0.5)")),
+    "lattice_tolerance": Rule("float", 0, 0.5, (lambda v: 0 < v < 0.5, "must lie in (0, 0.5)")),
+    "lattice_model": Rule("choice", choices=("auto", "straight", "curved")),
+    "lattice_curve_gain": Rule("float", 0, 100, why="a fraction of the straight lattice's inlier pixels"),
+    "lattice_min_contrast": Rule("float", 0, 1, why="a fraction of the comb's binned pixels"),
+    "lattice_min_image_confidence": Rule("float", 0, 1, why="a fraction of the image rows"),
+    "lattice_min_spacing_px": _F0, "lattice_pivot_tol": Rule("float", 0, 1, why="a fraction of a pivot"),
+    "lattice_min_confidence": Rule("float", 0, 1),
 }
 
 #: Bytes section 11.2's tables may take for one working image (:meth:`Params.lattice_table_bytes`):

@@ -26,7 +26,7 @@ import tempfile
 import warnings
 import zlib
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -42,7 +42,11 @@ __all__ = [
     "lab_table_torch",
     "rgb_to_lab",
     "pack_rgb",
+    "rgb_code",
     "hough_trig",
+    "near_horizontal",
+    "near_angle",
+    "hough_pickable",
     "rho_offset",
     "rho_index_table",
     "hypothesis_table",
@@ -245,10 +249,20 @@ def lab_table_torch(device: str | torch.device = "cpu"):
     return t
 
 
+def rgb_code(r: Any, g: Any, b: Any) -> Any:
+    """The 24-bit colour code ``(R<<16)|(G<<8)|B`` (the row of the LAB table) of channels ``r``,
+    ``g``, ``b`` in ``0..255``: NumPy arrays, tensors or numbers of an integer type that holds
+    ``2**24`` (widen ``uint8`` first), broadcast together.
+
+    Written as products and sums, equal for such values: ONNX's ``BitShift`` takes unsigned
+    types only, and the exported graphs compute the code with this function too."""
+    return r * 65536 + g * 256 + b
+
+
 def pack_rgb(rgb: np.ndarray) -> np.ndarray:
-    """``(..., 3)`` uint8 RGB -> ``(...)`` int64 colour code ``(R<<16)|(G<<8)|B``."""
-    rgb = np.asarray(rgb)
-    return (rgb[..., 0].astype(np.int64) << 16) | (rgb[..., 1].astype(np.int64) << 8) | rgb[..., 2]
+    """``(..., 3)`` uint8 RGB -> ``(...)`` int64 colour code (:func:`rgb_code`)."""
+    rgb = np.asarray(rgb).astype(np.int64)
+    return rgb_code(rgb[..., 0], rgb[..., 1], rgb[..., 2])
 
 
 def rgb_to_lab(rgb: np.ndarray) -> np.ndarray:
@@ -278,6 +292,31 @@ def hough_trig(theta_step: int = 1) -> tuple[np.ndarray, np.ndarray]:
     c.setflags(write=False)
     s.setflags(write=False)
     return c, s
+
+
+def near_horizontal(deg: Any, horizontal_excl: int) -> Any:
+    """Step 5.1's fixed rule: Hough angles ``deg`` (degrees: a number, a NumPy array or a
+    tensor) with ``|deg - 90| < horizontal_excl`` are never picked (a bool of ``deg``'s kind).
+
+    One rule for the reference, the eager and the static voters (which vote only the other
+    angles, :func:`hough_pickable`)."""
+    return abs(deg - 90) < horizontal_excl
+
+
+def near_angle(deg: Any, held_deg: Any, angle_excl: int) -> Any:
+    """Step 5.1's rule around a held line: angles ``deg`` with ``|deg - held_deg| < angle_excl``
+    (degrees, on the integer grid, no wrap-around at 0/180) are not picked while it is held."""
+    return abs(deg - held_deg) < angle_excl
+
+
+@functools.lru_cache(maxsize=8)
+def hough_pickable(theta_step: int, horizontal_excl: int) -> np.ndarray:
+    """Indices ``j`` of the Hough angles ``j * theta_step`` that are not :func:`near_horizontal`,
+    int64 ``(A,)``: the only angles step 5.1 ever lets be a peak (read-only)."""
+    deg = np.arange(180 // theta_step, dtype=np.int64) * theta_step
+    out = np.flatnonzero(~near_horizontal(deg, horizontal_excl)).astype(np.int64)
+    out.setflags(write=False)
+    return out
 
 
 @functools.lru_cache(maxsize=4)

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from torchrow.core.batch import BatchResult
+from torchrow.core.batch import LINE_FIELDS, BatchResult
 from torchrow.core.io import check_color_used, check_working_size, load_image, resize_to_width, to_rgb8
 from torchrow.core.params import Params
 from torchrow.core.results import STATUSES, concat_batches
@@ -160,13 +160,8 @@ class CropRowDetector(nn.Module):
         rows = concat_batches([q[1] for q in parts])
         lap("hough+vp+ransac")
         status = fransac.image_status(rows, ls.has_vp, has_veg)
-        return BatchResult(
-            width=w, height=h, status=status, sky=sky.to(torch.int64), veg_color=color, k=k, bushy=bushy,
-            n_rows=ls.n_rows, hough_theta=ls.theta, hough_rho=ls.rho, hough_weight=ls.weight,
-            hough_valid=ls.valid, out_theta=ls.out_theta, out_rho=ls.out_rho, out_weight=ls.out_weight,
-            out_valid=ls.out_valid, vp=ls.vp, has_vp=ls.has_vp, row_a=rows.a, row_b=rows.b,
-            row_valid=rows.valid, row_reason=rows.reason, row_hypothesis=rows.hypothesis,
-            row_present=rows.present, theta_step=p.theta_step, timings=timings)
+        return BatchResult.build(w, h, p.theta_step, lines=ls, rows=rows, status=status, sky=sky.to(torch.int64),
+                                 veg_color=color, k=k, bushy=bushy, timings=timings)
 
     def _vegetation(self, x: torch.Tensor, sky: torch.Tensor, veg_color: torch.Tensor | None, lap):
         """Sections 2-4: ``(veg, has_veg, hough input, bushy, colour, k)``."""
@@ -208,13 +203,11 @@ class CropRowDetector(nn.Module):
         rows = flattice.as_row_fits(curved)
         lap("lattice")
         status = flattice.improved_status(curved, fransac.image_status(rows), p)
-        return BatchResult(
-            width=w, height=h, status=status, sky=flattice.horizon_row(sky, p).to(torch.int64), veg_color=None,
-            k=None, bushy=None, n_rows=torch.full((bsz,), rows.a.shape[1], dtype=torch.int64, device=x.device),
-            hough_theta=None, hough_rho=None, hough_weight=None, hough_valid=None, out_theta=None, out_rho=None,
-            out_weight=None, out_valid=None, vp=None, has_vp=None, row_a=rows.a, row_b=rows.b,
-            row_valid=rows.valid, row_reason=rows.reason, row_hypothesis=rows.hypothesis,
-            row_present=rows.present, theta_step=p.theta_step, timings=timings, **flattice.curve_fields(curved))
+        absent = dict.fromkeys([f for f in LINE_FIELDS if f != "n_rows"] + ["k", "bushy"])  # sections 2-6
+        return BatchResult.build(
+            w, h, p.theta_step, rows=rows, status=status, sky=flattice.horizon_row(sky, p).to(torch.int64),
+            veg_color=None, n_rows=torch.full((bsz,), rows.a.shape[1], dtype=torch.int64, device=x.device),
+            timings=timings, **absent, **flattice.curve_fields(curved))
 
     def prepare(self, image: np.ndarray | str | Path) -> np.ndarray:
         """Section 0 for one input: load a path or convert an array, resize to the working width."""

@@ -18,7 +18,7 @@ import torch
 from torch import nn
 
 from torchrow.core.camera import CameraModel
-from torchrow.core.frames import load_items, prepare_frame
+from torchrow.core.frames import prepare_frame
 from torchrow.core.io import check_working_size
 from torchrow.core.params import Params
 from torchrow.core.results import concat_batches
@@ -248,49 +248,27 @@ class Tracker(nn.Module):
             In lock-step order: frame ``t`` of every sequence before frame ``t + 1``. Every
             item gets a record: unreadable frames, and frames whose working size differs from
             the batch's, get ``error`` records and are skipped.
+
+        Notes
+        -----
+        The frame loop is :func:`torchrow.functional.tracking.lockstep` (shared with
+        :class:`torchrow.onnx.runtime.OnnxTracker`); this tracker's step starts the sequences
+        whose frame 0 is in a chunk, segments the chunk's readable frames in one call, then
+        advances frame by frame.
         """
-        p = self.params
         bsz = len(sequences)
-        iters = [load_items(s, p.video_width, p.max_pixels) for s in sequences]
-        alive = [True] * bsz
-        next_index = [0] * bsz
-        state = TrackerState.empty(bsz, p, self.device)
+        state = TrackerState.empty(bsz, self.params, self.device)
         ready = [False] * bsz
-        srcs = list(sources) if sources is not None else [None] * bsz
-        while any(alive):
-            # pull up to `chunk` items of every sequence
-            got: list[list] = [[] for _ in range(bsz)]
-            for b in range(bsz):
-                while alive[b] and len(got[b]) < self.chunk:
-                    fr = next(iters[b], None)
-                    if fr is None:
-                        alive[b] = False
-                        break
-                    if fr.rgb is not None:
-                        if size is None:
-                            size = fr.rgb.shape[:2]
-                        elif fr.rgb.shape[:2] != size:
-                            fr.error = (f"frame of working size {fr.rgb.shape[1]}x{fr.rgb.shape[0]} in a batch of "
-                                        f"{size[1]}x{size[0]}")
-                            fr.rgb = None
-                    got[b].append((next_index[b], fr))
-                    next_index[b] += 1
-            t_max = max((len(g) for g in got), default=0)
-            if t_max == 0:
-                break
-            if size is None:  # nothing readable in this chunk: only error records
-                for t in range(t_max):
-                    for b in range(bsz):
-                        if t < len(got[b]):
-                            i, fr = got[b][t]
-                            yield b, FrameResult.failed_frame(srcs[b], i, fr.name, fr.error or "unreadable"), None
-                continue
-            h, w = size
+
+        def step(chunk: ftrack.FrameChunk) -> Iterator[tuple[TrackStep, TrackerState] | None]:
+            nonlocal state
+            h, w = chunk.size
+            got, t_max = chunk.items, chunk.length
             # frame 0 of sequences starting in this chunk: their first readable frame
             starts = []
             for b in range(bsz):
                 if not ready[b]:
-                    first = next((fr.rgb for _, fr in got[b] if fr.rgb is not None), None)
+                    first = next((it.frame.rgb for it in got[b] if it.frame.rgb is not None), None)
                     if first is not None:
                         starts.append((b, first))
                         ready[b] = True
@@ -301,40 +279,31 @@ class Tracker(nn.Module):
                     0, idx.cpu(), x0).to(self.device), state,
                     torch.zeros(bsz, dtype=torch.bool, device=self.device).index_fill_(0, idx, True))
             # segment every readable frame of the chunk in one call
-            where = [(b, t) for t in range(t_max) for b in range(bsz)
-                     if t < len(got[b]) and got[b][t][1].rgb is not None]
+            where = [(b, t, rgb) for t in range(t_max) for b in range(bsz) if (rgb := chunk.rgb(b, t)) is not None]
             veg = torch.zeros((bsz, t_max, h, w), dtype=torch.bool, device=self.device)
             kk = torch.zeros((bsz, t_max), dtype=torch.int64, device=self.device)
             bushy = torch.zeros((bsz, t_max), dtype=torch.bool, device=self.device)
             if where:
-                seq = torch.tensor([b for b, _ in where], dtype=torch.int64, device=self.device)
-                x = torch.from_numpy(np.stack([got[b][t][1].rgb for b, t in where])).permute(0, 3, 1, 2)
+                seq = torch.tensor([b for b, _, _ in where], dtype=torch.int64, device=self.device)
+                x = torch.from_numpy(np.stack([rgb for _, _, rgb in where])).permute(0, 3, 1, 2)
                 v, k1, b1 = self._segment(x.contiguous().to(self.device), state.sky[seq], state.veg_color[seq],
                                           state.info0[seq])
-                flat = seq * t_max + torch.tensor([t for _, t in where], dtype=torch.int64, device=self.device)
+                flat = seq * t_max + torch.tensor([t for _, t, _ in where], dtype=torch.int64, device=self.device)
                 veg.view(bsz * t_max, h, w)[flat] = v
                 kk.view(-1)[flat] = k1
                 bushy.view(-1)[flat] = b1
             # advance frame by frame in lock-step
             for t in range(t_max):
-                act_list = [t < len(got[b]) and got[b][t][1].rgb is not None for b in range(bsz)]
-                if any(act_list):
-                    act = torch.tensor(act_list, dtype=torch.bool, device=self.device)
-                    stepped, state = self._advance(veg[:, t], kk[:, t], bushy[:, t], act, state)
-                    names = [got[b][t][1].name if t < len(got[b]) else None for b in range(bsz)]
-                    idxs = [got[b][t][0] if t < len(got[b]) else 0 for b in range(bsz)]
-                    recs = self.results(stepped, state, w, h, names, srcs, idxs)
-                else:
-                    recs = [None] * bsz
-                for b in range(bsz):
-                    if t >= len(got[b]):
-                        continue
-                    i, fr = got[b][t]
-                    rec = recs[b]
-                    if rec is not None:
-                        yield b, rec, fr.rgb
-                    else:
-                        yield b, FrameResult.failed_frame(srcs[b], i, fr.name, fr.error or "unreadable frame"), None
+                act_list = chunk.active(t)
+                if not any(act_list):
+                    yield None
+                    continue
+                act = torch.tensor(act_list, dtype=torch.bool, device=self.device)
+                stepped, state = self._advance(veg[:, t], kk[:, t], bushy[:, t], act, state)
+                yield stepped, state
+
+        return ftrack.lockstep(sequences, step, self.params, chunk=self.chunk, size=size, sources=sources,
+                               hfov_deg=self.hfov_deg, camera=self.camera)
 
     def track(self, sequences: Sequence[Iterable[object]], sources: Sequence[str | None] | None = None
               ) -> list[list[FrameResult]]:

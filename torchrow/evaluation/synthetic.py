@@ -46,7 +46,7 @@ import dataclasses
 import functools
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -54,6 +54,7 @@ import cv2
 import numpy as np
 
 from torchrow.core.camera import CameraModel
+from torchrow.core.params import Rule, check_fields
 
 __all__ = [
     "FieldSpec",
@@ -91,17 +92,6 @@ _ONE = 1 << _SHIFT
 _STREAM_TEXTURE = 0
 _STREAM_CELL = 1
 _STREAM_NOISE = 2
-
-
-def _rgb_tuple(value: object, name: str) -> tuple[int, int, int]:
-    if not (isinstance(value, (tuple, list)) and len(value) == 3):
-        raise ValueError(f"FieldSpec.{name} must be an (R, G, B) triple; got {value!r}")
-    out = []
-    for c in value:
-        if isinstance(c, bool) or not isinstance(c, (int, np.integer)) or not 0 <= int(c) <= 255:
-            raise ValueError(f"FieldSpec.{name} must hold integers in 0..255; got {value!r}")
-        out.append(int(c))
-    return (out[0], out[1], out[2])
 
 
 @dataclass(frozen=True)
@@ -209,49 +199,7 @@ class FieldSpec:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        def need(cond: bool, name: str, what: str) -> None:
-            if not cond:
-                raise ValueError(f"FieldSpec.{name} {what}; got {getattr(self, name)!r}")
-
-        def is_int(v: object) -> bool:
-            return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
-
-        def is_num(v: object) -> bool:
-            return (isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
-                    and math.isfinite(float(v)))
-
-        need(is_int(self.width) and self.width >= 16, "width", "must be an integer >= 16")
-        need(is_int(self.height) and self.height >= 16, "height", "must be an integer >= 16")
-        need(self.n_rows is None or (is_int(self.n_rows) and self.n_rows >= 1), "n_rows",
-             "must be None or an integer >= 1")
-        need(is_int(self.sky_rows) and 0 <= self.sky_rows < self.height - 1, "sky_rows",
-             "must be an integer in [0, height - 1)")
-        need(is_int(self.frame) and self.frame >= 0, "frame", "must be an integer >= 0")
-        need(is_int(self.seed) and 0 <= self.seed < 2**63, "seed", "must be an integer in [0, 2**63)")
-        for name in ("spacing_px", "plant_width_px", "plant_spacing_px"):
-            v = getattr(self, name)
-            need(is_num(v) and v > 0, name, "must be a finite number > 0")
-        for name in ("weeds", "shadows", "noise", "blur", "soil_texture", "color_jitter"):
-            v = getattr(self, name)
-            need(is_num(v) and v >= 0, name, "must be a finite number >= 0")
-        for name in ("lateral_offset_px", "curvature", "travel_px"):
-            need(is_num(getattr(self, name)), name, "must be a finite number")
-        need(is_num(self.plant_density) and 0 < self.plant_density <= 1, "plant_density",
-             "must lie in (0, 1]")
-        need(self.focal_px is None or (is_num(self.focal_px) and self.focal_px > 0), "focal_px",
-             "must be None or a finite number > 0")
-        need(isinstance(self.missing_rows, tuple) and all(is_int(j) for j in self.missing_rows),
-             "missing_rows", "must be a tuple of integers")
-        _rgb_tuple(self.soil_color, "soil_color")
-        pc = _rgb_tuple(self.plant_color, "plant_color")
-        need(pc[1] >= pc[0] + 20 and pc[1] >= pc[2] + 20, "plant_color",
-             "must be green-dominant (G >= R + 20 and G >= B + 20)")
-        if self.vp is not None:
-            need(isinstance(self.vp, (tuple, list)) and len(self.vp) == 2 and all(is_num(c) for c in self.vp),
-                 "vp", "must be None or a pair of finite numbers (x, y)")
-            need(float(self.vp[1]) < self.sky_rows, "vp",
-                 f"must lie above the first ground row: y < sky_rows = {self.sky_rows}")
-            object.__setattr__(self, "vp", (float(self.vp[0]), float(self.vp[1])))
+        check_fields(self, _SPEC_RULES, _SPEC_CROSS_RULES)
 
     # ------------------------------------------------------------------------------------
     @property
@@ -297,6 +245,34 @@ class FieldSpec:
         )
         kw.update(changes)
         return cls(**kw)  # type: ignore[arg-type]
+
+
+_POSITIVE = Rule("float", 0, extra=(lambda v: v > 0, "must be > 0"))
+_AT_LEAST_0 = Rule("float", 0)
+
+#: Every field's rule (:class:`torchrow.core.params.Rule`, as :class:`~torchrow.core.params.Params`').
+_SPEC_RULES: dict[str, Rule] = {
+    "width": Rule("int", 16), "height": Rule("int", 16), "n_rows": Rule("int?", 1),
+    "spacing_px": _POSITIVE, "vp": Rule("xy?"), "sky_rows": Rule("int", 0),
+    "lateral_offset_px": Rule("float"), "curvature": Rule("float"),
+    "plant_width_px": _POSITIVE, "plant_spacing_px": _POSITIVE,
+    "plant_density": Rule("float", 0, 1, extra=(lambda v: v > 0, "must lie in (0, 1]")),
+    "missing_rows": Rule("ints", count=(0, 1 << 20)),
+    "weeds": _AT_LEAST_0, "shadows": _AT_LEAST_0, "noise": _AT_LEAST_0, "blur": _AT_LEAST_0,
+    "soil_color": Rule("rgb", 0, 255),
+    "plant_color": Rule("rgb", 0, 255, extra=(lambda c: c[1] >= c[0] + 20 and c[1] >= c[2] + 20,
+                                              "must be green-dominant (G >= R + 20 and G >= B + 20)")),
+    "soil_texture": _AT_LEAST_0, "color_jitter": _AT_LEAST_0, "travel_px": Rule("float"),
+    "frame": Rule("int", 0), "focal_px": Rule("float?", 0, extra=(lambda v: v > 0, "must be > 0")),
+    "seed": Rule("int", 0, 2**63 - 1),
+}
+
+#: Rules that tie fields together: (field named in the error, condition, wording).
+_SPEC_CROSS_RULES: tuple[tuple[str, Callable[[FieldSpec], bool], str], ...] = (
+    ("sky_rows", lambda s: s.sky_rows < s.height - 1, "must lie in [0, height - 1)"),
+    ("vp", lambda s: s.vp is None or s.vp[1] < s.sky_rows,
+     "must lie above the first ground row (y < sky_rows)"),
+)
 
 
 @dataclass(frozen=True, eq=False)
@@ -1025,27 +1001,7 @@ class GroundField:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        def need(cond: bool, name: str, what: str) -> None:
-            if not cond:
-                raise ValueError(f"GroundField.{name} {what}; got {getattr(self, name)!r}")
-
-        def num(v: object) -> bool:
-            return (isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
-                    and math.isfinite(float(v)))
-
-        for name in ("spacing_m", "plant_radius_m", "plant_spacing_m"):
-            need(num(getattr(self, name)) and getattr(self, name) > 0, name, "must be a finite number > 0")
-        for name in ("soil_texture", "color_jitter", "noise"):
-            need(num(getattr(self, name)) and getattr(self, name) >= 0, name, "must be a finite number >= 0")
-        need(self.row_end_m is None or num(self.row_end_m), "row_end_m", "must be None or a finite number")
-        need(self.n_rows is None or (isinstance(self.n_rows, int) and not isinstance(self.n_rows, bool)
-                                     and self.n_rows >= 1), "n_rows", "must be None or an integer >= 1")
-        need(isinstance(self.seed, int) and not isinstance(self.seed, bool) and 0 <= self.seed < 2**63, "seed",
-             "must be an integer in [0, 2**63)")
-        _rgb_tuple(self.soil_color, "soil_color")
-        pc = _rgb_tuple(self.plant_color, "plant_color")
-        need(pc[1] >= pc[0] + 20 and pc[1] >= pc[2] + 20, "plant_color",
-             "must be green-dominant (G >= R + 20 and G >= B + 20)")
+        check_fields(self, _GROUND_RULES)
 
     def planted(self, k: np.ndarray) -> np.ndarray:
         """Whether rows ``k`` (int array) are planted."""
@@ -1053,6 +1009,18 @@ class GroundField:
             return np.ones(np.shape(k), bool)
         lo = -(self.n_rows // 2)
         return (k >= lo) & (k < lo + self.n_rows)
+
+
+#: :class:`GroundField`'s rules (:class:`torchrow.core.params.Rule`, as :class:`FieldSpec`'s).
+_GROUND_RULES: dict[str, Rule] = {
+    "spacing_m": _POSITIVE, "plant_radius_m": _POSITIVE, "plant_spacing_m": _POSITIVE,
+    "n_rows": Rule("int?", 1), "row_end_m": Rule("float?"),
+    "soil_color": Rule("rgb", 0, 255),
+    "plant_color": Rule("rgb", 0, 255, extra=(lambda c: c[1] >= c[0] + 20 and c[1] >= c[2] + 20,
+                                              "must be green-dominant (G >= R + 20 and G >= B + 20)")),
+    "soil_texture": _AT_LEAST_0, "color_jitter": _AT_LEAST_0, "noise": _AT_LEAST_0,
+    "seed": Rule("int", 0, 2**63 - 1),
+}
 
 
 @dataclass(frozen=True)

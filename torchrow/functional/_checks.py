@@ -67,14 +67,17 @@ def clamp_sky(sky: torch.Tensor, height: int, device: torch.device) -> torch.Ten
     return sky.to(device=device, dtype=torch.int64).clamp(0, height)
 
 
-def below_horizon(sky: torch.Tensor, height: int) -> torch.Tensor:
-    """``uint8 (B, H, 1)``, 1 where row ``y`` lies below the horizon (``y >= sky[b]``).
+def below_horizon(sky: torch.Tensor, height: int, as_bool: bool = False) -> torch.Tensor:
+    """``uint8 (B, H, 1)``, 1 where row ``y`` lies below the horizon (``y >= sky[b]``): the
+    rows every stage after sky removal sees. ``as_bool``: the same mask as ``bool``.
 
     Masks are combined as 0/1 ``uint8`` (``bool`` viewed as ``uint8``, no copy): on the CPU,
     PyTorch's ``bool`` ``&``/``|``/``where`` kernels are 10-30x slower than ``uint8`` ones.
+    The exported graphs take the ``bool`` form: no dtype view to decompose.
     """
     rows = torch.arange(height, device=sky.device, dtype=torch.int64)
-    return (rows.view(1, height) >= sky.view(-1, 1)).unsqueeze(2).view(torch.uint8)
+    below = (rows.view(1, height) >= sky.view(-1, 1)).unsqueeze(2)
+    return below if as_bool else below.view(torch.uint8)
 
 
 def as_u8(mask: torch.Tensor) -> torch.Tensor:

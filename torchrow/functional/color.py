@@ -48,7 +48,7 @@ from torch import nn
 
 from torchrow.core.io import check_color
 from torchrow.core.params import Params
-from torchrow.core.tables import lab_table_torch
+from torchrow.core.tables import lab_table_torch, rgb_code
 from torchrow.functional._checks import check_images
 
 __all__ = [
@@ -164,7 +164,7 @@ def distinct_colors(images: torch.Tensor, *, sync: bool = True) -> DistinctColor
     k1dt = torch.int32 if _INT32_KEYS and b <= 127 else i64  # (image << 24) | code < 2**31
     k2dt = torch.int32 if _INT32_KEYS and b * (hw + 2) < 2**31 else i64
     x = images.reshape(b, 3, hw).to(k1dt)  # a copy: the input is never modified
-    codes = (x[:, 0] << 16) | (x[:, 1] << 8) | x[:, 2]  # (B, HW)
+    codes = rgb_code(x[:, 0], x[:, 1], x[:, 2])  # (B, HW)
     del x
     img = torch.arange(b, device=dev, dtype=k1dt).view(b, 1)
     sv, si = torch.sort((codes | (img << 24)).reshape(m), stable=True)

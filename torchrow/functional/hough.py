@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from torchrow.core.params import Params
-from torchrow.core.tables import hough_trig, rho_index_table, rho_offset
+from torchrow.core.tables import hough_pickable, hough_trig, near_angle, near_horizontal, rho_index_table, rho_offset
 from torchrow.functional import _exact
 from torchrow.functional._checks import check_masks
 from torchrow.functional._flow import branch, check_flow, choose, keep
@@ -182,8 +182,8 @@ def excluded_angles(held_theta: torch.Tensor, held_valid: torch.Tensor, params: 
     """
     dev = held_theta.device
     deg = torch.arange(params.n_theta, device=dev) * params.theta_step
-    ex = (deg - 90).abs() < params.horizontal_excl
-    near = ((deg.view(1, 1, -1) - (held_theta * params.theta_step).unsqueeze(-1)).abs() < params.angle_excl)
+    ex = near_horizontal(deg, params.horizontal_excl)
+    near = near_angle(deg.view(1, 1, -1), (held_theta * params.theta_step).unsqueeze(-1), params.angle_excl)
     return ex.unsqueeze(0) | (near & held_valid.unsqueeze(-1)).any(dim=1)
 
 
@@ -264,36 +264,37 @@ class HoughState:
 
 
 class Voter(Protocol):
-    """How :func:`torchrow.functional.vanishing.find_lines` keeps votes (:class:`EagerVoter`,
-    :class:`StaticVoter`).
+    """How :func:`torchrow.functional.vanishing.find_lines` keeps Hough votes
+    (:class:`EagerVoter`, :class:`StaticVoter`).
 
-    ``start(hin) -> (state, init)`` (``init``: what a restart needs, ``None`` for the eager
-    voter), ``votes(state) -> acc`` over the angle indices :attr:`angles` (``None``: all),
-    ``erase(state, init, theta, rho, active) -> state``, ``reset(state, init, which) -> state``,
-    and ``d`` (``D``, set by ``start``). ``state`` is a tuple (of tensors, for a static voter:
-    it passes through ``torch.cond``).
+    ``state`` is a tuple (of tensors, for a static voter: it passes through ``torch.cond``);
+    ``init`` is what a restart needs.
     """
 
     @property
-    def angles(self) -> torch.Tensor | None: ...
+    def angles(self) -> torch.Tensor | None:
+        """int64 ``(A,)``: the angle indices :meth:`votes` holds (``None``: all ``n_theta``)."""
 
     @property
-    def d(self) -> int: ...
+    def d(self) -> int:
+        """``D`` of the accumulator (a cell's rho is its index minus ``D``); set by :meth:`start`."""
 
-    def start(self, hin: torch.Tensor) -> tuple[tuple, Any]: ...
+    def start(self, hin: torch.Tensor) -> tuple[tuple, Any]:
+        """``(state, init)`` of the Hough input bool ``(B, H, W)``, every pixel voted."""
 
-    def votes(self, state: tuple) -> torch.Tensor: ...
+    def votes(self, state: tuple) -> torch.Tensor:
+        """int32 ``(B, A, 2D+1)``: the votes of the pixels not yet erased."""
 
-    def erase(self, state: tuple, init: Any, theta: torch.Tensor, rho: torch.Tensor,
-              active: torch.Tensor) -> tuple: ...
+    def erase(self, state: tuple, init: Any, theta: torch.Tensor, rho: torch.Tensor, active: torch.Tensor) -> tuple:
+        """Step 5.3: the state after erasing the band of line ``(theta, rho)`` int64 ``(B,)`` where ``active``."""
 
-    def reset(self, state: tuple, init: Any, which: torch.Tensor) -> tuple: ...
+    def reset(self, state: tuple, init: Any, which: torch.Tensor) -> tuple:
+        """The state of a restart (every pixel voted again) where ``which`` bool ``(B,)``."""
 
 
 class EagerVoter:
-    """The eager voter of :func:`torchrow.functional.vanishing.find_lines`: a
-    :class:`HoughState` (compact pixel list, host-synchronised chunk loops); a :class:`Voter`.
-    """
+    """The eager :class:`Voter` of :func:`torchrow.functional.vanishing.find_lines`: a
+    :class:`HoughState` (compact pixel list, host-synchronised chunk loops)."""
 
     angles = None
 
@@ -323,8 +324,7 @@ class EagerVoter:
 def pickable_angles(params: Params) -> np.ndarray:
     """Angle indices ``j`` with ``|j*theta_step - 90| >= horizontal_excl``, int64 ``(A,)``: the
     only ones step 5.1 ever lets be a peak, so the only ones a static voter votes for."""
-    return np.array([j for j in range(params.n_theta) if abs(j * params.theta_step - 90) >= params.horizontal_excl],
-                    dtype=np.int64)
+    return hough_pickable(params.theta_step, params.horizontal_excl).copy()
 
 
 @functools.lru_cache(maxsize=8)
@@ -335,9 +335,7 @@ def _erase_bound(height: int, width: int, theta_step: int, horizontal_excl: int,
     rho = np.arange(-d, d + 1, dtype=np.float64)
     half = band / 2 + 1e-6  # slack: the band test rounds |p - rho|, these bounds round p +- half
     best = 0
-    for j in range(n_theta):
-        if abs(j * theta_step - 90) < horizontal_excl:
-            continue
+    for j in hough_pickable(theta_step, horizontal_excl):
         p = np.sort(xs * cos[j] + ys * sin[j])
         best = max(best, int((np.searchsorted(p, rho + half, "right") - np.searchsorted(p, rho - half, "left")).max()))
     return best
@@ -352,7 +350,7 @@ def erase_bound(height: int, width: int, params: Params) -> int:
 
 
 class StaticVoter(nn.Module):
-    """Static-shape voter of the exportable graphs, a :class:`Voter` like :class:`EagerVoter`.
+    """Static-shape :class:`Voter` of the exportable graphs.
 
     * ``scatter_free=False`` (onnxruntime): as :class:`HoughState`, the state is the Hough
       input's compact pixel list (:func:`pixel_list`, ``(B, H*W)``, kept in ``init``) with
@@ -564,8 +562,7 @@ class VoteTables:
 @functools.lru_cache(maxsize=2)
 def _vote_arrays(height: int, width: int, theta_step: int, horizontal_excl: int):
     idx = rho_index_table(height, width, theta_step)  # (n_theta, HW)
-    n_theta = idx.shape[0]
-    angles = np.array([j for j in range(n_theta) if abs(j * theta_step - 90) >= horizontal_excl], dtype=np.int64)
+    angles = hough_pickable(theta_step, horizontal_excl).copy()  # torch.from_numpy needs it writable
     d = rho_offset(height, width)
     n_rho = 2 * d + 1
     sub = idx[angles].astype(np.int64)

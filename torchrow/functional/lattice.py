@@ -28,6 +28,7 @@ import torch
 from torchrow.core.io import check_lattice_size, lattice_params
 from torchrow.core.params import VP_SLICE, Params
 from torchrow.core.results import STATUSES
+from torchrow.functional._checks import below_horizon
 
 __all__ = ["LatticeRows", "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_table",
            "vp_search", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
@@ -101,8 +102,7 @@ def excess_green(images: torch.Tensor) -> torch.Tensor:
 
 def _below(sky: torch.Tensor, h: int, w: int) -> torch.Tensor:
     """``(B, H, W)`` bool: rows ``y >= sky``."""
-    y = torch.arange(h, device=sky.device).view(1, h, 1)
-    return (y >= sky.to(torch.int64).view(-1, 1, 1)).expand(-1, h, w)
+    return below_horizon(sky.to(torch.int64), h, as_bool=True).expand(-1, h, w)
 
 
 def otsu_threshold(exg: torch.Tensor, sky: torch.Tensor, params: Params) -> torch.Tensor:
@@ -438,8 +438,7 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, 
     sp = spacing.to(torch.float64)
     zero = torch.zeros_like(ph)
     coef = torch.stack([ph, (ph - v[:, 0].to(torch.float64)) / den, zero, zero, sp, sp / den, zero], dim=1)
-    rows = torch.arange(h, device=dev).view(1, h, 1)
-    pre = prefix_sums(mask & (rows >= sky.to(torch.int64).view(-1, 1, 1)))
+    pre = prefix_sums(mask & below_horizon(sky.to(torch.int64), h, as_bool=True))
     is_curved = params.lattice_model == "curved"
     start = coef
     coef = refine(pre, start, params, straight=not is_curved)

@@ -22,14 +22,16 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
+import numpy as np
 import torch
 
-from torchrow.core.batch import BatchResult
+from torchrow.core.batch import BatchResult, Detections
 from torchrow.core.camera import CameraModel
+from torchrow.core.frames import LoadedFrame, load_items
 from torchrow.core.params import Params
 from torchrow.core.steering import FrameResult
 from torchrow.functional import color as fcolor
@@ -37,11 +39,11 @@ from torchrow.functional import ransac as fransac
 from torchrow.functional import sky as fsky
 from torchrow.functional import vanishing as fvan
 from torchrow.functional import vegetation as fveg
-from torchrow.functional._checks import check_images
+from torchrow.functional._checks import below_horizon, check_images
 from torchrow.functional._flow import branch
 
 __all__ = ["TrackerState", "TrackStep", "init_state", "merge_state", "segment", "finish_segment", "advance",
-           "coverage", "Stages", "eager_stages", "records",
+           "coverage", "Stages", "eager_stages", "records", "ChunkItem", "FrameChunk", "ChunkStep", "lockstep",
            "STATUS_OK", "STATUS_INVALID", "STATUS_NO_VP", "STATUS_NO_VEGETATION"]
 
 # codes into torchrow.core.results.STATUSES
@@ -122,38 +124,14 @@ def merge_state(old: TrackerState, new: TrackerState, mask: torch.Tensor) -> Tra
 
 
 @dataclass
-class TrackStep:
-    """One lock-step frame of ``B`` sequences; rows (B, S), everything else (B,) unless said.
-
-    ``status`` int64 code into :data:`torchrow.core.results.STATUSES`; ``k`` int64; ``bushy``
-    bool; ``n_rows`` int64; Hough lines ``hough_*`` (B, S) with ``hough_valid`` and dropped
-    outliers ``out_*`` (B, O) with ``out_valid`` (all invalid on tracked frames); ``vp``
-    float64 (B, 2) with ``has_vp``; rows ``row_a``/``row_b`` float64, ``row_valid``,
-    ``row_reason`` (code into REASONS), ``row_hypothesis``, ``row_present``; ``hough_ran``,
-    ``hough_redo`` bool; ``confidence`` float64 in [0, 1]; ``active`` bool (sequences that
-    processed a frame in this step; the other entries are meaningless for the rest).
+class TrackStep(Detections):
+    """One lock-step frame of ``B`` sequences: the :class:`~torchrow.core.batch.Detections`
+    fields (rows ``(B, S)``; Hough lines and outliers all invalid on tracked frames), then
+    ``hough_ran``, ``hough_redo`` bool ``(B,)``, ``confidence`` float64 ``(B,)`` in [0, 1] and
+    ``active`` bool ``(B,)`` (sequences that processed a frame in this step; the other
+    entries are meaningless for the rest).
     """
 
-    status: torch.Tensor
-    k: torch.Tensor
-    bushy: torch.Tensor
-    n_rows: torch.Tensor
-    hough_theta: torch.Tensor
-    hough_rho: torch.Tensor
-    hough_weight: torch.Tensor
-    hough_valid: torch.Tensor
-    out_theta: torch.Tensor
-    out_rho: torch.Tensor
-    out_weight: torch.Tensor
-    out_valid: torch.Tensor
-    vp: torch.Tensor
-    has_vp: torch.Tensor
-    row_a: torch.Tensor
-    row_b: torch.Tensor
-    row_valid: torch.Tensor
-    row_reason: torch.Tensor
-    row_hypothesis: torch.Tensor
-    row_present: torch.Tensor
     hough_ran: torch.Tensor
     hough_redo: torch.Tensor
     confidence: torch.Tensor
@@ -237,8 +215,7 @@ def coverage(veg: torch.Tensor, a: torch.Tensor, b: torch.Tensor, valid: torch.T
         idx = (ys.view(1, 1, h) * w + xs.clamp(0, w - 1)).reshape(bsz, s * h)
         on = torch.gather(flat, 1, idx).view(bsz, s, h)
         hit |= inside & near & on
-    below = ys.view(1, 1, h) >= sky.view(-1, 1, 1)
-    count = (hit & below).sum(2)
+    count = (hit & below_horizon(sky, h, as_bool=True).view(-1, 1, h)).sum(2)
     rows_below = (h - sky.clamp(0, h)).view(-1, 1)
     cov = count.to(torch.float64) / rows_below.clamp(min=1).to(torch.float64)
     cov = torch.where(rows_below > 0, cov, torch.zeros_like(cov))
@@ -413,14 +390,8 @@ def records(step: TrackStep, state: TrackerState, width: int, height: int, param
     ``indices`` default to the frame count of ``state`` minus one; ``hfov_deg`` gives the
     records' heading, ``camera`` their metric steering (:meth:`~torchrow.core.steering.FrameResult.build`).
     """
-    batch = BatchResult(
-        width=width, height=height, status=step.status, sky=state.sky, veg_color=state.veg_color, k=step.k,
-        bushy=step.bushy, n_rows=step.n_rows, hough_theta=step.hough_theta, hough_rho=step.hough_rho,
-        hough_weight=step.hough_weight, hough_valid=step.hough_valid, out_theta=step.out_theta,
-        out_rho=step.out_rho, out_weight=step.out_weight, out_valid=step.out_valid, vp=step.vp,
-        has_vp=step.has_vp, row_a=step.row_a, row_b=step.row_b, row_valid=step.row_valid,
-        row_reason=step.row_reason, row_hypothesis=step.row_hypothesis, row_present=step.row_present,
-        theta_step=params.theta_step)
+    batch = BatchResult.build(width, height, params.theta_step, fields=step, sky=state.sky,
+                              veg_color=state.veg_color)
     base = batch.results(names)
     active = step.active.cpu().tolist()
     ran, redo = step.hough_ran.cpu().tolist(), step.hough_redo.cpu().tolist()
@@ -435,3 +406,126 @@ def records(step: TrackStep, state: TrackerState, width: int, height: int, param
                                      hough_ran=ran[b], hough_redo=redo[b], confidence=conf[b],
                                      hfov_deg=hfov_deg, camera=camera))
     return out
+
+
+# ------------------------------------------------------------------------------------------
+# The lock-step frame loop of both trackers' ``track_iter``
+# ------------------------------------------------------------------------------------------
+
+class ChunkItem(NamedTuple):
+    """One loaded item of a sequence: its place in the sequence and the loaded frame."""
+
+    position: int
+    frame: LoadedFrame
+
+
+@dataclass(frozen=True)
+class FrameChunk:
+    """Up to ``chunk`` consecutive items of each of ``B`` sequences, all of working size
+    ``size`` = ``(H, W)`` or unreadable (``frame.rgb`` is ``None``)."""
+
+    items: list[list[ChunkItem]]
+    size: tuple[int, int]
+
+    @property
+    def length(self) -> int:
+        """Frames of the longest sequence in the chunk (the lock-step frames ``t``)."""
+        return max((len(g) for g in self.items), default=0)
+
+    def rgb(self, b: int, t: int) -> np.ndarray | None:
+        """Working RGB ``uint8 (H, W, 3)`` of frame ``t`` of sequence ``b``; ``None`` when the
+        sequence has no readable frame ``t`` in this chunk."""
+        g = self.items[b]
+        return g[t].frame.rgb if t < len(g) else None
+
+    def active(self, t: int) -> list[bool]:
+        """Per sequence: it has a readable frame ``t``."""
+        return [self.rgb(b, t) is not None for b in range(len(self.items))]
+
+
+#: A tracker's part of :func:`lockstep`: given a chunk, yields for every frame ``t`` of it
+#: (in order) the step and state after that frame, or ``None`` when no sequence was active.
+ChunkStep = Callable[[FrameChunk], Iterator["tuple[TrackStep, TrackerState] | None"]]
+
+
+def lockstep(sequences: Sequence[Iterable[object]], step: ChunkStep, params: Params, *, chunk: int = 1,
+             size: tuple[int, int] | None = None, sources: Sequence[str | None] | None = None,
+             hfov_deg: float | None = None, camera: CameraModel | None = None, size_note: str = ""
+             ) -> Iterator[tuple[int, FrameResult, np.ndarray | None]]:
+    """Track ``B`` sequences in lock-step, lazily: the frame loop of the eager and the ONNX
+    trackers' ``track_iter``, which differ only in ``step``.
+
+    Parameters
+    ----------
+    sequences : sequence of iterables
+        One iterable of items per sequence (:mod:`torchrow.core.frames`); lengths may differ.
+    step : ChunkStep
+        Advances the tracker over a :class:`FrameChunk` (it holds the tracker state).
+    params : Params
+        ``video_width`` and ``max_pixels`` load the items; records use the rest.
+    chunk : int
+        Items pulled from every sequence per call of ``step``.
+    size : (int, int), optional
+        Working ``(H, W)`` of the batch; default: the first readable frame's.
+    sources : sequence of str, optional
+        Sequence names stored in the records.
+    hfov_deg : float, optional
+        Horizontal field of view of the records' ``heading_rad``.
+    camera : CameraModel, optional
+        The records' metric steering (:func:`records`).
+    size_note : str
+        Appended to the error of a frame of another working size (e.g. where the size comes from).
+
+    Yields
+    ------
+    (sequence index, FrameResult, working RGB or None)
+        Frame ``t`` of every sequence before frame ``t + 1``. Every item gets a record:
+        unreadable frames, and frames whose working size differs from the batch's, get
+        ``error`` records and are skipped (their sequence is inactive at that frame).
+    """
+    bsz = len(sequences)
+    iters = [load_items(s, params.video_width, params.max_pixels) for s in sequences]
+    alive = [True] * bsz
+    next_index = [0] * bsz
+    srcs: list[str | None] = list(sources) if sources is not None else [None] * bsz
+    while any(alive):
+        got: list[list[ChunkItem]] = [[] for _ in range(bsz)]
+        for b in range(bsz):
+            while alive[b] and len(got[b]) < chunk:
+                fr = next(iters[b], None)
+                if fr is None:
+                    alive[b] = False
+                    break
+                if fr.rgb is not None:
+                    if size is None:
+                        size = (int(fr.rgb.shape[0]), int(fr.rgb.shape[1]))
+                    elif fr.rgb.shape[:2] != size:
+                        fr.error = (f"frame of working size {fr.rgb.shape[1]}x{fr.rgb.shape[0]} in a batch of "
+                                    f"{size[1]}x{size[0]}{size_note}")
+                        fr.rgb = None
+                got[b].append(ChunkItem(next_index[b], fr))
+                next_index[b] += 1
+        part = FrameChunk(got, size if size is not None else (0, 0))
+        if part.length == 0:
+            break
+        # nothing readable yet (no size): only error records, the tracker never runs
+        steps = step(part) if size is not None else iter(())
+        for t in range(part.length):
+            done = next(steps, None)
+            recs: list[FrameResult | None] = [None] * bsz
+            if done is not None:
+                stepped, state = done
+                pad: list[Any] = [None] * (len(state) - bsz)  # a static batch larger than the sequences
+                names = [g[t].frame.name if t < len(g) else None for g in got]
+                idxs = [g[t].position if t < len(g) else 0 for g in got]
+                recs = records(stepped, state, part.size[1], part.size[0], params, hfov_deg, names + pad,
+                               srcs + pad, idxs + [0] * len(pad), camera=camera)
+            for b in range(bsz):
+                if t >= len(got[b]):
+                    continue
+                i, fr = got[b][t]
+                rec = recs[b]
+                if rec is not None:
+                    yield b, rec, fr.rgb
+                else:
+                    yield b, FrameResult.failed_frame(srcs[b], i, fr.name, fr.error or "unreadable frame"), None

@@ -9,7 +9,7 @@ steps has a static bound; the loop stops early once every image is finished.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
@@ -18,7 +18,7 @@ from torchrow.functional import _exact
 from torchrow.functional._flow import branch, check_flow, keep, repeat
 from torchrow.functional.hough import EagerVoter, StaticVoter, Voter, excluded_angles, peak, trig
 
-__all__ = ["VPSolution", "vanishing_point", "LineSearch", "find_lines", "max_steps"]
+__all__ = ["VPSolution", "vanishing_point", "LineSearch", "LineCarry", "find_lines", "max_steps"]
 
 
 @dataclass
@@ -96,6 +96,32 @@ class LineSearch:
     has_vp: torch.Tensor
 
 
+class LineCarry(NamedTuple):
+    """The loop state of :func:`find_lines`, per image: held lines ``theta``/``rho``/``weight``
+    int64 ``(B, S)`` (compact; ``held`` int64 ``(B,)`` of them), dropped outliers ``out`` int64
+    ``(B, O, 3)`` (theta, rho, weight in drop order; ``n_out`` of them), ``n`` the lines
+    sought (N), ``dropped`` outliers since the last restart, ``done`` bool, ``vp`` float64
+    ``(B, 2)`` with ``has_vp`` bool. A loop carries it flat, followed by the voter's state."""
+
+    theta: torch.Tensor
+    rho: torch.Tensor
+    weight: torch.Tensor
+    held: torch.Tensor
+    out: torch.Tensor
+    n_out: torch.Tensor
+    n: torch.Tensor
+    dropped: torch.Tensor
+    done: torch.Tensor
+    vp: torch.Tensor
+    has_vp: torch.Tensor
+
+    @classmethod
+    def split(cls, flat: tuple) -> tuple[LineCarry, tuple]:
+        """A flat loop carry as this state and the voter's state after it."""
+        k = len(cls._fields)
+        return cls(*flat[:k]), tuple(flat[k:])
+
+
 def max_steps(params: Params) -> int:
     """Static bound on state-machine steps: for each N, N fills, then per outlier one check
     and one refill, then a final check."""
@@ -136,13 +162,12 @@ def drop_outlier(theta, rho, weight, i, drop, out, n_out):
             n_out + drop.to(torch.int64))
 
 
-def find_lines(hough_in: torch.Tensor, params: Params, voter: Voter | None = None,
-               flow: str = "sync") -> LineSearch:
+def find_lines(hough_in: torch.Tensor, params: Params, voter: Voter | None = None, flow: str = "sync") -> LineSearch:
     """N-maximum extraction with outlier rejection and N-1 restarts, for every image at once.
 
     The one state machine of sections 5-6, for the eager detector and tracker and for the
-    exportable graphs: ``voter`` says how votes are kept (:class:`~.hough.EagerVoter`, the
-    default, or :class:`~.hough.StaticVoter`), ``flow`` how finished work is skipped
+    exportable graphs: ``voter`` says how votes are kept (a :class:`~.hough.Voter`:
+    :class:`~.hough.EagerVoter`, the default, or :class:`~.hough.StaticVoter`), ``flow`` how finished work is skipped
     (:mod:`._flow`): ``"sync"`` stops once every image is finished (host sync), ``"cond"``
     puts each of the :func:`max_steps` steps in a ``torch.cond`` on "some image is not
     finished" (an exported graph keeps the static bound and exits early at run time),
@@ -168,19 +193,21 @@ def find_lines(hough_in: torch.Tensor, params: Params, voter: Voter | None = Non
     # an image without Hough pixels ends as its first extraction would leave it (N = 0, no
     # VP): done before the first step, so a search of only such images runs no step at all
     n = torch.where(hough_in.flatten(1).any(dim=1), params.n_rows, 0).to(torch.int64)
-    carry: tuple[Any, ...]  # grows by the voter's state below
-    carry = (torch.zeros((bsz, s_max), **i64), torch.zeros((bsz, s_max), **i64), torch.zeros((bsz, s_max), **i64),
-             torch.zeros(bsz, **i64), torch.zeros((bsz, o_max, 3), **i64), torch.zeros(bsz, **i64), n,
-             torch.zeros(bsz, **i64), n < 2, torch.zeros((bsz, 2), dtype=torch.float64, device=dev),
-             torch.zeros(bsz, dtype=torch.bool, device=dev))
+    carry = LineCarry(theta=torch.zeros((bsz, s_max), **i64), rho=torch.zeros((bsz, s_max), **i64),
+                      weight=torch.zeros((bsz, s_max), **i64), held=torch.zeros(bsz, **i64),
+                      out=torch.zeros((bsz, o_max, 3), **i64), n_out=torch.zeros(bsz, **i64), n=n,
+                      dropped=torch.zeros(bsz, **i64), done=n < 2,
+                      vp=torch.zeros((bsz, 2), dtype=torch.float64, device=dev),
+                      has_vp=torch.zeros(bsz, dtype=torch.bool, device=dev))
     # a loop's carry may not alias what its body reads besides (the restart state ``init``)
-    carry += tuple(v.clone() if isinstance(v, torch.Tensor) and flow == "loop" else v for v in vstate)
+    vstate = tuple(v.clone() if isinstance(v, torch.Tensor) and flow == "loop" else v for v in vstate)
     slots = torch.arange(s_max, device=dev).unsqueeze(0)
 
-    def step(theta, rho, weight, held, out, n_out, n, dropped, done, vp, has_vp, *vs):
-        valid = slots < held.unsqueeze(1)
-        fill = ~done & (held < n)
-        check = ~done & ~fill
+    def step(*flat):
+        c, vs = LineCarry.split(flat)
+        valid = slots < c.held.unsqueeze(1)
+        fill = ~c.done & (c.held < c.n)
+        check = ~c.done & ~fill
 
         # --- fill: extract one line ------------------------------------------------------------
         def extract(theta, rho, weight, held, n, *vs):
@@ -196,7 +223,8 @@ def find_lines(hough_in: torch.Tensor, params: Params, voter: Voter | None = Non
             return (theta, rho, weight, held, n) + tuple(voter.erase(vs, init, th, rho_new, got))
 
         # --- check: vanishing point and outlier ------------------------------------------------
-        def verify(theta, rho, weight, held, out, n_out, n, dropped, done, vp, has_vp):
+        def verify(*carry):
+            theta, rho, weight, held, out, n_out, n, dropped, done, vp, has_vp = carry
             no_vp, finish, drop, i, xy = outlier_check(theta, rho, weight, valid, check, params, tables)
             vp = torch.where(finish.unsqueeze(1), xy, vp)
             has_vp = has_vp | finish
@@ -208,32 +236,31 @@ def find_lines(hough_in: torch.Tensor, params: Params, voter: Voter | None = Non
             held = torch.where(restart, torch.zeros_like(held), held)
             dropped = torch.where(restart, torch.zeros_like(dropped), dropped)
             done = done | no_vp | finish | (restart & (n < 2))
-            return theta, rho, weight, held, out, n_out, n, dropped, done, vp, has_vp, restart
+            return LineCarry(theta, rho, weight, held, out, n_out, n, dropped, done, vp, has_vp) + (restart,)
 
-        def unchecked(*c):
-            return keep(*c) + (torch.zeros_like(done),)
+        def unchecked(*carry):
+            return keep(*carry) + (torch.zeros_like(c.done),)
 
         # each part runs only when some image needs it (at B = 1 a step is a fill or a check):
         # eagerly a host check, in an exported graph an If (flow "always": both, masked)
+        filled = (c.theta, c.rho, c.weight, c.held, c.n, *vs)
         if flow == "sync":  # the eager voter's state is not a tuple of tensors
             if bool(fill.any()):
-                theta, rho, weight, held, n, *filled = extract(theta, rho, weight, held, n, *vs)
-                vs = tuple(filled)
+                filled = extract(*filled)
         else:
-            theta, rho, weight, held, n, *filled = branch(flow, fill.any(), extract, keep,
-                                                          (theta, rho, weight, held, n, *vs))
-            vs = tuple(filled)
-        checked = (theta, rho, weight, held, out, n_out, n, dropped, done, vp, has_vp)
-        theta, rho, weight, held, out, n_out, n, dropped, done, vp, has_vp, restart = branch(
-            flow, check.any(), verify, unchecked, checked)
-        vs = voter.reset(vs, init, restart)
-        return (theta, rho, weight, held, out, n_out, n, dropped, done, vp, has_vp) + tuple(vs)
+            filled = branch(flow, fill.any(), extract, keep, filled)
+        theta, rho, weight, held, n, *rest = filled
+        vs = tuple(rest)
+        c = c._replace(theta=theta, rho=rho, weight=weight, held=held, n=n)
+        *checked, restart = branch(flow, check.any(), verify, unchecked, tuple(c))
+        vs = voter.reset(tuple(vs), init, restart)
+        return tuple(checked) + tuple(vs)
 
     # early exit once every image is done; the bound is what an exported graph keeps
-    carry = repeat(flow, max_steps(params), lambda *c: c[8].all(), step, carry)
+    flat = repeat(flow, max_steps(params), lambda *f: LineCarry.split(f)[0].done.all(), step, carry + vstate)
 
-    theta, rho, weight, held, out, n_out, n, _, _, vp, has_vp = carry[:11]
-    valid = slots < held.unsqueeze(1)
-    out_valid = torch.arange(o_max, device=dev).unsqueeze(0) < n_out.unsqueeze(1)
-    return LineSearch(theta, rho, weight, valid, out[..., 0], out[..., 1], out[..., 2], out_valid,
-                      n, vp, has_vp)
+    c = LineCarry.split(flat)[0]
+    out_valid = torch.arange(o_max, device=dev).unsqueeze(0) < c.n_out.unsqueeze(1)
+    return LineSearch(theta=c.theta, rho=c.rho, weight=c.weight, valid=slots < c.held.unsqueeze(1),
+                      out_theta=c.out[..., 0], out_rho=c.out[..., 1], out_weight=c.out[..., 2], out_valid=out_valid,
+                      n_rows=c.n, vp=c.vp, has_vp=c.has_vp)

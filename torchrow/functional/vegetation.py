@@ -59,7 +59,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from torchrow.core.params import Params
-from torchrow.core.tables import lab_table_torch
+from torchrow.core.tables import lab_table_torch, rgb_code
 from torchrow.functional._checks import as_u8, below_horizon, check_images, check_masks, check_params, check_rows, clamp_sky
 from torchrow.functional.cielab import lab_f, linear_lut
 from torchrow.functional.kernels import CANNY_SHIFT, TG22, canny_binary
@@ -109,11 +109,8 @@ def _check_vector(t: torch.Tensor, batch: int, name: str, allow_int: bool) -> No
 
 
 def _pack(images: torch.Tensor) -> torch.Tensor:
-    """``uint8 (b, 3, H, W)`` -> int32 ``(b*H*W,)`` colour codes ``(R<<16)|(G<<8)|B``."""
-    code = images[:, 0].to(torch.int32).bitwise_left_shift_(16)
-    code.bitwise_or_(images[:, 1].to(torch.int32).bitwise_left_shift_(8))
-    code.bitwise_or_(images[:, 2])
-    return code.reshape(-1)
+    """``uint8 (b, 3, H, W)`` -> int32 ``(b*H*W,)`` colour codes (:func:`~torchrow.core.tables.rgb_code`)."""
+    return rgb_code(*(images[:, c].to(torch.int32) for c in range(3))).reshape(-1)
 
 
 def _chunks(batch: int, pixels: int) -> tuple[range, int]:
@@ -359,14 +356,14 @@ def min_k_table(color: torch.Tensor, params: Params) -> torch.Tensor:
     lo, hi = _block_lab_bounds(dev)
     c = table.index_select(0, _pack(color.reshape(-1, 3, 1, 1))).view(s, 3)
     step = torch.arange(_TABLE_BLOCK, device=dev)
-    offs = ((step.view(-1, 1, 1) << 16) | (step.view(1, -1, 1) << 8) | step.view(1, 1, -1)).reshape(-1)
+    offs = rgb_code(step.view(-1, 1, 1), step.view(1, -1, 1), step.view(1, 1, -1)).reshape(-1)
     for i in range(s):
         # blocks whose LAB range meets the box at k_max in every channel
         meet = ((hi >= c[i] - k_max) & (lo <= c[i] + k_max)).all(dim=-1)
         blocks = torch.nonzero(meet) * _TABLE_BLOCK  # (m, 3) lowest bytes
         if blocks.shape[0] == 0:
             continue
-        base = (blocks[:, 0] << 16) | (blocks[:, 1] << 8) | blocks[:, 2]
+        base = rgb_code(blocks[:, 0], blocks[:, 1], blocks[:, 2])
         codes = (base.view(-1, 1) + offs.view(1, -1)).reshape(-1)
         lab = table.index_select(0, codes).t().unsqueeze(0)  # (1, 3, m * 512)
         out[i, codes] = (_min_k(lab, c[i:i + 1], k_min, k_max)[0] - k_min).to(torch.uint8)

@@ -32,6 +32,7 @@ from torch import nn
 
 from torchrow.core.params import Params
 from torchrow.core.tables import rho_index_table, rho_offset
+from torchrow.functional._checks import below_horizon
 
 __all__ = [
     "soft_lab_box",
@@ -79,12 +80,6 @@ def _check_sky(sky: object, batch: int) -> torch.Tensor | None:
             or sky.dtype == torch.bool:
         raise ValueError(f"sky: expected an integer tensor of shape ({batch},), got {_describe(sky)}")
     return sky
-
-
-def _below_horizon(sky: torch.Tensor, height: int, device: torch.device) -> torch.Tensor:
-    """bool ``(B, H, 1)``: rows ``y >= sky[b]`` (the rows every stage after sky removal sees)."""
-    rows = torch.arange(height, device=device)
-    return (rows.view(1, height) >= sky.to(device).view(-1, 1)).unsqueeze(2)
 
 
 def _per_image(v: torch.Tensor | float, batch: int, like: torch.Tensor, name: str, width: int = 1) -> torch.Tensor:
@@ -187,7 +182,7 @@ def soft_vegetation_mask(images: torch.Tensor, color: torch.Tensor, k: torch.Ten
     center = kornia.color.rgb_to_lab(col.reshape(b, 3, 1, 1)).reshape(b, 3)
     out = soft_lab_box(kornia.color.rgb_to_lab(x), center, k, temperature)
     if sky is not None:
-        out = out * _below_horizon(sky, h, x.device).to(out.dtype)
+        out = out * below_horizon(sky.to(x.device), h, as_bool=True).to(out.dtype)
     return out
 
 
@@ -298,7 +293,7 @@ class SoftVegetationMask(nn.Module):
                            self.temperature.to(lab.dtype))
         sky = _check_sky(sky, lab.shape[0])
         if sky is not None:
-            out = out * _below_horizon(sky, lab.shape[2], lab.device).to(out.dtype)
+            out = out * below_horizon(sky.to(lab.device), lab.shape[2], as_bool=True).to(out.dtype)
         return out
 
     def hard(self, images: torch.Tensor, sky: torch.Tensor | None = None) -> torch.Tensor:

@@ -41,12 +41,14 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from torchrow.core.batch import LINE_FIELDS
 from torchrow.core.params import Params
-from torchrow.core.tables import hypothesis_table
+from torchrow.core.tables import hypothesis_table, rgb_code
 from torchrow.functional import ransac as fransac
 from torchrow.functional import sky as fsky
 from torchrow.functional import tracking as ftrack
 from torchrow.functional import vegetation as fveg
+from torchrow.functional._checks import below_horizon
 from torchrow.functional._flow import check_flow, choose
 from torchrow.functional.cielab import lab_formula, linear_lut
 from torchrow.functional.hough import StaticVoter, pixel_list
@@ -62,9 +64,7 @@ def raw_mask(images: torch.Tensor, veg_lab: torch.Tensor, k: float, sky: torch.T
     hi = (veg_lab + k).view(-1, 3, 1, 1)
     v = lab_formula(images, lut)
     inside = ((lo <= v) & (v <= hi)).all(dim=1)
-    h = images.shape[2]
-    below = torch.arange(h, device=images.device).view(1, h, 1) >= sky.view(-1, 1, 1)
-    return inside & below
+    return inside & below_horizon(sky, images.shape[2], as_bool=True)
 
 
 #: Names of the exported graph's outputs, in order (see :class:`StaticDetector`).
@@ -190,12 +190,15 @@ class StaticDetector(nn.Module):
         has_veg = veg.flatten(1).any(dim=1)
         hin, bushy = fveg.hough_input(veg, sky, p)
         ls = self.find_lines(hin)
-        n = ls.n_rows
         band = fransac.ransac_band(bushy, w, p)
         present = ls.valid & ls.has_vp.unsqueeze(1)
         fit = self.fit_rows(veg, ls.theta, ls.rho, present, ls.vp, band)
-        return (sky, bushy, has_veg, n, ls.theta, ls.rho, ls.weight, ls.valid, ls.out_theta, ls.out_rho,
-                ls.out_weight, ls.out_valid, ls.vp, ls.has_vp) + fit.astuple() + (present,)
+        # outputs matched to GRAPH_OUTPUTS by name; a flat tuple, the form every exporter takes
+        named = {"sky": sky, "bushy": bushy, "has_veg": has_veg, "row_present": present,
+                 **{f: getattr(ls, a) for f, a in LINE_FIELDS.items()},
+                 **{"fit_" + f: getattr(fit, f) for f in ("cx", "cy", "sxx", "syy", "sxy")},
+                 "row_hypothesis": fit.hypothesis, "row_support": fit.support}
+        return tuple(named[f] for f in GRAPH_OUTPUTS)
 
 
 def finish_rows(outputs: dict, height: int, width: int, params: Params) -> fransac.Rows:
@@ -311,11 +314,10 @@ class StaticTrackerStep(nn.Module):
         bsz, _, h, w = images.shape
         n_k = p.video_k_max - p.video_k_min + 1
         skyc = sky.clamp(0, h)
-        below = (torch.arange(h, device=images.device).view(1, h, 1) >= skyc.view(-1, 1, 1)).expand(bsz, h, w)
+        below = below_horizon(skyc, h, as_bool=True).expand(bsz, h, w)
         below = below.reshape(bsz, 1, h * w)
-        # fveg._pack's codes (R<<16)|(G<<8)|B as products: ONNX's BitShift takes unsigned types only
         x = images.to(torch.int32)
-        code = ((x[:, 0] * 65536 + x[:, 1] * 256) + x[:, 2]).reshape(bsz, h * w).to(torch.int64)
+        code = rgb_code(x[:, 0], x[:, 1], x[:, 2]).reshape(bsz, h * w).to(torch.int64)
         code = code + (torch.arange(bsz, device=images.device) * (1 << 24)).view(-1, 1)
         # a flat index_select exports as one Gather; uint8 k indices (k - video_k_min, n_k: none)
         kstar = torch.index_select(k_table.reshape(-1), 0, code.reshape(-1)).view(bsz, 1, h * w)

@@ -118,14 +118,8 @@ class OnnxDetector:
         rows = finish_rows(o, self.height, self.width, p)
         i64: dict[str, Any] = dict(dtype=torch.int64)
         status = fransac.image_status(rows, o["has_vp"], o["has_veg"])
-        return BatchResult(
-            width=self.width, height=self.height, status=status, sky=o["sky"], veg_color=color,
-            k=torch.full((b,), p.veg_tol, **i64), bushy=o["bushy"], n_rows=o["n_rows"],
-            hough_theta=o["hough_theta"], hough_rho=o["hough_rho"], hough_weight=o["hough_weight"],
-            hough_valid=o["hough_valid"], out_theta=o["out_theta"], out_rho=o["out_rho"],
-            out_weight=o["out_weight"], out_valid=o["out_valid"], vp=o["vp"], has_vp=o["has_vp"],
-            row_a=rows.a, row_b=rows.b, row_valid=rows.valid, row_reason=rows.reason,
-            row_hypothesis=rows.hypothesis, row_present=rows.present, theta_step=p.theta_step)
+        return BatchResult.build(self.width, self.height, p.theta_step, rows=rows, fields=o, status=status,
+                                 veg_color=color, k=torch.full((b,), p.veg_tol, **i64))
 
     def detect(self, images: Sequence[np.ndarray]) -> BatchResult:
         """Detect rows in a list of same-sized working-size RGB arrays ``(H, W, 3)``."""
@@ -327,51 +321,27 @@ class OnnxTracker:
         RGB or None)``; unreadable frames and frames of another working size than the
         model's get ``error`` records. Slots without a sequence, or whose sequence has ended
         or has no readable frame now, are fed as inactive (they keep their state)."""
-        from torchrow.core.frames import load_items
-        from torchrow.core.steering import FrameResult
-        from torchrow.functional.tracking import records
+        from torchrow.functional.tracking import lockstep
 
         n = len(sequences)
         if n > self.batch:
             raise ValueError(f"the model {self.path.name} tracks {self.batch} sequence(s) at once, got {n}")
-        srcs = list(sources) if sources is not None else [None] * n
-        iters = [load_items(s, self.params.video_width, self.params.max_pixels) for s in sequences]
-        alive = [True] * n
-        index = [0] * n
         state = None
         h, w = self.height, self.width
-        while any(alive):
-            got: list = [None] * n
-            frames = np.zeros((self.batch, h, w, 3), dtype=np.uint8)
-            act = np.zeros(self.batch, dtype=bool)
-            for b in range(n):
-                if not alive[b]:
+
+        def step(chunk):
+            nonlocal state
+            for t in range(chunk.length):
+                act = np.array(chunk.active(t) + [False] * (self.batch - n))
+                if not act.any():
+                    yield None
                     continue
-                fr = next(iters[b], None)
-                if fr is None:
-                    alive[b] = False
-                    continue
-                if fr.rgb is not None and fr.rgb.shape[:2] != (h, w):
-                    fr.error = (f"frame of working size {fr.rgb.shape[1]}x{fr.rgb.shape[0]}; the model "
-                                f"{self.path.name} takes {w}x{h}")
-                    fr.rgb = None
-                if fr.rgb is not None:
-                    frames[b], act[b] = fr.rgb, True
-                got[b] = (index[b], fr)
-                index[b] += 1
-            recs: list = [None] * self.batch
-            if act.any():
+                frames = np.zeros((self.batch, h, w, 3), dtype=np.uint8)
+                for b in np.flatnonzero(act):
+                    frames[b] = chunk.rgb(b, t)
                 x = torch.from_numpy(frames).permute(0, 3, 1, 2).contiguous()
                 stepped, state = self.forward(x, state, torch.from_numpy(act))
-                names = [g[1].name if g is not None else None for g in got] + [None] * (self.batch - n)
-                idxs = [g[0] if g is not None else 0 for g in got] + [0] * (self.batch - n)
-                recs = records(stepped, state, w, h, self.params, self.hfov_deg, names,
-                               srcs + [None] * (self.batch - n), idxs, camera=self.camera)
-            for b in range(n):
-                if got[b] is None:
-                    continue
-                i, fr = got[b]
-                if recs[b] is not None:
-                    yield b, recs[b], fr.rgb
-                else:
-                    yield b, FrameResult.failed_frame(srcs[b], i, fr.name, fr.error or "unreadable frame"), None
+                yield stepped, state
+
+        return lockstep(sequences, step, self.params, size=(h, w), sources=sources, hfov_deg=self.hfov_deg,
+                        camera=self.camera, size_note=f" (the size the model {self.path.name} takes)")

@@ -8,7 +8,7 @@ import numpy as np
 
 from torchrow.core.params import Params
 from torchrow.core.results import HoughLine
-from torchrow.core.tables import hough_trig, rho_offset
+from torchrow.core.tables import hough_trig, near_angle, near_horizontal, rho_offset
 
 __all__ = ["rho_offset", "line_distance", "votes", "excluded_angles", "HoughState", "extract_line"]
 
@@ -43,9 +43,9 @@ def excluded_angles(held: list[HoughLine], params: Params) -> np.ndarray:
     line, on the integer-degree grid, no wrap-around at 0/180.
     """
     deg = np.arange(params.n_theta) * params.theta_step
-    ex = np.abs(deg - 90) < params.horizontal_excl
+    ex = near_horizontal(deg, params.horizontal_excl)
     for line in held:
-        ex |= np.abs(deg - line.theta_index * params.theta_step) < params.angle_excl
+        ex |= near_angle(deg, line.theta_index * params.theta_step, params.angle_excl)
     return ex
 
 
