@@ -231,7 +231,9 @@ def _comb_tables(width: int, params: Params) -> tuple[np.ndarray, ...]:
         for p in range(d):
             anti = np.arange(p + d // 2, nb, d)
             wins.append(np.concatenate([windows(np.arange(p, nb, d), h), windows(anti, h)]))
-            ds.append(d), ps.append(p), hs.append(h)
+            ds.append(d)
+            ps.append(p)
+            hs.append(h)
     w = np.stack(wins)
     return np.array(ds), np.array(ps), np.array(hs), w[:, 0], w[:, 1], w[:, 2], w[:, 3]
 
@@ -253,7 +255,7 @@ def bottom_bins(xs: np.ndarray, ys: np.ndarray, vp: tuple[int, int], height: int
     return b[keep].astype(np.int64) + width
 
 
-def comb_search(mask: np.ndarray, vp: tuple[int, int], params: Params) -> tuple[int, int, bool]:
+def comb_search(mask: np.ndarray, vp: tuple[int, int], params: Params) -> tuple[int, int, bool, float]:
     """Section 11.2: bottom-row spacing and central phase of the rows through ``vp``.
 
     Histogram the bins of :func:`bottom_bins`; candidate ``q`` captures ``cap_q`` pixels in
@@ -349,8 +351,8 @@ def row_cells(pre: tuple[np.ndarray, np.ndarray], coef: np.ndarray, params: Para
     this order), i.e. the columns ``floor(lo) + 1 .. ceil(hi) - 1`` clipped to the image. The
     counts and sums are differences of the mask's :func:`prefix_sums` (integers).
     """
-    pre, pre_x = pre
-    h, w = pre.shape[0], pre.shape[1] - 1
+    counts, pre_x = pre
+    h, w = counts.shape[0], counts.shape[1] - 1
     cc, dd = centre_spacing(np.arange(h, dtype=np.float64) - np.float64(h - 1), coef)
     ok = dd > params.lattice_min_spacing_px
     half = np.float64(params.lattice_tolerance) * dd
@@ -366,7 +368,7 @@ def row_cells(pre: tuple[np.ndarray, np.ndarray], coef: np.ndarray, params: Para
             x0 = np.clip(np.floor(np.where(good, lo, 0.0)) + 1, 0, w).astype(np.int64)
             x1 = np.clip(np.ceil(np.where(good, hi, 0.0)), 0, w).astype(np.int64)
             x1 = np.where(good, np.maximum(x1, x0), x0)
-            cnt[i] = pre[yy, x1] - pre[yy, x0]
+            cnt[i] = counts[yy, x1] - counts[yy, x0]
             sx[i] = pre_x[yy, x1] - pre_x[yy, x0]
     return cnt, sx
 
