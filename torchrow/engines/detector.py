@@ -205,16 +205,9 @@ class CropRowDetector(nn.Module):
                 vp, has_vp = ls.vp, ls.has_vp & has_veg[sl]
             parts.append(flattice.improved_rows(x[sl], sky[sl], vp, has_vp, p))
         curved = concat_batches(parts)
-        rows = flattice.as_row_fits(curved)
         lap("lattice")
-        status = flattice.improved_status(curved, fransac.image_status(rows), p)
-        return BatchResult(
-            width=w, height=h, status=status, sky=flattice.horizon_row(sky, p).to(torch.int64), veg_color=None,
-            k=None, bushy=None, n_rows=torch.full((bsz,), rows.a.shape[1], dtype=torch.int64, device=x.device),
-            hough_theta=None, hough_rho=None, hough_weight=None, hough_valid=None, out_theta=None, out_rho=None,
-            out_weight=None, out_valid=None, vp=None, has_vp=None, row_a=rows.a, row_b=rows.b,
-            row_valid=rows.valid, row_reason=rows.reason, row_hypothesis=rows.hypothesis,
-            row_present=rows.present, theta_step=p.theta_step, timings=timings, **flattice.curve_fields(curved))
+        status = flattice.improved_status(curved, fransac.image_status(flattice.as_row_fits(curved)), p)
+        return flattice.improved_batch(curved, status, flattice.horizon_row(sky, p), p, w, h, timings)
 
     def prepare(self, image: np.ndarray | str | Path) -> np.ndarray:
         """Section 0 for one input: load a path or convert an array, resize to the working width."""
