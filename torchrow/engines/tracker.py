@@ -344,8 +344,8 @@ class Tracker(nn.Module):
                             if act_list[b]:
                                 x[b] = torch.from_numpy(got[b][t][1].rgb).permute(2, 0, 1)
                         act = torch.tensor(act_list, dtype=torch.bool, device=self.device)
-                        stepped, state = flt.lattice_advance(x.to(self.device), act, state, p)
-                        recs = self.results(stepped, state, w, h,
+                        lstep, state = flt.lattice_advance(x.to(self.device), act, state, p)
+                        recs = self.results(lstep, state, w, h,
                                             [got[b][t][1].name if t < len(got[b]) else None for b in range(bsz)],
                                             srcs, [got[b][t][0] if t < len(got[b]) else 0 for b in range(bsz)])
                     yield from self._emit(got, t, recs, srcs)

@@ -201,10 +201,10 @@ def run(args: argparse.Namespace) -> int:
     from torchrow.apps.video import central_jumps, plot_tracks
     from torchrow.core.progress import progress
 
+    params = with_mode(parse_params(args.param), args)  # before --model: improved mode has no ONNX tracker
     model = check_model(args, kind="tracker")
     if model is not None:
         onnx_host_threads()
-    params = with_mode(parse_params(args.param), args)
     if args.hough_every is not None:
         if model is not None:
             raise CLIError("--hough-every cannot change an exported model; export one with --param hough_every=N")
