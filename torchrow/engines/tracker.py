@@ -1,4 +1,5 @@
-"""The batched video-mode tracker: ``torchrow.Tracker`` (ALGORITHM.md section 8).
+"""The batched video-mode tracker: ``torchrow.Tracker`` (ALGORITHM.md section 8; in improved mode
+the lattice tracker of section 11.7, :mod:`torchrow.functional.lattice_tracking`).
 
 A thin :class:`torch.nn.Module` over :mod:`torchrow.functional.tracking`. ``B`` independent
 sequences advance in lock-step; :meth:`Tracker.track_iter` segments a chunk of frames of
