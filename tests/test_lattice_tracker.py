@@ -79,10 +79,13 @@ def test_identity_row_change_and_row_end() -> None:
 
 def test_lost_without_plants_and_full_search_after() -> None:
     soil = render_camera(GroundField(seed=3, row_end_m=0.0), camera(), CameraPose(0.0, 0.0, 5.0)).image
-    rows = drive([CameraPose(0.05, 0.0, 0.0), CameraPose(0.05, 0.0, 0.2)], 2)
-    res = torchrow.Tracker(P).track([[soil, rows[0].image, rows[1].image, soil, rows[2].image]])[0]
-    assert [r.state for r in res] == ["lost", "in_row", "in_row", "lost", "in_row"]
-    assert [r.hough_ran for r in res] == [True, True, False, True, True]
+    rows = drive([CameraPose(0.05, 0.0, 0.0), CameraPose(0.05, 0.0, 0.2)], 1)
+    seq = [soil, rows[0].image, rows[1].image, soil]
+    res = torchrow.Tracker(P).track([seq])[0]
+    assert [r.state for r in res] == ["lost", "in_row", "in_row", "lost"]
+    # frame 1 follows a loss: a full search; frame 3 is tracked, fails, and is searched again in full
+    assert [(r.hough_ran, r.hough_redo) for r in res] == [(True, False), (True, False), (False, False), (True, True)]
+    same(RefTracker(P).track(seq), res)
     rec = res[0].to_record()
     assert rec["row_end_m"] is None and rec["row_end_y"] is None and rec["row_change"] == 0
 
