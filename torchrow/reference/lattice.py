@@ -57,7 +57,7 @@ class LatticePrior:
 def vp_near(grid: np.ndarray, vp: tuple[int, int], params: Params) -> np.ndarray:
     """Section 11.7: the grid VPs searched on a tracked frame, ``(V,)`` bool: ``|xv - xv'| <=
     s lattice_vp_step`` and height indices within ``s`` of the previous VP's, ``s =
-    lattice_track_vp_steps``; every VP when the previous one is not a grid height (the fallback)."""
+    lattice_track_vp_steps``; every VP when the previous one's height is not a grid height."""
     heights = list(params.lattice_vp_heights)
     if vp[1] not in heights:
         return np.ones(grid.shape[0], bool)
