@@ -359,6 +359,8 @@ def _arrow_types():
         "image_confidence": f64, "lattice_rows": pa.list_(lattice_row),
         "confidence": f64, "heading_px": f64, "heading_rad": f64, "lateral_px": f64, "lateral_frac": f64,
         "lateral_m": f64, "spacing_m": f64,
+        # the lattice tracker's (ALGORITHM.md 11.7)
+        "state": s, "row_change": i32, "row_end_y": i32, "row_end_m": f64,
     }
 
 

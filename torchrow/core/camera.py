@@ -49,7 +49,7 @@ import numpy as np
 
 from torchrow.core.results import Row
 
-__all__ = ["CameraModel", "MetricSteering", "metric_steering", "ground_line", "CAMERA_KEYS"]
+__all__ = ["row_end_distance", "CameraModel", "MetricSteering", "metric_steering", "ground_line", "CAMERA_KEYS"]
 
 #: Keys of a camera JSON object: required, and the two ways of giving the intrinsics.
 CAMERA_KEYS = {"required": ("height_m", "tilt_deg"), "fov": ("hfov_deg",), "pixels": ("fx", "fy", "cx", "cy")}
@@ -301,3 +301,17 @@ def metric_steering(rows: Sequence[Row], camera: CameraModel, height: int) -> Me
     heading = sum(lines[i][0] for i in [c] + near) / (1 + len(near))
     spacing = sum(abs(lines[i][1] - lat) for i in near) / len(near) if near else None
     return MetricSteering(lat, heading, spacing)
+
+
+def row_end_distance(camera: CameraModel, row: Row, y_end: float, heading_rad: float) -> float | None:
+    """Distance (m) along the rows from the nadir to where ``row`` ends (ALGORITHM.md 11.7).
+
+    The row's image point at row ``y_end``, ``(x(y_end), y_end)`` (working px; ``camera`` at the
+    working size), is back-projected to the ground ``(X, Y)`` and projected on the rows' forward
+    direction ``(cos h, sin h)``: ``X cos h + Y sin h``. ``None`` where that point is not below
+    the horizon or not finite.
+    """
+    x = float(row.x_at(float(y_end)))
+    gx, gy = camera.image_to_ground(x, float(y_end))
+    d = float(gx) * math.cos(heading_rad) + float(gy) * math.sin(heading_rad)
+    return d if math.isfinite(d) else None

@@ -124,6 +124,15 @@ class Params:
     lattice_curve_gain: float = 0.02  # "auto": the curved refit must hold this fraction more inlier pixels
     lattice_min_contrast: float = 0.2  # status ok needs the comb's contrast per binned pixel at least this
     lattice_min_image_confidence: float = 0.0  # status ok needs the image confidence at least this
+    # --- section 11.7 (torchrow extension): the lattice tracker ------------------------------
+    lattice_track_every: int = 10  # video: a full (unrestricted) search at least every this many frames
+    lattice_track_vp_steps: int = 1  # prior: grid VPs within this many steps (x and height) of the last VP
+    lattice_track_spacing_tol: float = 0.15  # prior: comb spacings within this fraction of the last spacing
+    lattice_track_phase_tol: float = 0.25  # prior: a tooth within this fraction of the spacing of the tracked row
+    lattice_track_hysteresis: float = 0.1  # row change: the tracked row is (0.5 + this) spacings off the centre
+    lattice_end_drop: float = 0.02  # row end: this fraction of the supported cells, the topmost, is ignored
+    lattice_end_margin: int = 8  # px: the rows end ahead when their end lies this far below the resolvable rows
+    lattice_headland_frac: float = 0.25  # rows ending in this bottom fraction of the image: headland
 
     def __post_init__(self) -> None:
         check_fields(self, _RULES, _CROSS_RULES)
@@ -406,6 +415,14 @@ _RULES: dict[str, Rule] = {
     "lattice_min_image_confidence": Rule("float", 0, 1, why="a fraction of the image rows"),
     "lattice_min_spacing_px": _F0, "lattice_pivot_tol": Rule("float", 0, 1, why="a fraction of a pivot"),
     "lattice_min_confidence": Rule("float", 0, 1),
+    "lattice_track_every": Rule("int", 1, 2**31 - 1),
+    "lattice_track_vp_steps": Rule("int", 0, 4096, why="grid steps"),
+    "lattice_track_spacing_tol": Rule("float", 0, 1, why="a fraction of the spacing"),
+    "lattice_track_phase_tol": Rule("float", 0, 0.5, why="a fraction of the spacing (0.5: any phase)"),
+    "lattice_track_hysteresis": Rule("float", 0, 0.5, why="a fraction of the spacing"),
+    "lattice_end_drop": Rule("float", 0, 1, why="a fraction of the supported cells"),
+    "lattice_end_margin": _INT_PX,
+    "lattice_headland_frac": Rule("float", 0, 1, why="a fraction of the image height"),
 }
 
 #: Bytes section 11.2's tables may take for one working image (:meth:`Params.lattice_table_bytes`):

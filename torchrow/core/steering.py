@@ -56,10 +56,11 @@ from typing import Any
 
 import numpy as np
 
-from torchrow.core.camera import CameraModel, MetricSteering, metric_steering
+from torchrow.core.camera import CameraModel, MetricSteering, metric_steering, row_end_distance
 from torchrow.core.results import ImageResult, Row
 
-__all__ = ["FrameResult", "Steering", "steering", "focal_from_fov", "row_coverage", "confidence", "check_optics"]
+__all__ = ["LATTICE_STATES", "LatticeTrack",
+           "FrameResult", "Steering", "steering", "focal_from_fov", "row_coverage", "confidence", "check_optics"]
 
 
 @dataclass(frozen=True)
@@ -160,6 +161,25 @@ def confidence(veg: np.ndarray | None, rows: Sequence[Row], sky: int, n_requeste
     return min(1.0, total / n_requested)
 
 
+#: The lattice tracker's frame states (ALGORITHM.md 11.7), in the order of their tensor codes.
+LATTICE_STATES = ("in_row", "row_end_ahead", "headland", "lost")
+
+
+@dataclass(frozen=True)
+class LatticeTrack:
+    """What the lattice tracker (ALGORITHM.md 11.7) adds to a frame: ``state`` (one of
+    :data:`LATTICE_STATES`), ``row_change`` (-1, 0, +1: the central row is the previous frame's
+    row ``k = row_change``), ``row_end_y`` (image row where the rows end, with ``row_end_ahead``),
+    ``full_search`` (the unrestricted search ran) and ``redo`` (it ran because the restricted
+    search's frame was not ``ok``)."""
+
+    state: str
+    row_change: int = 0
+    row_end_y: int | None = None
+    full_search: bool = True
+    redo: bool = False
+
+
 @dataclass
 class FrameResult(ImageResult):
     """One video frame: an :class:`ImageResult` plus tracking outputs and steering signals.
@@ -183,6 +203,11 @@ class FrameResult(ImageResult):
     lateral_m: float | None = None
     spacing_m: float | None = None
     stamp_ns: int | None = None
+    #: Lattice tracker only (ALGORITHM.md 11.7; absent from the faithful tracker's records).
+    state: str | None = None
+    row_change: int | None = None
+    row_end_y: int | None = None
+    row_end_m: float | None = None
 
     def to_record(self) -> dict[str, Any]:
         """``torchrow detect``'s record keys plus ``source``, ``frame``, ``hough_ran``,
@@ -202,17 +227,22 @@ class FrameResult(ImageResult):
                    heading_rad=num(self.heading_rad), lateral_px=num(self.lateral_px),
                    lateral_frac=num(self.lateral_frac), lateral_m=num(self.lateral_m),
                    spacing_m=num(self.spacing_m))
+        if self.state is not None:
+            rec.update(state=self.state, row_change=int(self.row_change or 0), row_end_y=self.row_end_y,
+                       row_end_m=num(self.row_end_m))
         return rec
 
     @classmethod
     def build(cls, base: ImageResult, *, source: str | None, frame: int, hough_ran: bool,
               hough_redo: bool, confidence: float, hfov_deg: float | None,
-              camera: CameraModel | None = None) -> FrameResult:
+              camera: CameraModel | None = None, lattice: LatticeTrack | None = None) -> FrameResult:
         """Wrap a detection with its tracking flags and the steering signals of its rows.
 
         ``camera`` (for any image size: scaled to the working size here) gives ``lateral_m``,
         ``spacing_m`` and ``heading_rad`` (:func:`torchrow.core.camera.metric_steering`);
         ``hfov_deg`` the pixel heading's ``heading_rad``; not both (:func:`check_optics`).
+        ``lattice``: the lattice tracker's state (its ``row_end_m`` is computed here from the
+        central row, :func:`torchrow.core.camera.row_end_distance`, with a camera).
         """
         check_optics(hfov_deg, camera)
         rows_ok = base.status in ("ok", "invalid")
@@ -221,7 +251,16 @@ class FrameResult(ImageResult):
         if camera is not None and rows_ok:
             metric = metric_steering(base.rows, camera.scaled(base.width, base.height), base.height)
         fields = {k: getattr(base, k) for k in ImageResult.__dataclass_fields__}
-        return cls(**fields, source=source, frame=frame, hough_ran=hough_ran, hough_redo=hough_redo,
+        extra: dict[str, Any] = {}
+        if lattice is not None:
+            end_m = None
+            mid = base.rows[len(base.rows) // 2] if base.rows else None  # row k = 0 of the 2K + 1
+            if (camera is not None and lattice.row_end_y is not None and mid is not None and mid.valid
+                    and metric.heading_rad is not None):
+                end_m = row_end_distance(camera.scaled(base.width, base.height), mid, lattice.row_end_y, metric.heading_rad)
+            extra = {"state": lattice.state, "row_change": lattice.row_change, "row_end_y": lattice.row_end_y,
+                     "row_end_m": end_m}
+        return cls(**extra, **fields, source=source, frame=frame, hough_ran=hough_ran, hough_redo=hough_redo,
                    confidence=confidence, heading_px=st.heading_px,
                    heading_rad=metric.heading_rad if camera is not None else st.heading_rad,
                    lateral_px=st.lateral_px, lateral_frac=st.lateral_frac, lateral_m=metric.lateral_m,

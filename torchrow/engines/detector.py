@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from torchrow.core.batch import LINE_FIELDS, BatchResult
+from torchrow.core.batch import BatchResult
 from torchrow.core.io import check_color_used, check_working_size, load_image, resize_to_width, to_rgb8
 from torchrow.core.params import Params
 from torchrow.core.results import STATUSES, concat_batches
@@ -200,14 +200,9 @@ class CropRowDetector(nn.Module):
                 vp, has_vp = ls.vp, ls.has_vp & has_veg[sl]
             parts.append(flattice.improved_rows(x[sl], sky[sl], vp, has_vp, p))
         curved = concat_batches(parts)
-        rows = flattice.as_row_fits(curved)
         lap("lattice")
-        status = flattice.improved_status(curved, fransac.image_status(rows), p)
-        absent = dict.fromkeys([f for f in LINE_FIELDS if f != "n_rows"] + ["k", "bushy"])  # sections 2-6
-        return BatchResult.build(
-            w, h, p.theta_step, rows=rows, status=status, sky=flattice.horizon_row(sky, p).to(torch.int64),
-            veg_color=None, n_rows=torch.full((bsz,), rows.a.shape[1], dtype=torch.int64, device=x.device),
-            timings=timings, **absent, **flattice.curve_fields(curved))
+        status = flattice.improved_status(curved, fransac.image_status(flattice.as_row_fits(curved)), p)
+        return flattice.improved_batch(curved, status, flattice.horizon_row(sky, p), p, w, h, timings)
 
     def prepare(self, image: np.ndarray | str | Path) -> np.ndarray:
         """Section 0 for one input: load a path or convert an array, resize to the working width."""

@@ -1,4 +1,5 @@
-"""The batched video-mode tracker: ``torchrow.Tracker`` (ALGORITHM.md section 8).
+"""The batched video-mode tracker: ``torchrow.Tracker`` (ALGORITHM.md section 8; in improved mode
+the lattice tracker of section 11.7, :mod:`torchrow.functional.lattice_tracking`).
 
 A thin :class:`torch.nn.Module` over :mod:`torchrow.functional.tracking`. ``B`` independent
 sequences advance in lock-step; :meth:`Tracker.track_iter` segments a chunk of frames of
@@ -12,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -22,12 +24,16 @@ from torchrow.core.frames import prepare_frame
 from torchrow.core.io import check_working_size
 from torchrow.core.params import Params
 from torchrow.core.results import concat_batches
-from torchrow.core.steering import FrameResult, check_optics
+from torchrow.core.steering import LATTICE_STATES, FrameResult, LatticeTrack, check_optics
+from torchrow.functional import lattice as flattice
+from torchrow.functional import lattice_tracking as flt
 from torchrow.functional import tracking as ftrack
 from torchrow.functional._checks import check_device, check_images
+from torchrow.functional.lattice_tracking import LatticeStep, LatticeTrackerState
 from torchrow.functional.tracking import TrackerState, TrackStep
+from torchrow.reference.lattice_tracking import check_lattice_tracker
 
-__all__ = ["Tracker", "TrackerState", "TrackStep"]
+__all__ = ["Tracker", "TrackerState", "TrackStep", "LatticeTrackerState", "LatticeStep"]
 
 #: Attribute of a state returned by :meth:`Tracker.forward`: the ``(H, W)`` working size its
 #: sequences were started at (not a tensor field: the exported graph's state has no size).
@@ -51,6 +57,10 @@ class Tracker(nn.Module):
         ``lateral_m``, ``spacing_m`` and the ground ``heading_rad``. Not with ``hfov_deg``.
     chunk : int
         Frames per sequence segmented in one batched call by :meth:`track_iter`.
+    mode : str, optional
+        ``"faithful"`` or ``"improved"``: overrides ``params.mode``. Improved mode is the lattice
+        tracker of ALGORITHM.md 11.7 (states :class:`LatticeTrackerState`, steps
+        :class:`LatticeStep`; records add ``state``, ``row_change``, ``row_end_y``, ``row_end_m``).
 
     Examples
     --------
@@ -70,9 +80,14 @@ class Tracker(nn.Module):
 
     def __init__(self, params: Params | None = None, device: str | torch.device | None = None,
                  hfov_deg: float | None = None, chunk: int = 8, workers: int | None = None,
-                 camera: CameraModel | None = None) -> None:
+                 camera: CameraModel | None = None, mode: str | None = None) -> None:
         super().__init__()
         self.params = params or Params()
+        if mode is not None:
+            self.params = self.params.replace(mode=mode)
+        self.improved = self.params.mode == "improved"
+        if self.improved:
+            check_lattice_tracker(self.params)
         self.device = check_device(device)
         check_optics(hfov_deg, camera)
         self.hfov_deg = hfov_deg
@@ -90,8 +105,8 @@ class Tracker(nn.Module):
 
     # -- tensors in, tensors out ----------------------------------------------------------
     @torch.no_grad()
-    def forward(self, frames: torch.Tensor, state: TrackerState | None = None,
-                active: torch.Tensor | None = None) -> tuple[TrackStep, TrackerState]:
+    def forward(self, frames: torch.Tensor, state: Any = None,
+                active: torch.Tensor | None = None) -> tuple[Any, Any]:
         """One lock-step frame of ``B`` sequences.
 
         Parameters
@@ -107,7 +122,7 @@ class Tracker(nn.Module):
 
         Returns
         -------
-        (TrackStep, TrackerState)
+        (TrackStep, TrackerState) or, in improved mode, (LatticeStep, LatticeTrackerState)
             The new state remembers the working size; a later call with frames of another
             size raises ``ValueError`` (as :meth:`torchrow.reference.Tracker.step`): the
             sky row and rows of the state belong to that size.
@@ -120,6 +135,14 @@ class Tracker(nn.Module):
             raise ValueError(f"frame of working size {w}x{h} in a sequence of {size[1]}x{size[0]}")
         x = frames.to(self.device)
         bsz = x.shape[0]
+        if self.improved:
+            lstate = LatticeTrackerState.empty(bsz, self.device) if state is None else state
+            if len(lstate) != bsz:
+                raise ValueError(f"state holds {len(lstate)} sequences, frames {bsz}")
+            act = torch.ones(bsz, dtype=torch.bool, device=self.device) if active is None else active.to(self.device)
+            lstep, lnew = flt.lattice_advance(x, act, lstate, self.params)
+            setattr(lnew, _SIZE, (h, w))
+            return lstep, lnew
         if state is None:
             state = TrackerState.empty(bsz, self.params, self.device)
         if len(state) != bsz:
@@ -194,13 +217,38 @@ class Tracker(nn.Module):
         return ftrack.merge_state(state, full, new)
 
     # -- records ----------------------------------------------------------------------------
-    def results(self, step: TrackStep, state: TrackerState, width: int, height: int,
+    def results(self, step: Any, state: Any, width: int, height: int,
                 names: Sequence[str | None] | None = None, sources: Sequence[str | None] | None = None,
                 indices: Sequence[int] | None = None) -> list[FrameResult | None]:
         """Per-sequence :class:`FrameResult` of a step (``None`` for inactive sequences):
-        :func:`torchrow.functional.tracking.records` with this tracker's parameters and optics."""
+        :func:`torchrow.functional.tracking.records` with this tracker's parameters and optics (in
+        improved mode, the lattice's records with the tracker's fields, ALGORITHM.md 11.7)."""
+        if isinstance(step, LatticeStep):
+            return self._lattice_records(step, state, width, height, names, sources, indices)
         return ftrack.records(step, state, width, height, self.params, self.hfov_deg, names, sources, indices,
                               camera=self.camera)
+
+    def _lattice_records(self, step: LatticeStep, state: LatticeTrackerState, width: int, height: int,
+                         names: Sequence[str | None] | None, sources: Sequence[str | None] | None,
+                         indices: Sequence[int] | None) -> list[FrameResult | None]:
+        top = torch.zeros_like(step.status)
+        images = flattice.improved_batch(step.rows, step.status, top, self.params, width, height).results()
+        conf = step.rows.image_confidence.cpu().tolist()
+        cols = [t.cpu().tolist() for t in (step.state, step.row_change, step.row_end, step.full, step.redo,
+                                           step.active, state.frames)]
+        out: list[FrameResult | None] = []
+        for b, img in enumerate(images):
+            st, change, end, full, redo, active, frames = (c[b] for c in cols)
+            if not active:
+                out.append(None)
+                continue
+            img.name = None if names is None else names[b]
+            track = LatticeTrack(LATTICE_STATES[st], int(change), None if end < 0 else int(end), bool(full), bool(redo))
+            out.append(FrameResult.build(img, source=None if sources is None else sources[b],
+                                         frame=frames - 1 if indices is None else indices[b], hough_ran=bool(full),
+                                         hough_redo=bool(redo), confidence=conf[b], hfov_deg=self.hfov_deg,
+                                         camera=self.camera, lattice=track))
+        return out
 
     # -- arrays in, records out -------------------------------------------------------------
     def prepare(self, frame: np.ndarray | str | Path) -> np.ndarray:
@@ -257,13 +305,30 @@ class Tracker(nn.Module):
         advances frame by frame.
         """
         bsz = len(sequences)
-        state = TrackerState.empty(bsz, self.params, self.device)
+        p = self.params
+        state: Any = LatticeTrackerState.empty(bsz, self.device) if self.improved else TrackerState.empty(
+            bsz, p, self.device)
         ready = [False] * bsz
 
-        def step(chunk: ftrack.FrameChunk) -> Iterator[tuple[TrackStep, TrackerState] | None]:
+        def step(chunk: ftrack.FrameChunk) -> Iterator[tuple[TrackStep | LatticeStep, Any] | None]:
             nonlocal state
             h, w = chunk.size
             got, t_max = chunk.items, chunk.length
+            if self.improved:  # the lattice tracker: no frame-0 colour, no segmentation, frame by frame
+                for t in range(t_max):
+                    act_list = chunk.active(t)
+                    if not any(act_list):
+                        yield None
+                        continue
+                    x = torch.zeros((bsz, 3, h, w), dtype=torch.uint8)
+                    for b in range(bsz):
+                        rgb = chunk.rgb(b, t)
+                        if rgb is not None:
+                            x[b] = torch.from_numpy(rgb).permute(2, 0, 1)
+                    act = torch.tensor(act_list, dtype=torch.bool, device=self.device)
+                    lstep, state = flt.lattice_advance(x.to(self.device), act, state, p)
+                    yield lstep, state
+                return
             # frame 0 of sequences starting in this chunk: their first readable frame
             starts = []
             for b in range(bsz):
@@ -303,7 +368,7 @@ class Tracker(nn.Module):
                 yield stepped, state
 
         return ftrack.lockstep(sequences, step, self.params, chunk=self.chunk, size=size, sources=sources,
-                               hfov_deg=self.hfov_deg, camera=self.camera)
+                               hfov_deg=self.hfov_deg, camera=self.camera, records_fn=self.results)
 
     def track(self, sequences: Sequence[Iterable[object]], sources: Sequence[str | None] | None = None
               ) -> list[list[FrameResult]]:

@@ -30,7 +30,8 @@ from torchrow.core.params import VP_SLICE, Params
 from torchrow.core.results import STATUSES
 from torchrow.functional._checks import below_horizon
 
-__all__ = ["LatticeRows", "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_table",
+__all__ = ["LatticeRows", "LatticePriorBatch", "vp_near", "improved_batch",
+           "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_table",
            "vp_search", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
            "normal_equations", "refine", "fit_lattice", "row_polynomials", "visible_rows", "VisibleRows", "improved_rows",
            "improved_status", "LatticeFitBatch"]
@@ -48,7 +49,8 @@ class LatticeRows:
     ``found`` ``(B,)`` (the comb); ``vp`` ``(B, 2)`` int64 (the rounded VP it used); ``contrast``
     ``(B,)`` float64 (the comb's best score per binned pixel) and ``curved`` ``(B,)`` bool (11.3.1);
     ``visible_*``: every visible row, the fields of :class:`VisibleRows` (a dataclass of tensors
-    only, so that :func:`~torchrow.core.results.concat_batches` joins chunks)."""
+    only, so that :func:`~torchrow.core.results.concat_batches` joins chunks); ``lit`` ``(B, H)``
+    int64: per image row, the rows ``-K .. K`` with an inlier there (section 11.7's row end)."""
 
     a: torch.Tensor
     b: torch.Tensor
@@ -70,6 +72,32 @@ class LatticeRows:
     visible_e: torch.Tensor
     visible_confidence: torch.Tensor
     visible_present: torch.Tensor
+    lit: torch.Tensor
+
+
+class LatticePriorBatch(NamedTuple):
+    """Section 11.7's prior per image (:class:`torchrow.reference.lattice.LatticePrior`): ``centre``
+    ``(B,)`` float64, the bottom-row x the central row is chosen nearest to; ``restrict`` ``(B,)``
+    bool, a tracked frame (else a full search); ``vp`` ``(B, 2)`` int64 and ``spacing`` ``(B,)``
+    int64, the previous frame's (read where ``restrict``)."""
+
+    centre: torch.Tensor
+    restrict: torch.Tensor
+    vp: torch.Tensor
+    spacing: torch.Tensor
+
+
+def vp_near(grid: torch.Tensor, vp: torch.Tensor, restrict: torch.Tensor, params: Params) -> torch.Tensor:
+    """Batched :func:`torchrow.reference.lattice.vp_near`: ``(B, V)`` bool, all True where not
+    ``restrict`` or where the previous VP's height is not a grid height."""
+    heights = torch.tensor(params.lattice_vp_heights, dtype=torch.int64, device=grid.device)
+    iy = torch.argmax((grid[:, 1:] == heights.view(1, -1)).to(torch.int64), dim=1)  # (V,)
+    hit = vp[:, 1:] == heights.view(1, -1)  # (B, n_heights)
+    iy_prev = torch.argmax(hit.to(torch.int64), dim=1)
+    s = params.lattice_track_vp_steps
+    near = ((grid[:, 0].view(1, -1) - vp[:, :1]).abs() <= s * params.lattice_vp_step) & (
+        (iy.view(1, -1) - iy_prev.view(-1, 1)).abs() <= s)
+    return near | ~(restrict & hit.any(dim=1)).view(-1, 1)
 
 
 class LatticeFitBatch(NamedTuple):
@@ -177,7 +205,7 @@ def vp_table(height: int, width: int, params: Params, device: torch.device) -> t
     return table
 
 
-def vp_search(mask: torch.Tensor, params: Params) -> torch.Tensor:
+def vp_search(mask: torch.Tensor, params: Params, prior: LatticePriorBatch | None = None) -> torch.Tensor:
     """Section 11.2 (``lattice_vp == "search"``): per image the grid VP whose folded contrast
     comb is strongest, ``(B, 2)`` int64; see :func:`torchrow.reference.lattice.vp_search`.
 
@@ -185,6 +213,7 @@ def vp_search(mask: torch.Tensor, params: Params) -> torch.Tensor:
     ``(B, V, 3W)`` int32 histograms, then folded spacing by spacing (a static loop); every sum
     is an integer below ``2**31``, so the scores are the reference's. Peak memory: the
     histograms, ``4 V (3W + d_max)`` bytes per image (0.5 MB at 320x240), plus the table.
+    ``prior``: section 11.7's; where it restricts, only the VPs of :func:`vp_near` compete.
     """
     bsz, h, w = mask.shape
     dev = mask.device
@@ -214,6 +243,8 @@ def vp_search(mask: torch.Tensor, params: Params) -> torch.Tensor:
         anti = cs[..., a + 2 * hw + 1:a + 2 * hw + 1 + d] - cs[..., a:a + d]
         best = torch.maximum(best, (tooth - anti).amax(dim=2))
     seen = total > 0
+    if prior is not None:
+        seen = seen & vp_near(grid, prior.vp, prior.restrict, params)
     value = torch.where(seen, best.to(torch.float64) / torch.clamp(total, min=1).to(torch.float64),
                         torch.full_like(total, -math.inf, dtype=torch.float64))
     pick = grid[torch.argmax(value, dim=1)]  # first maximum: the grid's order
@@ -221,14 +252,16 @@ def vp_search(mask: torch.Tensor, params: Params) -> torch.Tensor:
     return torch.where(seen.any(dim=1, keepdim=True), pick, fallback.expand_as(pick))
 
 
-def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params):
+def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params, prior: LatticePriorBatch | None = None):
     """Section 11.2 per image: ``(spacing, phase, found, contrast)``, each ``(B,)`` (int64, int64,
     bool, float64; ``contrast`` = the best score per binned pixel, 0 without pixels).
 
     The candidates are scored spacing by spacing (a static loop over
     ``lattice_min_spacing .. lattice_max_spacing``): every phase's teeth are one strided sum
     of the windowed histogram, its anti-teeth (``lattice_comb == "contrast"``) the same sum of
-    the windowed histogram shifted by ``d // 2`` bins.
+    the windowed histogram shifted by ``d // 2`` bins. ``prior`` (section 11.7): the central row
+    is the tooth nearest ``prior.centre``, and where ``prior.restrict`` only the candidates of
+    :func:`torchrow.reference.lattice.comb_near` compete (a mask per spacing).
     """
     bsz, h, w = mask.shape
     dev = mask.device
@@ -251,6 +284,9 @@ def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params):
     centre = torch.arange(nb, device=dev)
     scores, ds, ps = [], [], []
     windows: dict[int, torch.Tensor] = {}
+    if prior is not None:
+        target = prior.centre.to(torch.float64).view(-1, 1)
+        d_prev = prior.spacing.view(-1, 1)
     for d in range(params.lattice_min_spacing, params.lattice_max_spacing + 1):
         hw = int(math.floor(d * params.lattice_window))
         win = windows.get(hw)
@@ -269,6 +305,14 @@ def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params):
         else:
             expect = (n * (2 * hw + 1)).to(torch.float64) / float(d)
             scores.append(cap.to(torch.float64) - expect.unsqueeze(1))
+        if prior is not None:
+            df = float(d)
+            rel = target - (torch.arange(d, dtype=torch.int64, device=dev) - w).to(torch.float64).view(1, -1)
+            off = rel - df * torch.round(rel / df)
+            near_d = (d - d_prev).to(torch.float64).abs() <= params.lattice_track_spacing_tol * d_prev.to(torch.float64)
+            near = near_d & (off.abs() <= params.lattice_track_phase_tol * df)
+            near = near | ~prior.restrict.view(-1, 1)
+            scores[-1] = torch.where(near, scores[-1], torch.full_like(scores[-1], -math.inf))
         ds.append(torch.full((d,), d, dtype=torch.int64, device=dev))
         ps.append(torch.arange(d, dtype=torch.int64, device=dev))
     allsc = torch.cat(scores, dim=1)
@@ -276,7 +320,8 @@ def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params):
     best = torch.gather(allsc, 1, q.unsqueeze(1)).squeeze(1)
     d_q = torch.cat(ds)[q]
     p_q = torch.cat(ps)[q] - w
-    k0 = torch.round((float(w) / 2 - p_q.to(torch.float64)) / d_q.to(torch.float64)).to(torch.int64)
+    centre = torch.full((bsz,), float(w) / 2, dtype=torch.float64, device=dev) if prior is None else prior.centre
+    k0 = torch.round((centre - p_q.to(torch.float64)) / d_q.to(torch.float64)).to(torch.int64)
     found = n > 0
     spacing = torch.where(found, d_q, torch.full_like(d_q, params.lattice_min_spacing))
     phase = torch.where(found, p_q + k0 * d_q, torch.full_like(d_q, w // 2))
@@ -415,24 +460,24 @@ def refine(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: P
 
 
 def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Tensor | None,
-                params: Params) -> LatticeFitBatch:
+                params: Params, prior: LatticePriorBatch | None = None) -> LatticeFitBatch:
     """Sections 11.2-11.3.1 per image (:func:`torchrow.reference.lattice.fit_lattice`).
 
     The cells (count and x sum of the inliers per image row and lattice row) are integer sums,
     so the normal equations equal the reference's bit for bit. Memory: two ``(B, H, W+1)``
     int64 prefix sums (about 40 MB each for 64 images of 320x240) besides the mask; a step's
-    own temporaries are ``(B, H, 2K+1)``.
+    own temporaries are ``(B, H, 2K+1)``. ``prior``: section 11.7's (the lattice tracker).
     """
     bsz, h, w = mask.shape
     params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
     dev = mask.device
     if params.lattice_vp == "search":
-        v = vp_search(mask, params)
+        v = vp_search(mask, params, prior)
     elif vp is None or has_vp is None:
         raise ValueError(f"lattice_vp={params.lattice_vp!r} needs section 6's vp and has_vp, got None")
     else:
         v = init_vp(vp, has_vp, w, params)
-    spacing, phase, found, contrast = comb_search(mask, v, params)
+    spacing, phase, found, contrast = comb_search(mask, v, params, prior)
     den = ((h - 1) - v[:, 1]).to(torch.float64)
     ph = phase.to(torch.float64)
     sp = spacing.to(torch.float64)
@@ -512,17 +557,17 @@ def visible_rows(mask: torch.Tensor, top: torch.Tensor, coef: torch.Tensor, foun
 
 
 def improved_rows(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Tensor | None,
-                  params: Params) -> LatticeRows:
+                  params: Params, prior: LatticePriorBatch | None = None) -> LatticeRows:
     """Section 11 on ``uint8 (B, 3, H, W)`` working images; ``vp (B, 2)`` float64 with ``has_vp``:
     section 6's, for ``lattice_vp="section6"`` (``None`` otherwise).
 
     ``sky (B,)`` is section 1's row (any values when ``lattice_horizon="image"``: not used); the
-    lattice starts at :func:`horizon_row`.
+    lattice starts at :func:`horizon_row`. ``prior``: section 11.7's (the lattice tracker).
     """
     h = images.shape[2]
     top = horizon_row(sky, params)
     mask = green_mask(images, top, params)
-    coef, spacing, phase, found, v, cnt, contrast, curved = fit_lattice(mask, top, vp, has_vp, params)
+    coef, spacing, phase, found, v, cnt, contrast, curved = fit_lattice(mask, top, vp, has_vp, params, prior)
     support = (cnt > 0).sum(dim=1).to(torch.float64)  # (B, R)
     conf = support / _span(top, h).unsqueeze(1)
     ks = torch.arange(-params.lattice_half, params.lattice_half + 1, device=images.device, dtype=torch.float64)
@@ -533,7 +578,7 @@ def improved_rows(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | No
         img_conf = img_conf + conf[:, i]
     img_conf = img_conf / float(conf.shape[1])
     return LatticeRows(a, b, c, e, valid, conf, img_conf, coef, spacing, phase, found, v, contrast, curved,
-                       *visible_rows(mask, top, coef, found, params))
+                       *visible_rows(mask, top, coef, found, params), lit=(cnt > 0).sum(dim=2))
 
 
 def improved_status(rows: LatticeRows, status: torch.Tensor, params: Params) -> torch.Tensor:
@@ -560,3 +605,18 @@ def curve_fields(rows: LatticeRows) -> dict[str, torch.Tensor]:
     """The :class:`~torchrow.engines.detector.BatchResult` fields only the improved mode has."""
     return {"row_c": rows.c, "row_e": rows.e, "row_confidence": rows.confidence, "image_confidence": rows.image_confidence,
             **{f"lattice_{f}": getattr(rows, f"visible_{f}") for f in VisibleRows._fields}}
+
+
+def improved_batch(curved: LatticeRows, status: torch.Tensor, top: torch.Tensor, params: Params, width: int,
+                   height: int, timings: dict[str, float] | None = None):
+    """Section 11.4's :class:`~torchrow.core.batch.BatchResult` of a batch from :func:`improved_rows`
+    (the detector's and the lattice tracker's): sections 2-6's fields null, ``sky`` = ``top``."""
+    from torchrow.core.batch import LINE_FIELDS, BatchResult
+
+    rows = as_row_fits(curved)
+    bsz = rows.a.shape[0]
+    absent = dict.fromkeys([f for f in LINE_FIELDS if f != "n_rows"] + ["k", "bushy"])  # sections 2-6
+    return BatchResult.build(
+        width, height, params.theta_step, rows=rows, status=status, sky=top.to(torch.int64), veg_color=None,
+        n_rows=torch.full((bsz,), rows.a.shape[1], dtype=torch.int64, device=rows.a.device),
+        timings={} if timings is None else timings, **absent, **curve_fields(curved))

@@ -445,12 +445,13 @@ class FrameChunk:
 
 #: A tracker's part of :func:`lockstep`: given a chunk, yields for every frame ``t`` of it
 #: (in order) the step and state after that frame, or ``None`` when no sequence was active.
-ChunkStep = Callable[[FrameChunk], Iterator["tuple[TrackStep, TrackerState] | None"]]
+ChunkStep = Callable[[FrameChunk], Iterator["tuple[Any, Any] | None"]]  # (step, state): records_fn reads them
 
 
 def lockstep(sequences: Sequence[Iterable[object]], step: ChunkStep, params: Params, *, chunk: int = 1,
              size: tuple[int, int] | None = None, sources: Sequence[str | None] | None = None,
-             hfov_deg: float | None = None, camera: CameraModel | None = None, size_note: str = ""
+             hfov_deg: float | None = None, camera: CameraModel | None = None, size_note: str = "",
+             records_fn: Callable[..., list[FrameResult | None]] | None = None
              ) -> Iterator[tuple[int, FrameResult, np.ndarray | None]]:
     """Track ``B`` sequences in lock-step, lazily: the frame loop of the eager and the ONNX
     trackers' ``track_iter``, which differ only in ``step``.
@@ -475,6 +476,10 @@ def lockstep(sequences: Sequence[Iterable[object]], step: ChunkStep, params: Par
         The records' metric steering (:func:`records`).
     size_note : str
         Appended to the error of a frame of another working size (e.g. where the size comes from).
+    records_fn : callable, optional
+        ``(stepped, state, width, height, names, sources, indices) -> records`` of a step;
+        default :func:`records` with ``params``, ``hfov_deg`` and ``camera`` (the lattice tracker
+        passes its own).
 
     Yields
     ------
@@ -518,8 +523,12 @@ def lockstep(sequences: Sequence[Iterable[object]], step: ChunkStep, params: Par
                 pad: list[Any] = [None] * (len(state) - bsz)  # a static batch larger than the sequences
                 names = [g[t].frame.name if t < len(g) else None for g in got]
                 idxs = [g[t].position if t < len(g) else 0 for g in got]
-                recs = records(stepped, state, part.size[1], part.size[0], params, hfov_deg, names + pad,
-                               srcs + pad, idxs + [0] * len(pad), camera=camera)
+                if records_fn is None:
+                    recs = records(stepped, state, part.size[1], part.size[0], params, hfov_deg, names + pad,
+                                   srcs + pad, idxs + [0] * len(pad), camera=camera)
+                else:
+                    recs = records_fn(stepped, state, part.size[1], part.size[0], names + pad, srcs + pad,
+                                      idxs + [0] * len(pad))
             for b in range(bsz):
                 if t >= len(got[b]):
                     continue

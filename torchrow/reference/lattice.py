@@ -25,12 +25,13 @@ import numpy as np
 
 from torchrow.core.io import lattice_params
 from torchrow.core.params import VP_SLICE, Params
-from torchrow.core.results import LatticeRow, Row
+from torchrow.core.results import ImageResult, LatticeRow, Row
 
-__all__ = ["LatticeFit", "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_grid",
+__all__ = ["LatticeFit", "LatticePrior", "vp_near", "comb_near",
+           "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_grid",
            "vp_cells", "vp_search", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
            "normal_equations", "refine", "fit_lattice", "improved_status", "lattice_rows", "row_polynomial",
-           "visible_rows", "improved_rows", "ImprovedRows", "N_COEF"]
+           "visible_rows", "improved_rows", "ImprovedRows", "N_COEF", "improved_result"]
 
 #: Coefficients ``(c0, c1, c2, c3, d0, d1, d2)`` of ``x = c(t) + k d(t)``, ``c(t) = c0 + c1 t + c2 t^2 +
 #: c3 t^3`` (``c3`` = 0 with ``lattice_center_degree`` 2), ``d(t) = d0 + d1 t + d2 t^2``.
@@ -38,6 +39,45 @@ N_COEF = 7
 #: Excess green ``2G - R - B`` of uint8 RGB lies in ``[-510, 510]``.
 EXG_OFFSET = 510
 EXG_BINS = 2 * EXG_OFFSET + 1
+
+
+@dataclass(frozen=True)
+class LatticePrior:
+    """The lattice tracker's prior for one frame (section 11.7).
+
+    ``centre``: bottom-row x (px) the central row is chosen nearest to (``W/2`` without a tracked
+    row). ``vp``/``spacing``: the previous frame's grid VP and comb spacing; ``None`` = a full
+    search (no restriction of the VP grid or the comb)."""
+
+    centre: float
+    vp: tuple[int, int] | None = None
+    spacing: int | None = None
+
+
+def vp_near(grid: np.ndarray, vp: tuple[int, int], params: Params) -> np.ndarray:
+    """Section 11.7: the grid VPs searched on a tracked frame, ``(V,)`` bool: ``|xv - xv'| <=
+    s lattice_vp_step`` and height indices within ``s`` of the previous VP's, ``s =
+    lattice_track_vp_steps``; every VP when the previous one's height is not a grid height."""
+    heights = list(params.lattice_vp_heights)
+    if vp[1] not in heights:
+        return np.ones(grid.shape[0], bool)
+    iy = np.array([heights.index(int(y)) for y in grid[:, 1]], np.int64)
+    s = params.lattice_track_vp_steps
+    return (np.abs(grid[:, 0] - vp[0]) <= s * params.lattice_vp_step) & (np.abs(iy - heights.index(vp[1])) <= s)
+
+
+def comb_near(d: np.ndarray, p: np.ndarray, width: int, prior: LatticePrior, params: Params) -> np.ndarray:
+    """Section 11.7: the comb candidates ``(d, p)`` (``(Q,)`` int64) kept on a tracked frame, bool:
+    ``abs(d - d') <= lattice_track_spacing_tol * d'`` and, with ``P = p - W``, ``o = (c - P) - d
+    round_half_even((c - P) / d)`` (the offset of the tooth nearest the tracked row's ``c``),
+    ``abs(o) <= lattice_track_phase_tol * d`` (float64, this order)."""
+    df = d.astype(np.float64)
+    rel = (np.float64(prior.centre) - (p - width).astype(np.float64))
+    off = rel - df * np.rint(rel / df)
+    assert prior.spacing is not None
+    near_d = np.abs((d - prior.spacing).astype(np.float64)) <= np.float64(params.lattice_track_spacing_tol) * np.float64(
+        prior.spacing)
+    return near_d & (np.abs(off) <= np.float64(params.lattice_track_phase_tol) * df)
 
 
 @dataclass(frozen=True)
@@ -51,7 +91,8 @@ class LatticeFit:
     ``support``: image rows holding an inlier of each row, ``(2K+1,)``; ``span``: image rows
     where a row can have support; ``found``: the comb saw at least one pixel. ``contrast``: the
     comb's best score per binned pixel (11.2; 0 without pixels); ``curved``: the curved refit
-    was kept (11.3.1).
+    was kept (11.3.1). ``lit``: per image row, the number of rows ``-K .. K`` with an inlier there
+    (section 11.7's row end).
     """
 
     coef: tuple[float, ...]
@@ -63,6 +104,7 @@ class LatticeFit:
     found: bool
     contrast: float = 0.0
     curved: bool = True
+    lit: tuple[int, ...] = ()
 
 
 def horizon_row(sky: int, params: Params) -> int:
@@ -152,7 +194,7 @@ def vp_cells(height: int, width: int, params: Params) -> tuple[np.ndarray, np.nd
     return yc, xc
 
 
-def vp_search(mask: np.ndarray, params: Params) -> tuple[int, int]:
+def vp_search(mask: np.ndarray, params: Params, near: tuple[int, int] | None = None) -> tuple[int, int]:
     """Section 11.2: the grid VP whose folded contrast comb is strongest (``lattice_vp == "search"``).
 
     The green pixels are counted in cells (:func:`vp_cells`). For each VP of :func:`vp_grid`,
@@ -165,7 +207,8 @@ def vp_search(mask: np.ndarray, params: Params) -> tuple[int, int]:
     holds ``F[(p-h) mod d] + ... + F[(p+h) mod d]`` and its anti-tooth is the tooth of phase
     ``(p + d // 2) mod d``. The VP scores ``max_{d,p} (tooth - anti-tooth) / n`` (integer
     numerator and denominator, one float64 division); the highest wins, the first on ties.
-    Without a binned count at any VP: ``(W // 2, lattice_vp_fallback_y)``.
+    Without a binned count at any VP: ``(W // 2, lattice_vp_fallback_y)``. ``near``: section 11.7's
+    previous VP; only the grid VPs of :func:`vp_near` compete.
     """
     h, w = mask.shape
     s = params.lattice_vp_cell
@@ -201,7 +244,12 @@ def vp_search(mask: np.ndarray, params: Params) -> tuple[int, int]:
         cs = np.concatenate([np.zeros((grid.shape[0], 1), np.int64), np.cumsum(ext, axis=1)], axis=1)
         tooth = cs[:, 2 * hw + 1:2 * hw + 1 + d] - cs[:, :d]
         best = np.maximum(best, (tooth - np.roll(tooth, -(d // 2), axis=1)).max(axis=1))
-    value = np.where(total > 0, best.astype(np.float64) / np.maximum(total, 1).astype(np.float64), -np.inf)
+    seen = total > 0
+    if near is not None:
+        seen &= vp_near(grid, near, params)
+        if not seen.any():
+            return w // 2, params.lattice_vp_fallback_y
+    value = np.where(seen, best.astype(np.float64) / np.maximum(total, 1).astype(np.float64), -np.inf)
     q = int(np.argmax(value))
     return int(grid[q, 0]), int(grid[q, 1])
 
@@ -255,7 +303,8 @@ def bottom_bins(xs: np.ndarray, ys: np.ndarray, vp: tuple[int, int], height: int
     return b[keep].astype(np.int64) + width
 
 
-def comb_search(mask: np.ndarray, vp: tuple[int, int], params: Params) -> tuple[int, int, bool, float]:
+def comb_search(mask: np.ndarray, vp: tuple[int, int], params: Params,
+                prior: LatticePrior | None = None) -> tuple[int, int, bool, float]:
     """Section 11.2: bottom-row spacing and central phase of the rows through ``vp``.
 
     Histogram the bins of :func:`bottom_bins`; candidate ``q`` captures ``cap_q`` pixels in
@@ -267,7 +316,9 @@ def comb_search(mask: np.ndarray, vp: tuple[int, int], params: Params) -> tuple[
     row is the tooth nearest ``W/2``: ``phase = p - W + d * round_half_even((W/2 - (p - W)) / d)``.
     Returns ``(d, phase, found, contrast)``, ``contrast`` = the best score divided by the
     number of binned pixels (float64; the evidence of 11.4's status); without pixels
-    ``(lattice_min_spacing, W // 2, False, 0.0)``.
+    ``(lattice_min_spacing, W // 2, False, 0.0)``. ``prior`` (section 11.7): the central row is
+    the tooth nearest ``prior.centre`` instead of ``W/2``, and with ``prior.spacing`` only the
+    candidates of :func:`comb_near` compete (the others score ``-inf``).
     """
     h, w = mask.shape
     ys, xs = np.nonzero(mask)
@@ -282,9 +333,12 @@ def comb_search(mask: np.ndarray, vp: tuple[int, int], params: Params) -> tuple[
         score = (cap - (cs[ahi] - cs[alo]).sum(axis=1)).astype(np.float64)
     else:
         score = cap.astype(np.float64) - (bins.size * (2 * hw + 1)).astype(np.float64) / d.astype(np.float64)
+    centre = np.float64(w) / 2 if prior is None else np.float64(prior.centre)
+    if prior is not None and prior.spacing is not None:
+        score = np.where(comb_near(d, p, w, prior, params), score, -np.inf)
     q = int(np.argmax(score))
     d_q, p_q = int(d[q]), int(p[q]) - w
-    k0 = int(np.rint((np.float64(w) / 2 - np.float64(p_q)) / np.float64(d_q)))
+    k0 = int(np.rint((centre - np.float64(p_q)) / np.float64(d_q)))
     return d_q, p_q + k0 * d_q, True, float(score[q] / np.float64(bins.size))
 
 
@@ -424,7 +478,8 @@ def refine(pre: tuple[np.ndarray, np.ndarray], coef: np.ndarray, height: int, pa
     return coef
 
 
-def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, params: Params) -> LatticeFit:
+def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, params: Params,
+                prior: LatticePrior | None = None) -> LatticeFit:
     """Sections 11.2-11.4 on a green mask: comb start, then the refits of 11.3 and 11.3.1.
 
     Start: ``c(t) = phase + ((phase - xv) / (H-1 - yv)) t``, ``d(t) = d + (d / (H-1 - yv)) t``,
@@ -432,12 +487,16 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
     :func:`refine` from the start. ``"straight"``: one straight refine. ``"auto"`` (default):
     a straight and a curved refine, both from the start, the curved one kept only where its inlier
     pixels exceed ``(1 + lattice_curve_gain)`` times the straight lattice's (float64), so
-    straight rows stay straight unless the pixels demand a bend.
+    straight rows stay straight unless the pixels demand a bend. ``prior``: section 11.7's
+    restriction of the VP search and the comb on a tracked frame.
     """
     h, w = mask.shape
     params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
-    v = vp_search(mask, params) if params.lattice_vp == "search" else init_vp(vp, w, params)
-    d, phase, found, contrast = comb_search(mask, v, params)
+    if params.lattice_vp == "search":
+        v = vp_search(mask, params, None if prior is None else prior.vp)
+    else:
+        v = init_vp(vp, w, params)
+    d, phase, found, contrast = comb_search(mask, v, params, prior)
     xv, yv = v
     den = np.float64(h - 1 - yv)
     coef = np.array([np.float64(phase), (np.float64(phase) - np.float64(xv)) / den, 0.0, 0.0,
@@ -459,7 +518,8 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
     cnt, _ = row_cells(pre, coef, params)
     support = tuple(int(s) for s in (cnt > 0).sum(axis=1))
     span = h - max(sky, 0)
-    return LatticeFit(tuple(float(c) for c in coef), d, phase, v, support, span, found, contrast, curved)
+    lit = tuple(int(s) for s in (cnt > 0).sum(axis=0))
+    return LatticeFit(tuple(float(c) for c in coef), d, phase, v, support, span, found, contrast, curved, lit)
 
 
 def row_polynomial(coef: Sequence[float], k: int, height: int) -> tuple[float, float, float, float]:
@@ -548,15 +608,29 @@ class ImprovedRows(NamedTuple):
     visible: list[LatticeRow]
 
 
-def improved_rows(rgb: np.ndarray, sky: int, vp: tuple[float, float] | None, params: Params) -> ImprovedRows:
+def improved_rows(rgb: np.ndarray, sky: int, vp: tuple[float, float] | None, params: Params,
+                  prior: LatticePrior | None = None) -> ImprovedRows:
     """Section 11 on one working image.
 
     ``sky`` is section 1's row (any value when ``lattice_horizon="image"``: it is not used); the
     lattice starts at :func:`horizon_row`. ``vp``: section 6's, for ``lattice_vp="section6"``.
+    ``prior``: section 11.7's (the lattice tracker).
     """
     top = horizon_row(sky, params)
     mask = green_mask(rgb, top, params)
-    fit = fit_lattice(mask, top, vp, params)
+    fit = fit_lattice(mask, top, vp, params, prior)
     rows = lattice_rows(fit, rgb.shape[0], params)
     conf = sum(r.confidence for r in rows) / len(rows)  # in row order, as the tensor path
     return ImprovedRows(rows, conf, fit, visible_rows(mask, top, fit, params))
+
+
+def improved_result(imp: ImprovedRows, width: int, height: int, top: int, params: Params,
+                    name: str | None = None) -> ImageResult:
+    """Section 11.4's record of one image from :func:`improved_rows` (the detector's and the
+    lattice tracker's): status by :func:`improved_status`, sections 2-6's fields null."""
+    return ImageResult(width=width, height=height,
+                       status=improved_status(imp.rows, imp.fit.contrast, imp.image_confidence, params),
+                       sky=top, veg_color=None, k=None, bushy=None,
+                       n_rows=len(imp.rows),  # the rows asked: 2K + 1
+                       hough=None, outliers=None, vp=None, rows=imp.rows, name=name,
+                       image_confidence=imp.image_confidence, lattice_rows=imp.visible)

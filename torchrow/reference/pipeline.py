@@ -8,7 +8,7 @@ from torchrow.core.io import check_color, check_color_used, resize_to_width, to_
 from torchrow.core.params import Params
 from torchrow.core.results import ImageResult
 from torchrow.reference.color import vegetation_color
-from torchrow.reference.lattice import horizon_row, improved_rows, improved_status
+from torchrow.reference.lattice import horizon_row, improved_result, improved_rows
 from torchrow.reference.ransac import fit_row, validate_rows
 from torchrow.reference.sky import sky_row
 from torchrow.reference.vanishing import find_lines
@@ -105,10 +105,4 @@ def _improved(rgb: np.ndarray, params: Params, name: str | None,
         veg = remove_bushy(raw_mask(rgb, _color(rgb, params, veg_color), params.veg_tol, sky), sky, params)
         if veg.any():
             vp = find_lines(hough_input(veg, sky, params)[0], params).vp
-    imp = improved_rows(rgb, sky, vp, params)
-    return ImageResult(width=w, height=h, status=improved_status(imp.rows, imp.fit.contrast, imp.image_confidence,
-                                                                 params),
-                       sky=horizon_row(sky, params), veg_color=None, k=None, bushy=None,
-                       n_rows=len(imp.rows),  # the rows asked: 2K + 1
-                       hough=None, outliers=None, vp=None, rows=imp.rows, name=name,
-                       image_confidence=imp.image_confidence, lattice_rows=imp.visible)
+    return improved_result(improved_rows(rgb, sky, vp, params), w, h, horizon_row(sky, params), params, name)

@@ -41,6 +41,7 @@ from torchrow.core.params import Params
 from torchrow.core.results import ImageResult
 from torchrow.core.steering import FrameResult, check_optics, confidence
 from torchrow.reference.color import vegetation_color
+from torchrow.reference.lattice_tracking import LatticeSequenceState, LatticeTracker
 from torchrow.reference.ransac import fit_row, fit_tracked_row, validate_rows
 from torchrow.reference.sky import sky_row
 from torchrow.reference.vanishing import find_lines
@@ -100,6 +101,10 @@ class Tracker:
     camera : CameraModel, optional
         For ``lateral_m``, ``spacing_m`` and the ground ``heading_rad`` (as
         :class:`torchrow.Tracker`); not with ``hfov_deg``.
+    mode : str, optional
+        ``"faithful"`` or ``"improved"``: overrides ``params.mode``. Improved mode runs the lattice
+        tracker of section 11.7 (:class:`~torchrow.reference.lattice_tracking.LatticeTracker`;
+        its states are :class:`~torchrow.reference.lattice_tracking.LatticeSequenceState`).
 
     Examples
     --------
@@ -110,11 +115,14 @@ class Tracker:
     """
 
     def __init__(self, params: Params | None = None, hfov_deg: float | None = None,
-                 camera: CameraModel | None = None) -> None:
+                 camera: CameraModel | None = None, mode: str | None = None) -> None:
         self.params = params or Params()
+        if mode is not None:
+            self.params = self.params.replace(mode=mode)
         check_optics(hfov_deg, camera)
         self.hfov_deg = hfov_deg
         self.camera = camera
+        self.lattice = LatticeTracker(self.params, hfov_deg, camera) if self.params.mode == "improved" else None
 
     # -- section 0 ------------------------------------------------------------------------
     def prepare(self, frame: np.ndarray) -> np.ndarray:
@@ -133,8 +141,9 @@ class Tracker:
         return SequenceState(width=w, height=h, sky=sky, veg_color=color, info0=info0)
 
     # -- one frame ------------------------------------------------------------------------
-    def step(self, frame: np.ndarray, state: SequenceState | None = None, *, name: str | None = None,
-             source: str | None = None, index: int | None = None) -> tuple[FrameResult, SequenceState]:
+    def step(self, frame: np.ndarray, state: SequenceState | LatticeSequenceState | None = None, *,
+             name: str | None = None, source: str | None = None,
+             index: int | None = None) -> tuple[FrameResult, SequenceState | LatticeSequenceState]:
         """Process one frame.
 
         Parameters
@@ -153,6 +162,12 @@ class Tracker:
         (FrameResult, SequenceState)
             The frame's result and the new state (the given one is not modified).
         """
+        if self.lattice is not None:
+            if state is not None and not isinstance(state, LatticeSequenceState):
+                raise ValueError(f"an improved-mode tracker takes a LatticeSequenceState, got {type(state).__name__}")
+            return self.lattice.step(frame, state, name=name, source=source, index=index)
+        if state is not None and not isinstance(state, SequenceState):
+            raise ValueError(f"a faithful tracker takes a SequenceState, got {type(state).__name__}")
         rgb = self.prepare(frame)
         if state is None:
             state = self.init(rgb)
@@ -232,7 +247,7 @@ class Tracker:
         :meth:`torchrow.core.frames.FrameSource.working_size`, the size most frames have) or, by
         default, that of the first readable frame; frame 0 is the first readable frame of it.
         """
-        state: SequenceState | None = None
+        state: SequenceState | LatticeSequenceState | None = None
         for i, got in enumerate(load_items(items, self.params.video_width, self.params.max_pixels)):
             if got.rgb is not None and size is None:
                 size = got.rgb.shape[:2]

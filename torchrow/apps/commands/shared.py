@@ -142,11 +142,16 @@ def with_mode(params: Params, args: argparse.Namespace) -> Params:
     if mode is None:
         return params
     if mode == "improved" and getattr(args, "impl", None) == "onnx":
+        if args.command == "video":
+            raise CLIError("--mode improved: no ONNX export of the improved tracker yet; use --impl tensor or reference")
         raise CLIError("--mode improved has no ONNX export yet; use --impl tensor or reference")
     if mode == "improved" and args.command == "video":
-        raise CLIError("--mode improved is not available for video yet: the tracker is faithful only, and the "
-                       "lattice's CRBD geometry (vanishing point above the image, rows 40-180 px apart) does not "
-                       "hold for a camera that sees the horizon (ALGORITHM.md 11.5)")
+        try:  # the lattice tracker's own conditions (ALGORITHM.md 11.7)
+            from torchrow.reference.lattice_tracking import check_lattice_tracker
+
+            check_lattice_tracker(params.replace(mode=mode))
+        except ValueError as exc:
+            raise CLIError(f"--mode improved: {exc}") from None
     return params.replace(mode=mode)
 
 

@@ -201,10 +201,10 @@ def run(args: argparse.Namespace) -> int:
     from torchrow.apps.video import central_jumps, plot_tracks
     from torchrow.core.progress import progress
 
+    params = with_mode(parse_params(args.param), args)  # before --model: improved mode has no ONNX tracker
     model = check_model(args, kind="tracker")
     if model is not None:
         onnx_host_threads()
-    params = with_mode(parse_params(args.param), args)
     if args.hough_every is not None:
         if model is not None:
             raise CLIError("--hough-every cannot change an exported model; export one with --param hough_every=N")
@@ -346,6 +346,12 @@ def run(args: argparse.Namespace) -> int:
         def worst(key: str, jumps: dict[str, list[float]] = jumps) -> str:
             return f"{max(jumps[key]):.1f} px" if jumps[key] else "n/a"
 
+        if params.mode == "improved":  # the lattice tracker (ALGORITHM.md 11.7): hough_ran = the full search ran
+            moves = sum(1 for r in recs if r.get("row_change"))
+            print(f"  {src}: full search on {hough} of {len(recs)} frames; {moves} row change(s); largest move of "
+                  f"row 0 at the bottom: {worst('tracked')} into a tracked frame, {worst('hough')} into a full-search "
+                  "frame", file=sys.stderr)
+            continue
         print(f"  {src}: Hough on {hough} of {len(recs)} frames; largest move of the central row at the "
               f"bottom: {worst('tracked')} into a tracked frame, {worst('hough')} into a Hough frame",
               file=sys.stderr)

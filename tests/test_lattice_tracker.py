@@ -1,0 +1,141 @@
+"""The lattice tracker (ALGORITHM.md 11.7): tensor = reference, identity, row changes, row end, loss."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+import torchrow
+from torchrow.apps.cli import main
+from torchrow.core.camera import CameraModel
+from torchrow.core.params import Params
+from torchrow.core.results import record_differences
+from torchrow.evaluation.synthetic import CameraPose, GroundField, camera_path, render_camera
+from torchrow.reference import Tracker as RefTracker
+
+# a forward camera: the forward-camera setting of ALGORITHM.md 11.3.1 (rows 16-320 px apart, straight or curved)
+FORWARD = {"lattice_model": "auto", "lattice_min_spacing": 16, "lattice_max_spacing": 320}
+P = Params(video_width=320, mode="improved", **FORWARD)
+CAM = {"height_m": 1.0, "tilt_deg": 30, "hfov_deg": 70}
+
+
+def camera() -> CameraModel:
+    return CameraModel.from_json(CAM, (320, 240))
+
+
+def drive(keys: list[CameraPose], per_leg: int, row_end_m: float | None = None):
+    field = GroundField(plant_radius_m=0.03, seed=1, row_end_m=row_end_m)
+    return [render_camera(field, camera(), p, frame=i) for i, p in enumerate(camera_path(keys, per_leg))]
+
+
+def same(ref: list, got: list) -> None:
+    assert len(ref) == len(got)
+    for r, g in zip(ref, got):
+        diff = record_differences(r.to_record(), g.to_record())
+        assert not diff, f"frame {r.frame}: {diff[:5]}"
+
+
+def test_tensor_equals_reference_on_a_rendered_drive() -> None:
+    # over to the next row and towards the rows' end; two sequences of different lengths in lock-step
+    frames = [f.image for f in drive([CameraPose(0.2, 0.0, 3.0), CameraPose(-0.3, 0.03, 4.0)], 5, row_end_m=6.0)]
+    other = frames[::-2]
+    got = torchrow.Tracker(P, camera=camera()).track([frames, other])
+    same(RefTracker(P, camera=camera()).track(frames), got[0])
+    same(RefTracker(P, camera=camera()).track(other), got[1])
+    assert all(r.state is not None and r.to_record()["state"] == r.state for r in got[0])
+
+
+def test_caterra_frames_tensor_equals_reference(data_dir) -> None:
+    folder = data_dir / "caterra_video"
+    if not folder.is_dir():
+        pytest.skip(f"caterra_video not found under {data_dir}")
+    items = [(p.name, cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB)) for p in sorted(folder.glob("*.jpg"))[:3]]
+    params = Params(mode="improved", **FORWARD)
+    same(RefTracker(params).track(items, source="c"), torchrow.Tracker(params).track([items], sources=["c"])[0])
+
+
+def test_identity_row_change_and_row_end() -> None:
+    # straight along a row, then over to the row on the camera's right, then past the rows' end
+    keys = [CameraPose(0.1, 0.0, 0.0), CameraPose(0.1, 0.0, 1.0), CameraPose(-0.45, 0.0, 2.0), CameraPose(-0.45, 0.0, 7.0)]
+    frames = drive(keys, 5, row_end_m=6.0)
+    res = torchrow.Tracker(P, camera=camera()).track([[f.image for f in frames]])[0]
+    bottom = [r.rows[1].x_at(239.0) for r in res]
+    # driving straight: row 0 stays the row near the centre, within a few pixels
+    assert all(r.row_change == 0 for r in res[:6]) and np.ptp(bottom[:6]) < 3
+    # one change, to the right (+1), when the camera has crossed to the next row
+    changes = [(i, r.row_change) for i, r in enumerate(res) if r.row_change]
+    assert changes == [(changes[0][0], 1)] and 8 <= changes[0][0] <= 11
+    for r, f in zip(res, frames):
+        if r.state == "row_end_ahead" and r.row_end_m is not None:
+            assert abs(r.row_end_m - f.row_end_m) < 1.0
+    assert sum(r.state == "row_end_ahead" for r in res) >= 8 and res[-1].state == "headland"
+    # the same drive backwards: the change is to the left
+    back = torchrow.Tracker(P, camera=camera()).track([[f.image for f in frames[::-1]]])[0]
+    assert [r.row_change for r in back if r.row_change] == [-1]
+
+
+def test_lost_without_plants_and_full_search_after() -> None:
+    soil = render_camera(GroundField(seed=3, row_end_m=0.0), camera(), CameraPose(0.0, 0.0, 5.0)).image
+    rows = drive([CameraPose(0.05, 0.0, 0.0), CameraPose(0.05, 0.0, 0.2)], 1)
+    seq = [soil, rows[0].image, rows[1].image, soil]
+    res = torchrow.Tracker(P).track([seq])[0]
+    assert [r.state for r in res] == ["lost", "in_row", "in_row", "lost"]
+    # frame 1 follows a loss: a full search; frame 3 is tracked, fails, and is searched again in full
+    assert [(r.hough_ran, r.hough_redo) for r in res] == [(True, False), (True, False), (False, False), (True, True)]
+    same(RefTracker(P).track(seq), res)
+    rec = res[0].to_record()
+    assert rec["row_end_m"] is None and rec["row_end_y"] is None and rec["row_change"] == 0
+
+
+def test_lattice_tracker_parameters_and_errors() -> None:
+    with pytest.raises(ValueError, match="lattice_vp='search'"):
+        torchrow.Tracker(P.replace(lattice_vp="section6"))
+    with pytest.raises(ValueError, match="lattice_track_phase_tol"):
+        Params(lattice_track_phase_tol=0.6)
+    assert torchrow.Tracker(Params(), mode="improved").params.mode == "improved"
+    # the faithful tracker's records keep their keys
+    frames = drive([CameraPose(0.05, 0.0, 0.0)], 1)
+    faithful = torchrow.Tracker(Params(video_width=320)).track([[frames[0].image]])[0][0].to_record()
+    assert "state" not in faithful and "row_change" not in faithful
+
+
+@pytest.mark.parametrize("suffix", [".jsonl", ".parquet"])
+def test_cli_video_mode_improved(tmp_path, suffix: str) -> None:
+    if suffix == ".parquet":
+        pytest.importorskip("pyarrow")
+    from torchrow.apps.sink import read_records
+
+    d = tmp_path / "frames"
+    d.mkdir()
+    for i, f in enumerate(drive([CameraPose(0.05, 0.0, 0.0), CameraPose(0.05, 0.0, 0.2)], 2)):
+        cv2.imwrite(str(d / f"f{i}.png"), cv2.cvtColor(f.image, cv2.COLOR_RGB2BGR))
+    (tmp_path / "cam.json").write_text(json.dumps(CAM))
+    out = tmp_path / f"v{suffix}"
+    assert main(["video", str(d), "--out", str(out), "--mode", "improved", "--param", "video_width=320",
+                 "--plot", "none", "-q", "--camera", str(tmp_path / "cam.json")]) == 0
+    recs = list(read_records(out))
+    assert [r["state"] for r in recs] == ["in_row"] * 3 and [r["row_change"] for r in recs] == [0, 0, 0]
+    assert all(abs(r["lateral_m"] - 0.05) < 0.02 and abs(r["heading_rad"]) < math.radians(1) for r in recs)
+    assert recs[0]["row_end_m"] is None
+
+
+def test_prior_arguments_keep_the_default_search() -> None:
+    # a full-search prior centred on W/2 is the detector's search, bit for bit
+    from torchrow.functional import lattice as flattice
+    from torchrow.reference import lattice as rlattice
+
+    img = drive([CameraPose(0.12, 0.02, 0.0)], 1)[0].image
+    p = P
+    mask = rlattice.green_mask(img, 0, p)
+    assert rlattice.fit_lattice(mask, 0, None, p) == rlattice.fit_lattice(mask, 0, None, p, rlattice.LatticePrior(160.0))
+    m = torch.from_numpy(mask).unsqueeze(0)
+    zero = torch.zeros(1, dtype=torch.int64)
+    prior = flattice.LatticePriorBatch(torch.tensor([160.0], dtype=torch.float64), torch.zeros(1, dtype=torch.bool),
+                                       torch.zeros((1, 2), dtype=torch.int64), torch.ones(1, dtype=torch.int64))
+    a, b = flattice.fit_lattice(m, zero, None, None, p), flattice.fit_lattice(m, zero, None, None, p, prior)
+    assert all(torch.equal(x, y) for x, y in zip(a, b))

@@ -1,0 +1,168 @@
+"""Batched lattice tracker (ALGORITHM.md 11.7, torchrow extension): ``B`` sequences in lock-step.
+
+The tensor twin of :mod:`torchrow.reference.lattice_tracking`, rule by rule: the prior of a
+tracked frame is a mask over section 11.2's static grids (:class:`LatticePriorBatch`), the
+restricted search's failures are searched again in full (that second pass runs only when some
+sequence needs it), and the state, the row end and the identity are ``torch.where`` over the
+batch. Discrete results equal the reference's; floats are the reference's expressions.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from torchrow.core.params import Params
+from torchrow.core.results import STATUSES
+from torchrow.core.steering import LATTICE_STATES
+from torchrow.functional import lattice as flattice
+from torchrow.functional.lattice import LatticePriorBatch, LatticeRows
+from torchrow.functional.ransac import image_status
+
+__all__ = ["LatticeTrackerState", "LatticeStep", "lattice_advance", "row_end", "resolvable_row"]
+
+_OK = STATUSES.index("ok")
+_CODE = {s: i for i, s in enumerate(LATTICE_STATES)}
+
+
+@dataclass
+class LatticeTrackerState:
+    """The lattice tracker's state of ``B`` sequences (the reference's ``LatticeSequenceState``).
+
+    ``ready`` bool: a frame was seen; ``frames``/``age`` int64 (frames processed; since the last
+    full search, that frame counting 1); ``last`` int64: the previous frame's state code
+    (:data:`~torchrow.core.steering.LATTICE_STATES`, -1 before frame 0); ``vp`` ``(B, 2)`` int64 and
+    ``spacing`` int64: its grid VP and comb spacing; ``centre`` float64 with ``has_centre`` bool:
+    the tracked row's bottom-row x for the next frame; ``pending`` int64: the row change the next
+    frame reports.
+    """
+
+    ready: torch.Tensor
+    frames: torch.Tensor
+    age: torch.Tensor
+    last: torch.Tensor
+    vp: torch.Tensor
+    spacing: torch.Tensor
+    centre: torch.Tensor
+    has_centre: torch.Tensor
+    pending: torch.Tensor
+
+    @classmethod
+    def empty(cls, batch: int, device: torch.device | str = "cpu") -> LatticeTrackerState:
+        """State of ``batch`` sequences that have not seen a frame yet."""
+        dev = torch.device(device)
+        i64: dict[str, Any] = dict(dtype=torch.int64, device=dev)
+        no = torch.zeros(batch, dtype=torch.bool, device=dev)
+        return cls(ready=no, frames=torch.zeros(batch, **i64), age=torch.zeros(batch, **i64),
+                   last=torch.full((batch,), -1, **i64), vp=torch.zeros((batch, 2), **i64),
+                   spacing=torch.ones(batch, **i64), centre=torch.zeros(batch, dtype=torch.float64, device=dev),
+                   has_centre=no.clone(), pending=torch.zeros(batch, **i64))
+
+    def __len__(self) -> int:
+        return int(self.ready.shape[0])
+
+    def select(self, index: torch.Tensor | slice) -> LatticeTrackerState:
+        """The state of some sequences (index along the batch dimension)."""
+        return LatticeTrackerState(**{f.name: getattr(self, f.name)[index] for f in dataclasses.fields(self)})
+
+
+@dataclass
+class LatticeStep:
+    """One lock-step frame of ``B`` sequences: the lattice (``rows``), ``status`` int64 codes into
+    :data:`~torchrow.core.results.STATUSES`, ``state`` int64 codes into
+    :data:`~torchrow.core.steering.LATTICE_STATES`, ``row_change`` int64, ``row_end`` int64 (the
+    image row where the rows end, -1 where the state is not ``row_end_ahead``), ``full`` and
+    ``redo`` bool (the full search ran; as the redo of a restricted frame), ``active`` bool (the
+    sequence had a frame), all ``(B,)``."""
+
+    rows: LatticeRows
+    status: torch.Tensor
+    state: torch.Tensor
+    row_change: torch.Tensor
+    row_end: torch.Tensor
+    full: torch.Tensor
+    redo: torch.Tensor
+    active: torch.Tensor
+
+
+def _where(mask: torch.Tensor, a: Any, b: Any) -> Any:
+    """Dataclass ``a`` where ``mask`` (bool (B,)), ``b`` elsewhere, field by field."""
+    out = {}
+    for f in dataclasses.fields(a):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        out[f.name] = torch.where(mask.view(-1, *([1] * (x.dim() - 1))), x, y)
+    return type(a)(**out)
+
+
+def row_end(lit: torch.Tensor, params: Params) -> tuple[torch.Tensor, torch.Tensor]:
+    """Batched :func:`torchrow.reference.lattice_tracking.row_end` of ``lit (B, H)`` int64:
+    ``(y_end (B,) int64, found (B,) bool)``."""
+    cum = torch.cumsum(lit, dim=1)
+    total = cum[:, -1]
+    drop = torch.floor(params.lattice_end_drop * total.to(torch.float64)).to(torch.int64)
+    return torch.argmax((cum > drop.unsqueeze(1)).to(torch.int64), dim=1), total > 0
+
+
+def resolvable_row(coef: torch.Tensor, height: int, params: Params) -> torch.Tensor:
+    """Batched :func:`torchrow.reference.lattice_tracking.resolvable_row`, ``(B,)`` int64."""
+    t = (torch.arange(height, device=coef.device, dtype=torch.float64) - (height - 1)).view(1, height, 1)
+    _, dd = flattice.centre_spacing(t, coef)
+    ok = dd[:, :, 0] >= float(params.lattice_min_spacing)
+    first = torch.argmax(ok.to(torch.int64), dim=1)
+    return torch.where(ok.any(dim=1), first, torch.full_like(first, height))
+
+
+def _lattice(images: torch.Tensor, prior: LatticePriorBatch, params: Params) -> tuple[LatticeRows, torch.Tensor]:
+    """Section 11 with the prior: rows and status codes (as the detector's improved mode)."""
+    top = torch.zeros(images.shape[0], dtype=torch.int64, device=images.device)
+    rows = flattice.improved_rows(images, top, None, None, params, prior)
+    return rows, flattice.improved_status(rows, image_status(flattice.as_row_fits(rows)), params)
+
+
+def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTrackerState,
+                    params: Params) -> tuple[LatticeStep, LatticeTrackerState]:
+    """One lock-step frame of ``B`` sequences (11.7); ``images`` ``uint8 (B, 3, H, W)`` at working
+    size, ``active`` bool ``(B,)``: the sequences with a frame now (the others keep their state;
+    their step entries are meaningless)."""
+    h, w = images.shape[2], images.shape[3]
+    tracked = state.ready & state.has_centre
+    full = ~tracked | (state.age >= params.lattice_track_every)
+    centre = torch.where(tracked, state.centre, torch.full_like(state.centre, float(w) / 2))
+    prior = LatticePriorBatch(centre, ~full, state.vp, state.spacing)
+    rows, status = _lattice(images, prior, params)
+    redo = active & ~full & (status != _OK)
+    if bool(redo.any()):  # a tracked frame that fails is searched again in full; skipped when none does
+        wide, wide_status = _lattice(images, prior._replace(restrict=torch.zeros_like(full)), params)
+        rows = _where(redo, wide, rows)
+        status = torch.where(redo, wide_status, status)
+    ok = status == _OK
+    y_end, has_end = row_end(rows.lit, params)
+    y_res = resolvable_row(rows.coef, h, params)
+    head_rows = int(math.floor(params.lattice_headland_frac * h))
+    code = torch.full_like(y_end, _CODE["in_row"])
+    code = torch.where(y_end > y_res + params.lattice_end_margin, torch.full_like(code, _CODE["row_end_ahead"]), code)
+    code = torch.where(~has_end | (y_end > (h - 1) - head_rows), torch.full_like(code, _CODE["headland"]), code)
+    ended = (state.last == _CODE["row_end_ahead"]) | (state.last == _CODE["headland"])
+    failed = torch.where(ended, torch.full_like(code, _CODE["headland"]), torch.full_like(code, _CODE["lost"]))
+    code = torch.where(ok, code, failed)
+    change = torch.where(tracked & ok, state.pending, torch.zeros_like(state.pending))
+    # identity: the tracked row, or its neighbour once the neighbour is clearly nearer the centre
+    x0, d0 = rows.coef[:, 0], rows.coef[:, 4]
+    lim = (0.5 + params.lattice_track_hysteresis) * d0
+    off = x0 - float(w) / 2
+    one = torch.ones_like(change)
+    pend = torch.where(off > lim, -one, torch.where(off < -lim, one, torch.zeros_like(one)))
+    keep = code <= _CODE["row_end_ahead"]
+    searched_full = full | redo
+    new = LatticeTrackerState(
+        ready=torch.ones_like(state.ready), frames=state.frames + 1,
+        age=torch.where(searched_full, one, state.age + 1), last=code, vp=rows.vp, spacing=rows.spacing,
+        centre=x0 + pend.to(torch.float64) * d0, has_centre=keep, pending=torch.where(keep, pend, torch.zeros_like(pend)))
+    new = _where(active, new, state)
+    end = torch.where(code == _CODE["row_end_ahead"], y_end, torch.full_like(y_end, -1))
+    return LatticeStep(rows, status, code, change, end, searched_full, redo, active), new
+

@@ -1,0 +1,160 @@
+"""Reference lattice tracker (ALGORITHM.md 11.7, torchrow extension), one sequence, plain loop.
+
+The improved mode's lattice (section 11) carried from frame to frame: the previous frame's
+grid VP, comb spacing and tracked row restrict the next frame's search (a prior), the central
+row keeps its identity, and each frame gets a state (``in_row``, ``row_end_ahead``,
+``headland``, ``lost``) and a ``row_change``. The batched twin is
+:mod:`torchrow.functional.lattice_tracking`; both follow the same rules, stated in the spec.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from torchrow.core.camera import CameraModel
+from torchrow.core.io import resize_to_width, to_rgb8
+from torchrow.core.params import Params
+from torchrow.core.steering import FrameResult, LatticeTrack, check_optics
+from torchrow.reference.lattice import LatticePrior, centre_spacing, horizon_row, improved_result, improved_rows
+
+__all__ = ["LatticeSequenceState", "LatticeTracker", "row_end", "resolvable_row", "check_lattice_tracker"]
+
+
+def check_lattice_tracker(params: Params) -> None:
+    """The lattice tracker's parameters: improved mode with the VP search on the whole image
+    (``ValueError`` naming the field otherwise)."""
+    if params.mode != "improved":
+        raise ValueError(f"the lattice tracker runs in improved mode; got Params.mode={params.mode!r}")
+    if params.lattice_vp != "search" or params.lattice_horizon != "image":
+        raise ValueError("the lattice tracker needs lattice_vp='search' and lattice_horizon='image'; got "
+                         f"lattice_vp={params.lattice_vp!r}, lattice_horizon={params.lattice_horizon!r}")
+
+
+def row_end(lit: Iterable[int], params: Params) -> int | None:
+    """Section 11.7: the image row where the rows end, ``None`` without support.
+
+    ``lit[y]`` = rows ``-K .. K`` with an inlier on image row ``y``; ``total`` their sum,
+    ``drop = floor(lattice_end_drop * total)`` (float64): the first ``y`` whose cumulative sum from
+    the top exceeds ``drop``.
+    """
+    cum = np.cumsum(np.asarray(tuple(lit), np.int64))
+    if cum.size == 0 or cum[-1] == 0:
+        return None
+    drop = int(math.floor(np.float64(params.lattice_end_drop) * np.float64(cum[-1])))
+    return int(np.argmax(cum > drop))
+
+
+def resolvable_row(coef: Iterable[float], height: int, params: Params) -> int:
+    """Section 11.7: the first image row whose lattice spacing ``d(t) >= lattice_min_spacing``
+    (float64), ``height`` where none is."""
+    _, dd = centre_spacing(np.arange(height, dtype=np.float64) - np.float64(height - 1),
+                           np.asarray(tuple(coef), np.float64))
+    ok = dd >= np.float64(params.lattice_min_spacing)
+    return int(np.argmax(ok)) if ok.any() else height
+
+
+def frame_state(status: str, last: str | None, y_end: int | None, y_res: int, height: int, params: Params) -> str:
+    """Section 11.7's state of a frame: ``lost`` / ``headland`` when not ``ok``, else by the row end."""
+    if status != "ok":
+        return "headland" if last in ("row_end_ahead", "headland") else "lost"
+    if y_end is None or y_end > (height - 1) - int(math.floor(np.float64(params.lattice_headland_frac) * height)):
+        return "headland"
+    if y_end > y_res + params.lattice_end_margin:
+        return "row_end_ahead"
+    return "in_row"
+
+
+@dataclass(frozen=True)
+class LatticeSequenceState:
+    """What the lattice tracker carries for one sequence (11.7).
+
+    ``frames``: frames processed; ``age``: frames since the last full search (that frame counts
+    1); ``last``: the previous frame's state; ``vp``/``spacing``: its grid VP and comb spacing;
+    ``centre``: the tracked row's bottom-row x for the next frame (``None``: no identity, the next
+    frame starts from ``W/2`` with a full search); ``pending``: the row change the next frame
+    reports (its central row is the previous frame's row ``k = pending``).
+    """
+
+    width: int
+    height: int
+    frames: int = 0
+    age: int = 0
+    last: str | None = None
+    vp: tuple[int, int] | None = None
+    spacing: int | None = None
+    centre: float | None = None
+    pending: int = 0
+
+
+class LatticeTracker:
+    """Section 11.7 on one sequence of frames, frame by frame (:class:`torchrow.reference.Tracker`
+    runs it in improved mode, with its ``track_iter``/``track``).
+
+    Parameters
+    ----------
+    params : Params
+        Improved-mode constants (:func:`check_lattice_tracker`); frames are resized to ``video_width``.
+    hfov_deg, camera : optional
+        As :class:`torchrow.reference.Tracker`; with a camera the records carry ``lateral_m``,
+        ``heading_rad``, ``spacing_m`` and ``row_end_m``.
+    """
+
+    def __init__(self, params: Params, hfov_deg: float | None = None, camera: CameraModel | None = None) -> None:
+        check_lattice_tracker(params)
+        check_optics(hfov_deg, camera)
+        self.params = params
+        self.hfov_deg = hfov_deg
+        self.camera = camera
+
+    def prepare(self, frame: np.ndarray) -> np.ndarray:
+        """Convert to ``uint8 (H, W, 3)`` RGB and resize to ``params.video_width``."""
+        if not isinstance(frame, np.ndarray):
+            raise TypeError(f"expected a numpy array (H, W, 3), got {type(frame).__name__}")
+        return resize_to_width(to_rgb8(frame), self.params.video_width, self.params.max_pixels)
+
+    def step(self, frame: np.ndarray, state: LatticeSequenceState | None = None, *, name: str | None = None,
+             source: str | None = None, index: int | None = None) -> tuple[FrameResult, LatticeSequenceState]:
+        """One frame (any size, resized): its record and the new state (``None`` starts a sequence)."""
+        rgb = self.prepare(frame)
+        h, w = rgb.shape[:2]
+        if state is None:
+            state = LatticeSequenceState(width=w, height=h)
+        elif (h, w) != (state.height, state.width):
+            raise ValueError(f"frame of working size {w}x{h} in a sequence of {state.width}x{state.height}")
+        p = self.params
+        top = horizon_row(0, p)
+        tracked = state.centre is not None
+        full = not tracked or state.age >= p.lattice_track_every
+        centre = state.centre if state.centre is not None else np.float64(w) / 2
+        wide = LatticePrior(float(centre))
+        imp = improved_rows(rgb, 0, None, p, wide if full else LatticePrior(float(centre), state.vp, state.spacing))
+        res = improved_result(imp, w, h, top, p, name)
+        redo = False
+        if not full and res.status != "ok":  # a tracked frame that fails is searched again in full
+            redo = True
+            imp = improved_rows(rgb, 0, None, p, wide)
+            res = improved_result(imp, w, h, top, p, name)
+        fit = imp.fit
+        ok = res.status == "ok"
+        y_end = row_end(fit.lit, p) if ok else None
+        st = frame_state(res.status, state.last, y_end, resolvable_row(fit.coef, h, p), h, p)
+        change = state.pending if tracked and ok else 0
+        new_centre, pending = None, 0
+        if st in ("in_row", "row_end_ahead"):
+            x0, d0 = np.float64(fit.coef[0]), np.float64(fit.coef[4])
+            lim = (np.float64(0.5) + np.float64(p.lattice_track_hysteresis)) * d0
+            off = x0 - np.float64(w) / 2
+            pending = -1 if off > lim else 1 if off < -lim else 0
+            new_centre = float(x0 + np.float64(pending) * d0)
+        new = LatticeSequenceState(width=w, height=h, frames=state.frames + 1,
+                                   age=1 if (full or redo) else state.age + 1, last=st, vp=fit.vp,
+                                   spacing=fit.spacing, centre=new_centre, pending=pending)
+        track = LatticeTrack(st, change, y_end if st == "row_end_ahead" else None, full or redo, redo)
+        out = FrameResult.build(res, source=source, frame=state.frames if index is None else index,
+                                hough_ran=full or redo, hough_redo=redo, confidence=imp.image_confidence,
+                                hfov_deg=self.hfov_deg, camera=self.camera, lattice=track)
+        return out, new
