@@ -45,7 +45,20 @@ def import_ort():
     return ort
 
 
-class OnnxDetector:
+class OnnxRunner:
+    """What :func:`_open` sets on both runners from the model's metadata: the onnxruntime
+    ``session``, the model's ``path``, its working ``height x width``, static ``batch`` and the
+    ``params`` it was exported with."""
+
+    session: Any  # onnxruntime.InferenceSession
+    path: Path
+    height: int
+    width: int
+    batch: int
+    params: Params
+
+
+class OnnxDetector(OnnxRunner):
     """Run an exported detector in onnxruntime; results equal :class:`CropRowDetector`'s.
 
     Parameters
@@ -64,14 +77,6 @@ class OnnxDetector:
     redundant-node removal); the extended levels may fuse float64 multiply-adds, which would
     change the rounding the spec prescribes.
     """
-
-    # set by _open from the model's metadata
-    session: Any  # onnxruntime.InferenceSession
-    path: Path
-    height: int
-    width: int
-    batch: int
-    params: Params
 
     def __init__(self, model_path: str | Path, threads: int | None = None, cache: bool = True) -> None:
         _open(self, model_path, "detector", threads, cache)
@@ -175,7 +180,7 @@ def ort_optimized(path: str | Path) -> Path | None:
     return out
 
 
-def _open(runner: OnnxDetector | OnnxTracker, model_path: str | Path, kind: str, threads: int | None, cache: bool = True) -> None:
+def _open(runner: OnnxRunner, model_path: str | Path, kind: str, threads: int | None, cache: bool = True) -> None:
     """Check ``model_path`` (present, a ``kind`` model), open an onnxruntime session on
     ``runner.session`` (from the :func:`ort_optimized` copy when ``cache``) and set
     ``runner.path``, ``height``, ``width``, ``batch``, ``params``."""
@@ -205,7 +210,7 @@ def _open(runner: OnnxDetector | OnnxTracker, model_path: str | Path, kind: str,
     runner.params = info["params"]
 
 
-class OnnxTracker:
+class OnnxTracker(OnnxRunner):
     """Run an exported tracker step (``to_onnx(..., tracker=True)``) in onnxruntime.
 
     Same interface and results as :class:`torchrow.Tracker` for ``B`` sequences in
@@ -229,14 +234,6 @@ class OnnxTracker:
     cache : bool
         Open onnxruntime's pre-optimised copy of the model, as :class:`OnnxDetector`.
     """
-
-    # set by _open from the model's metadata
-    session: Any  # onnxruntime.InferenceSession
-    path: Path
-    height: int
-    width: int
-    batch: int
-    params: Params
 
     def __init__(self, model_path: str | Path, hfov_deg: float | None = None, threads: int | None = None,
                  cache: bool = True, camera: CameraModel | None = None) -> None:
