@@ -398,15 +398,8 @@ class CRBD:
         return int(self._lookup(self._index(i), tmgem=False))  # type: ignore[arg-type]
 
     def tmgem_set(self, i: int) -> int:
-        """0 = TMGEM training, 1 = test straight, 2 = test curved (``imageClassificationTMGEM.txt``).
-
-        Raises
-        ------
-        FileNotFoundError
-            If the classification file is absent.
-        KeyError
-            If the image is not listed there.
-        """
+        """0 = TMGEM training, 1 = test straight, 2 = test curved (``imageClassificationTMGEM.txt``);
+        raises as :meth:`row_set` does."""
         return int(self._lookup(self._index(i), tmgem=True))  # type: ignore[arg-type]
 
     def indices(self, subset: str = "all") -> list[int]:

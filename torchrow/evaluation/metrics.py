@@ -211,11 +211,7 @@ def crda_official(result: Any, gt: Any, sigma: float = 0.1, m: int = 3, adjacent
 
     Parameters
     ----------
-    result : ImageResult
-        Detector output; rows in working-image px, ``result.width`` x ``result.height``.
-    gt : GroundTruth
-        ``c``, ``d`` (shape ``(height - v0,)``), ``height`` (must equal ``result.height``).
-    sigma, m, adjacent : see :func:`crda`.
+    result, gt, sigma, m, adjacent : see :func:`crda`.
 
     Returns
     -------

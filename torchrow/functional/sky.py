@@ -156,16 +156,7 @@ def sky_mask(images: torch.Tensor, params: Params) -> torch.Tensor:
     ``z`` is found with a max-reduction of ``(f == 0) * (H - y)`` (no ``argmax``, no
     ``nonzero``).
 
-    Parameters
-    ----------
-    images : torch.Tensor
-        uint8 ``(B, 3, H, W)`` RGB.
-    params : Params
-
-    Returns
-    -------
-    torch.Tensor
-        bool ``(B, H, W)``.
+    ``images`` uint8 ``(B, 3, H, W)`` RGB in; bool ``(B, H, W)`` out.
     """
     check_images(images)
     b, _, h, w = images.shape
