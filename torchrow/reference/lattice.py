@@ -16,6 +16,7 @@ summation does not matter and the tensor path gets the same bits.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -255,6 +256,14 @@ def vp_search(mask: np.ndarray, params: Params, near: tuple[int, int] | None = N
 
 
 def _comb_tables(width: int, params: Params) -> tuple[np.ndarray, ...]:
+    """:func:`_comb_tables_for` of ``params``' spacing range and window."""
+    return _comb_tables_for(width, params.lattice_min_spacing, params.lattice_max_spacing, params.lattice_window)
+
+
+# The tables depend on the image width and three parameters only; every image of a folder or a
+# video needs the same ones. One set is kept (read-only; at most half of 11.5's 2**30-byte bound).
+@functools.lru_cache(maxsize=1)
+def _comb_tables_for(width: int, min_spacing: int, max_spacing: int, window: float) -> tuple[np.ndarray, ...]:
     """All ``(spacing, phase)`` candidates in search order and their tooth windows.
 
     Bottom-row x is binned on ``[-W, 2W)`` (bin ``floor(X) + W``, ``3W`` bins). Candidate
@@ -266,7 +275,7 @@ def _comb_tables(width: int, params: Params) -> tuple[np.ndarray, ...]:
     """
     nb = 3 * width
     ds, ps, hs, wins = [], [], [], []
-    jmax = nb // params.lattice_min_spacing + 1
+    jmax = nb // min_spacing + 1
 
     def windows(centres: np.ndarray, h: int) -> np.ndarray:
         out = np.zeros((2, jmax), np.int64)
@@ -274,8 +283,8 @@ def _comb_tables(width: int, params: Params) -> tuple[np.ndarray, ...]:
         out[1, :centres.size] = np.clip(centres + h + 1, 0, nb)
         return out
 
-    for d in range(params.lattice_min_spacing, params.lattice_max_spacing + 1):
-        h = int(math.floor(d * params.lattice_window))
+    for d in range(min_spacing, max_spacing + 1):
+        h = int(math.floor(d * window))
         for p in range(d):
             anti = np.arange(p + d // 2, nb, d)
             wins.append(np.concatenate([windows(np.arange(p, nb, d), h), windows(anti, h)]))
@@ -283,7 +292,10 @@ def _comb_tables(width: int, params: Params) -> tuple[np.ndarray, ...]:
             ps.append(p)
             hs.append(h)
     w = np.stack(wins)
-    return np.array(ds), np.array(ps), np.array(hs), w[:, 0], w[:, 1], w[:, 2], w[:, 3]
+    out = (np.array(ds), np.array(ps), np.array(hs), w[:, 0], w[:, 1], w[:, 2], w[:, 3])
+    for a in out:
+        a.flags.writeable = False
+    return out
 
 
 def bottom_bins(xs: np.ndarray, ys: np.ndarray, vp: tuple[int, int], height: int,
