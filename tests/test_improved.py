@@ -614,10 +614,10 @@ def test_cli_mode_improved_detect_and_video_onnx_error(tmp_path, capsys) -> None
     assert len(rec["rows"]) == 3 and rec["rows"][1]["c"] > 0 and 0 <= rec["image_confidence"] <= 1
     assert (tmp_path / "ann" / "f.png").is_file()
     capsys.readouterr()
-    assert main(["video", str(tmp_path), "--out", str(tmp_path / "v.jsonl"), "--mode", "improved", "--impl", "onnx",
+    assert main(["detect", str(p), "--out", str(tmp_path / "d.jsonl"), "--mode", "improved", "--impl", "onnx",
                  "--model", str(tmp_path / "none.onnx")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("torchrow: error:") and "no ONNX export of the improved tracker" in err[0]
+    assert len(err) == 1 and err[0].startswith("torchrow: error:") and "no ONNX export of the improved detector" in err[0]
 
 
 def test_improved_record_round_trip() -> None:

@@ -24,8 +24,7 @@ from torchrow.core.frames import prepare_frame
 from torchrow.core.io import check_working_size
 from torchrow.core.params import Params
 from torchrow.core.results import concat_batches
-from torchrow.core.steering import LATTICE_STATES, FrameResult, LatticeTrack, check_optics
-from torchrow.functional import lattice as flattice
+from torchrow.core.steering import FrameResult, check_optics
 from torchrow.functional import lattice_tracking as flt
 from torchrow.functional import tracking as ftrack
 from torchrow.functional._checks import check_device, check_images
@@ -224,31 +223,10 @@ class Tracker(nn.Module):
         :func:`torchrow.functional.tracking.records` with this tracker's parameters and optics (in
         improved mode, the lattice's records with the tracker's fields, ALGORITHM.md 11.7)."""
         if isinstance(step, LatticeStep):
-            return self._lattice_records(step, state, width, height, names, sources, indices)
+            return flt.records(step, state, width, height, self.params, self.hfov_deg, names, sources, indices,
+                               camera=self.camera)
         return ftrack.records(step, state, width, height, self.params, self.hfov_deg, names, sources, indices,
                               camera=self.camera)
-
-    def _lattice_records(self, step: LatticeStep, state: LatticeTrackerState, width: int, height: int,
-                         names: Sequence[str | None] | None, sources: Sequence[str | None] | None,
-                         indices: Sequence[int] | None) -> list[FrameResult | None]:
-        top = torch.zeros_like(step.status)
-        images = flattice.improved_batch(step.rows, step.status, top, self.params, width, height).results()
-        conf = step.rows.image_confidence.cpu().tolist()
-        cols = [t.cpu().tolist() for t in (step.state, step.row_change, step.row_end, step.full, step.redo,
-                                           step.active, state.frames)]
-        out: list[FrameResult | None] = []
-        for b, img in enumerate(images):
-            st, change, end, full, redo, active, frames = (c[b] for c in cols)
-            if not active:
-                out.append(None)
-                continue
-            img.name = None if names is None else names[b]
-            track = LatticeTrack(LATTICE_STATES[st], int(change), None if end < 0 else int(end), bool(full), bool(redo))
-            out.append(FrameResult.build(img, source=None if sources is None else sources[b],
-                                         frame=frames - 1 if indices is None else indices[b], hough_ran=bool(full),
-                                         hough_redo=bool(redo), confidence=conf[b], hfov_deg=self.hfov_deg,
-                                         camera=self.camera, lattice=track))
-        return out
 
     # -- arrays in, records out -------------------------------------------------------------
     def prepare(self, frame: np.ndarray | str | Path) -> np.ndarray:

@@ -29,6 +29,7 @@ from torchrow.core.io import check_lattice_size, lattice_params
 from torchrow.core.params import VP_SLICE, Params
 from torchrow.core.results import STATUSES
 from torchrow.functional._checks import below_horizon
+from torchrow.functional._flow import repeat
 
 __all__ = ["LatticeRows", "LatticePriorBatch", "vp_near", "improved_batch",
            "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_table",
@@ -201,7 +202,9 @@ def vp_table(height: int, width: int, params: Params, device: torch.device) -> t
             b = torch.floor(xv + ((xc - xv) * (float(height - 1) - yv)) / (yc - yv))
             keep = ((yc - yv) > params.lattice_vp_margin) & (b >= -width) & (b < 2 * width)
             idx[v0:v0 + step] = torch.where(keep, b + width, torch.full_like(b, 3 * width)).to(torch.int64)
-        table = _VP_TABLES[key] = (grid, idx)
+        table = (grid, idx)
+        if not torch.compiler.is_exporting():  # never cache a tensor traced by torch.export
+            _VP_TABLES[key] = table
     return table
 
 
@@ -434,39 +437,44 @@ def normal_equations(cnt: torch.Tensor, sx: torch.Tensor, params: Params,
 
 
 def refine(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: Params,
-           straight: bool) -> torch.Tensor:
+           straight: bool, flow: str = "sync") -> torch.Tensor:
     """Batched :func:`torchrow.reference.lattice.refine`: ``coef (B, 7)`` float64 after up to
     ``lattice_iterations`` refits. An image stops when it has too few inliers, a singular
     system, or cells equal to its previous step's (a fixed point); the loop ends once every
-    image has stopped."""
-    bsz = coef.shape[0]
+    image has stopped. ``flow`` (:mod:`torchrow.functional._flow`): how that end is found
+    (eager ``"sync"``; ``"loop"``: one ONNX ``Loop`` in an exported graph; ``"always"``: every
+    refit, masked); results never depend on it."""
     where = params.lattice_coef_index(straight)
-    active = torch.ones(bsz, dtype=torch.bool, device=coef.device)
-    last = None
-    for _ in range(params.lattice_iterations):
-        cnt, sx = row_cells(pre, coef, params)
-        active = active & (cnt.sum(dim=(1, 2)) >= params.lattice_min_points)
-        if last is not None:
-            active = active & ~((cnt == last[0]).flatten(1).all(dim=1) & (sx == last[1]).flatten(1).all(dim=1))
-        if not bool(active.any()):  # early exit once every image has stopped
-            break
+
+    # the carry holds a lattice with its cells, so that the stop test precedes the solve
+    def stopped(coef, cnt, sx, active):
+        return ~active.any()
+
+    def refit(coef, cnt, sx, active):
         sol, singular = solve_normal(*normal_equations(cnt, sx, params, straight), params)
         active = active & ~singular
-        new = torch.zeros_like(coef)
-        new[:, where] = sol
-        coef = torch.where(active.unsqueeze(1), new, coef)
-        last = (cnt, sx)
-    return coef
+        cols = [torch.zeros_like(coef[:, 0])] * N_COEF
+        for j, i in enumerate(where):
+            cols[i] = sol[:, j]
+        coef = torch.where(active.unsqueeze(1), torch.stack(cols, dim=1), coef)
+        cnt2, sx2 = row_cells(pre, coef, params)
+        same = (cnt2 == cnt).flatten(1).all(dim=1) & (sx2 == sx).flatten(1).all(dim=1)
+        return coef, cnt2, sx2, active & (cnt2.sum(dim=(1, 2)) >= params.lattice_min_points) & ~same
+
+    cnt, sx = row_cells(pre, coef, params)
+    active = cnt.sum(dim=(1, 2)) >= params.lattice_min_points
+    return repeat(flow, params.lattice_iterations, stopped, refit, (coef, cnt, sx, active))[0]
 
 
 def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Tensor | None,
-                params: Params, prior: LatticePriorBatch | None = None) -> LatticeFitBatch:
+                params: Params, prior: LatticePriorBatch | None = None, flow: str = "sync") -> LatticeFitBatch:
     """Sections 11.2-11.3.1 per image (:func:`torchrow.reference.lattice.fit_lattice`).
 
     The cells (count and x sum of the inliers per image row and lattice row) are integer sums,
     so the normal equations equal the reference's bit for bit. Memory: two ``(B, H, W+1)``
     int64 prefix sums (about 40 MB each for 64 images of 320x240) besides the mask; a step's
-    own temporaries are ``(B, H, 2K+1)``. ``prior``: section 11.7's (the lattice tracker).
+    own temporaries are ``(B, H, 2K+1)``. ``prior``: section 11.7's (the lattice tracker);
+    ``flow``: :func:`refine`'s.
     """
     bsz, h, w = mask.shape
     params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
@@ -486,10 +494,10 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, 
     pre = prefix_sums(mask & below_horizon(sky.to(torch.int64), h, as_bool=True))
     is_curved = params.lattice_model == "curved"
     start = coef
-    coef = refine(pre, start, params, straight=not is_curved)
+    coef = refine(pre, start, params, straight=not is_curved, flow=flow)
     curved = torch.full((bsz,), is_curved, dtype=torch.bool, device=dev)
     if params.lattice_model == "auto":
-        bent = refine(pre, start, params, straight=False)
+        bent = refine(pre, start, params, straight=False, flow=flow)
         n_straight = row_cells(pre, coef, params)[0].sum(dim=(1, 2)).to(torch.float64)
         n_bent = row_cells(pre, bent, params)[0].sum(dim=(1, 2)).to(torch.float64)
         curved = n_bent > (1.0 + params.lattice_curve_gain) * n_straight
@@ -557,17 +565,18 @@ def visible_rows(mask: torch.Tensor, top: torch.Tensor, coef: torch.Tensor, foun
 
 
 def improved_rows(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Tensor | None,
-                  params: Params, prior: LatticePriorBatch | None = None) -> LatticeRows:
+                  params: Params, prior: LatticePriorBatch | None = None, flow: str = "sync") -> LatticeRows:
     """Section 11 on ``uint8 (B, 3, H, W)`` working images; ``vp (B, 2)`` float64 with ``has_vp``:
     section 6's, for ``lattice_vp="section6"`` (``None`` otherwise).
 
     ``sky (B,)`` is section 1's row (any values when ``lattice_horizon="image"``: not used); the
-    lattice starts at :func:`horizon_row`. ``prior``: section 11.7's (the lattice tracker).
+    lattice starts at :func:`horizon_row`. ``prior``: section 11.7's (the lattice tracker);
+    ``flow``: how :func:`refine` ends (:mod:`torchrow.functional._flow`; results never depend on it).
     """
     h = images.shape[2]
     top = horizon_row(sky, params)
     mask = green_mask(images, top, params)
-    coef, spacing, phase, found, v, cnt, contrast, curved = fit_lattice(mask, top, vp, has_vp, params, prior)
+    coef, spacing, phase, found, v, cnt, contrast, curved = fit_lattice(mask, top, vp, has_vp, params, prior, flow)
     support = (cnt > 0).sum(dim=1).to(torch.float64)  # (B, R)
     conf = support / _span(top, h).unsqueeze(1)
     ks = torch.arange(-params.lattice_half, params.lattice_half + 1, device=images.device, dtype=torch.float64)

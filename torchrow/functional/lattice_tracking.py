@@ -11,19 +11,22 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import torch
 
+from torchrow.core.camera import CameraModel
 from torchrow.core.params import Params
 from torchrow.core.results import STATUSES
-from torchrow.core.steering import LATTICE_STATES
+from torchrow.core.steering import LATTICE_STATES, FrameResult, LatticeTrack
 from torchrow.functional import lattice as flattice
+from torchrow.functional._flow import branch
 from torchrow.functional.lattice import LatticePriorBatch, LatticeRows
 from torchrow.functional.ransac import image_status
 
-__all__ = ["LatticeTrackerState", "LatticeStep", "lattice_advance", "row_end", "resolvable_row"]
+__all__ = ["LatticeTrackerState", "LatticeStep", "lattice_advance", "row_end", "resolvable_row", "records"]
 
 _OK = STATUSES.index("ok")
 _CODE = {s: i for i, s in enumerate(LATTICE_STATES)}
@@ -89,6 +92,11 @@ class LatticeStep:
     active: torch.Tensor
 
 
+def _fields(rows: LatticeRows) -> tuple[torch.Tensor, ...]:
+    """A dataclass of tensors as a flat tuple (a graph branch's operands and results)."""
+    return tuple(getattr(rows, f.name) for f in dataclasses.fields(rows))
+
+
 def _where(mask: torch.Tensor, a: Any, b: Any) -> Any:
     """Dataclass ``a`` where ``mask`` (bool (B,)), ``b`` elsewhere, field by field."""
     out = {}
@@ -116,29 +124,47 @@ def resolvable_row(coef: torch.Tensor, height: int, params: Params) -> torch.Ten
     return torch.where(ok.any(dim=1), first, torch.full_like(first, height))
 
 
-def _lattice(images: torch.Tensor, prior: LatticePriorBatch, params: Params) -> tuple[LatticeRows, torch.Tensor]:
+def _lattice(images: torch.Tensor, prior: LatticePriorBatch, params: Params,
+             flow: str) -> tuple[LatticeRows, torch.Tensor]:
     """Section 11 with the prior: rows and status codes (as the detector's improved mode)."""
     top = torch.zeros(images.shape[0], dtype=torch.int64, device=images.device)
-    rows = flattice.improved_rows(images, top, None, None, params, prior)
+    rows = flattice.improved_rows(images, top, None, None, params, prior, flow)
     return rows, flattice.improved_status(rows, image_status(flattice.as_row_fits(rows)), params)
 
 
 def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTrackerState,
-                    params: Params) -> tuple[LatticeStep, LatticeTrackerState]:
+                    params: Params, flow: str = "sync") -> tuple[LatticeStep, LatticeTrackerState]:
     """One lock-step frame of ``B`` sequences (11.7); ``images`` ``uint8 (B, 3, H, W)`` at working
     size, ``active`` bool ``(B,)``: the sequences with a frame now (the others keep their state;
-    their step entries are meaningless)."""
+    their step entries are meaningless).
+
+    ``flow`` (:mod:`torchrow.functional._flow`) says how work no sequence needs is skipped:
+    eagerly (``"sync"``) the redo pass runs only when some sequence needs it and the refits
+    end once every image has stopped; in an exported graph (``"loop"``,
+    :class:`torchrow.onnx.graphs.StaticLatticeStep`) the redo pass is an ONNX ``If`` and the
+    refits an ONNX ``Loop``; ``"always"`` runs both to their static bounds, masked. Results
+    never depend on it."""
     h, w = images.shape[2], images.shape[3]
     tracked = state.ready & state.has_centre
     full = ~tracked | (state.age >= params.lattice_track_every)
     centre = torch.where(tracked, state.centre, torch.full_like(state.centre, float(w) / 2))
     prior = LatticePriorBatch(centre, ~full, state.vp, state.spacing)
-    rows, status = _lattice(images, prior, params)
+    rows, status = _lattice(images, prior, params, flow)
     redo = active & ~full & (status != _OK)
-    if bool(redo.any()):  # a tracked frame that fails is searched again in full; skipped when none does
-        wide, wide_status = _lattice(images, prior._replace(restrict=torch.zeros_like(full)), params)
-        rows = _where(redo, wide, rows)
-        status = torch.where(redo, wide_status, status)
+    n_rows = len(dataclasses.fields(LatticeRows))
+
+    def again(images, redo, centre, vp, spacing, *now):  # a tracked frame that fails is searched again in full
+        wide, wide_status = _lattice(images, LatticePriorBatch(centre, torch.zeros_like(redo), vp, spacing), params,
+                                     flow)
+        picked = _where(redo, wide, LatticeRows(*now[:n_rows]))
+        return _fields(picked) + (torch.where(redo, wide_status, now[n_rows]),)
+
+    def unchanged(images, redo, centre, vp, spacing, *now):  # when no sequence needs it (a branch may not alias inputs)
+        return tuple(t.clone() for t in now)
+
+    out = branch(flow, redo.any(), again, unchanged,
+                 (images, redo, centre, state.vp, state.spacing) + _fields(rows) + (status,))
+    rows, status = LatticeRows(*out[:n_rows]), out[n_rows]
     ok = status == _OK
     y_end, has_end = row_end(rows.lit, params)
     y_res = resolvable_row(rows.coef, h, params)
@@ -166,3 +192,33 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
     end = torch.where(code == _CODE["row_end_ahead"], y_end, torch.full_like(y_end, -1))
     return LatticeStep(rows, status, code, change, end, searched_full, redo, active), new
 
+
+
+def records(step: LatticeStep, state: LatticeTrackerState, width: int, height: int, params: Params,
+            hfov_deg: float | None = None, names: Sequence[str | None] | None = None,
+            sources: Sequence[str | None] | None = None, indices: Sequence[int] | None = None,
+            camera: CameraModel | None = None) -> list[FrameResult | None]:
+    """Per-sequence :class:`~torchrow.core.steering.FrameResult` of a lattice step (``None`` for
+    inactive sequences), shared by the eager and the ONNX trackers: the lattice's records
+    (:func:`~torchrow.functional.lattice.improved_batch`) with the tracker's fields of 11.7
+    (``state``, ``row_change``, ``row_end_y``; ``hough_ran``/``hough_redo``: the full search
+    ran, as a redo). ``indices`` default to ``state.frames - 1``; ``hfov_deg`` and ``camera``
+    as :func:`torchrow.functional.tracking.records`."""
+    top = torch.zeros_like(step.status)
+    images = flattice.improved_batch(step.rows, step.status, top, params, width, height).results()
+    conf = step.rows.image_confidence.cpu().tolist()
+    cols = [t.cpu().tolist() for t in (step.state, step.row_change, step.row_end, step.full, step.redo,
+                                       step.active, state.frames)]
+    out: list[FrameResult | None] = []
+    for b, img in enumerate(images):
+        st, change, end, full, redo, active, frames = (c[b] for c in cols)
+        if not active:
+            out.append(None)
+            continue
+        img.name = None if names is None else names[b]
+        track = LatticeTrack(LATTICE_STATES[st], int(change), None if end < 0 else int(end), bool(full), bool(redo))
+        out.append(FrameResult.build(img, source=None if sources is None else sources[b],
+                                     frame=frames - 1 if indices is None else indices[b], hough_ran=bool(full),
+                                     hough_redo=bool(redo), confidence=conf[b], hfov_deg=hfov_deg,
+                                     camera=camera, lattice=track))
+    return out

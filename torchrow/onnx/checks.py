@@ -19,24 +19,34 @@ from torchrow.onnx.shims import float64_python_constants, nested_subgraph_opsets
 
 __all__ = ["step_differences", "check_lab"]
 
-def step_differences(ref, got, tol: float = 1e-9) -> list[str]:
+def step_differences(ref, got, tol: float = 1e-9, active: torch.Tensor | None = None) -> list[str]:
     """Field-by-field differences between two tracker steps or states of the same sequences.
 
     ``ref``/``got``: :class:`~torchrow.functional.tracking.TrackStep` or
-    :class:`~torchrow.functional.tracking.TrackerState` (e.g. :class:`torchrow.Tracker` vs
-    :class:`OnnxTracker`). Only active sequences are compared (a step's ``active``); Hough
-    line and outlier slots only where valid (the others carry no meaning); float64 fields
-    within ``tol`` (NaN equals NaN), all others exactly. Returns one line per differing field.
+    :class:`~torchrow.functional.tracking.TrackerState`, or the lattice tracker's
+    :class:`~torchrow.functional.lattice_tracking.LatticeStep` (its ``rows`` compared field by
+    field) or :class:`~torchrow.functional.lattice_tracking.LatticeTrackerState` (e.g.
+    :class:`torchrow.Tracker` vs :class:`OnnxTracker`). Only active sequences are compared (a
+    step's ``active``, or ``active`` if given); Hough line and outlier slots only where valid
+    (the others carry no meaning); float64 fields within ``tol`` (NaN equals NaN), all others
+    exactly. Returns one line per differing field.
     """
     import dataclasses
 
+    from torchrow.functional.lattice_tracking import LatticeStep
     from torchrow.functional.tracking import TrackStep
 
     out = []
-    act = ref.active if isinstance(ref, TrackStep) else torch.ones(len(ref.sky), dtype=torch.bool)
+    if active is not None:
+        act = active
+    else:
+        act = ref.active if isinstance(ref, (TrackStep, LatticeStep)) else torch.ones(len(ref), dtype=torch.bool)
     for f in dataclasses.fields(ref):
         ra, ga = getattr(ref, f.name), getattr(got, f.name)
         if ra is None or ga is None:  # a field the mode does not compute
+            continue
+        if dataclasses.is_dataclass(ra):  # the lattice step's rows
+            out += step_differences(ra, ga, tol, act)
             continue
         a, b = ra[act], ga[act]
         if isinstance(ref, TrackStep) and f.name in ("hough_theta", "hough_rho", "hough_weight", "out_theta",

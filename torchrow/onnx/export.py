@@ -116,6 +116,22 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         if width != params.video_width:
             raise ValueError(f"the tracker step works at params.video_width = {params.video_width} px, "
                              f"got width {width}")
+    elif params.mode != "faithful":
+        raise ValueError(f"the detector exports in faithful mode only; got Params.mode={params.mode!r} "
+                         "(the improved mode exports its tracker step: tracker=True)")
+    if tracker and params.mode == "improved":
+        from torchrow.functional.lattice_tracking import LatticeTrackerState
+
+        if scatter_free:
+            raise ValueError("scatter_free applies to the faithful mode's Hough vote; the improved mode's "
+                             "tracker step has no scatter-free form")
+        module = static.StaticLatticeStep(height, width, params, control_flow=control_flow).eval()
+        start = LatticeTrackerState.empty(batch)
+        args = (images, torch.ones(batch, dtype=torch.bool)) + tuple(getattr(start, f) for f in static.LATTICE_STATE)
+        with torch.no_grad():  # builds section 11.2's cached tables, which the graph then holds as constants
+            module(*args)
+        names, outputs = list(static.LATTICE_INPUTS), list(static.LATTICE_OUTPUTS)
+    elif tracker:
         from torchrow.functional.tracking import TrackerState
 
         module = static.StaticTrackerStep(height, width, params, control_flow=control_flow,
@@ -143,6 +159,7 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         warnings.simplefilter("ignore")
         note("trace")
         ep = torch.export.export(module, args, strict=False)
+        _branch_constants(ep.graph_module)
         # bool <-> uint8/int8 reinterpretations in the vegetation stage only ever hold 0/1,
         # whose bit patterns equal their cast values: export them as Cast.
         if not control_flow:
@@ -201,6 +218,46 @@ def _quiet_exporter():
     finally:
         for lg, lv in zip(loggers, levels):
             lg.setLevel(lv)
+
+
+#: Largest tensor constant :func:`_branch_constants` rebuilds from its values.
+BRANCH_CONSTANT_MAX = 64
+
+
+def _branch_constants(root: torch.fx.GraphModule) -> None:
+    """Rebuild the tensor constants made inside ``torch.cond``/``while_loop`` subgraphs from
+    their values (``aten.full`` of each element), in place.
+
+    torch.export stores a constant a branch creates (``torch.tensor(...)``, the ``0`` of
+    ``x[..., i] = 0``) on the branch's own module, and the exporter's decomposition then fails
+    on it ("Attempting to use FunctionalTensor on its own": pytorch issue 180354). Branch
+    constants are small here; a larger one is a ``ValueError`` naming it, to be made outside
+    the branch.
+    """
+    for name, sub in root.named_modules():
+        if sub is root or not isinstance(sub, torch.fx.GraphModule):
+            continue
+        for node in list(sub.graph.nodes):
+            value = getattr(sub, str(node.target), None) if node.op == "get_attr" else None
+            if not isinstance(value, torch.Tensor):
+                continue
+            if value.numel() > BRANCH_CONSTANT_MAX:
+                raise ValueError(f"a {tuple(value.shape)} tensor constant is made inside the exported branch "
+                                 f"{name}; at most {BRANCH_CONSTANT_MAX} elements can be rebuilt there, make it "
+                                 "outside the branch")
+            with sub.graph.inserting_before(node):
+                items = [sub.graph.call_function(torch.ops.aten.full.default, ([1], v),
+                                                 {"dtype": value.dtype, "device": value.device})
+                         for v in value.flatten().tolist()]
+                flat = sub.graph.call_function(torch.ops.aten.cat.default, (items,)) if items else \
+                    sub.graph.call_function(torch.ops.aten.empty.memory_format, ([0],),
+                                            {"dtype": value.dtype, "device": value.device})
+                made = sub.graph.call_function(torch.ops.aten.view.default, (flat, list(value.shape)))
+            made.meta["val"] = node.meta.get("val")
+            node.replace_all_uses_with(made)
+            sub.graph.erase_node(node)
+            delattr(sub, str(node.target))
+        sub.recompile()
 
 
 def _view_dtype_onnx(x, dtype: int):

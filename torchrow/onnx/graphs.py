@@ -38,12 +38,17 @@ fixed by ``(B, H, W)`` and the parameters alone:
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Sequence
+
 import torch
 from torch import nn
 
 from torchrow.core.batch import LINE_FIELDS
 from torchrow.core.params import Params
 from torchrow.core.tables import hypothesis_table, rgb_code
+from torchrow.functional import lattice as flattice
+from torchrow.functional import lattice_tracking as flt
 from torchrow.functional import ransac as fransac
 from torchrow.functional import sky as fsky
 from torchrow.functional import tracking as ftrack
@@ -53,9 +58,11 @@ from torchrow.functional._flow import check_flow, choose
 from torchrow.functional.cielab import lab_formula, linear_lut
 from torchrow.functional.hough import StaticVoter, pixel_list
 from torchrow.functional.vanishing import LineSearch, find_lines
+from torchrow.reference.lattice_tracking import check_lattice_tracker
 
 __all__ = ["StaticDetector", "finish_rows", "GRAPH_OUTPUTS", "StaticTrackerStep", "TRACKER_STATE", "TRACKER_STEP",
-           "TRACKER_INPUTS", "TRACKER_OUTPUTS"]
+           "TRACKER_INPUTS", "TRACKER_OUTPUTS", "StaticLatticeStep", "LATTICE_STATE", "LATTICE_INPUTS",
+           "LATTICE_OUTPUTS", "lattice_results"]
 
 def raw_mask(images: torch.Tensor, veg_lab: torch.Tensor, k: float, sky: torch.Tensor,
              lut: torch.Tensor | None = None) -> torch.Tensor:
@@ -354,3 +361,79 @@ class StaticTrackerStep(nn.Module):
                                branches=flow)
         step, new = ftrack.advance(veg, k, bushy, active, state, p, stages)
         return tuple(getattr(step, f) for f in TRACKER_STEP) + tuple(getattr(new, f) for f in TRACKER_STATE)
+
+
+# ------------------------------------------------------------------------------------------
+# The lattice tracker step (ALGORITHM.md 11.7, improved mode)
+# ------------------------------------------------------------------------------------------
+
+#: Fields of :class:`~torchrow.functional.lattice_tracking.LatticeTrackerState`, the lattice
+#: tracker's state, in the order they travel through the graph.
+LATTICE_STATE = tuple(f.name for f in dataclasses.fields(flt.LatticeTrackerState))
+_ROWS = tuple(f.name for f in dataclasses.fields(flattice.LatticeRows))
+_STEP = tuple(f.name for f in dataclasses.fields(flt.LatticeStep) if f.name not in ("rows", "active"))
+#: Inputs of the exported lattice tracker step, in order (see :class:`StaticLatticeStep`): the
+#: frames, the active mask, then ``state_<field>`` of the state.
+LATTICE_INPUTS = ("images", "active") + tuple("state_" + f for f in LATTICE_STATE)
+#: Outputs of the exported lattice tracker step, in order: ``rows_<field>`` of the step's
+#: :class:`~torchrow.functional.lattice.LatticeRows`, the other fields of
+#: :class:`~torchrow.functional.lattice_tracking.LatticeStep` (all but ``rows`` and
+#: ``active``), then ``next_<field>`` of the new state.
+LATTICE_OUTPUTS = tuple("rows_" + f for f in _ROWS) + _STEP + tuple("next_" + f for f in LATTICE_STATE)
+
+
+def lattice_results(outputs: Sequence[torch.Tensor],
+                    active: torch.Tensor) -> tuple[flt.LatticeStep, flt.LatticeTrackerState]:
+    """The step and the new state from the graph's outputs (:data:`LATTICE_OUTPUTS`, in order)
+    and the ``active`` mask it was given: the inverse of :class:`StaticLatticeStep`'s outputs."""
+    n_rows, n_step = len(_ROWS), len(_STEP)
+    rows = flattice.LatticeRows(*outputs[:n_rows])
+    step = flt.LatticeStep(rows=rows, **dict(zip(_STEP, outputs[n_rows:n_rows + n_step])), active=active)
+    return step, flt.LatticeTrackerState(*outputs[n_rows + n_step:])
+
+
+class StaticLatticeStep(nn.Module):
+    """The exportable lattice tracker step (improved mode): one frame of ``B`` sequences + their
+    state -> the lattice, the tracker's fields and the new state.
+
+    The rules are :func:`torchrow.functional.lattice_tracking.lattice_advance` itself, with
+    ``flow="loop"`` (``control_flow=True``, default): the least-squares refits of each fit are
+    one ONNX ``Loop`` that stops once every image has stopped, and the full-search redo of a
+    failed tracked frame sits in an ``If`` that runs only when some sequence needs it.
+    ``control_flow=False`` (``flow="always"``) runs every refit and the redo for the whole
+    batch and lets masks choose (no ``Loop`` or ``If``). Section 11.2's tables (the VP
+    search's bins, the comb's windows) are constants of the graph, built for its working size.
+    Unlike section 8's tracker step, nothing runs on the host: the lattice tracker has no
+    frame-0 colour or sky (ALGORITHM.md 11.7).
+
+    ``forward(images uint8 (B, 3, H, W), active bool (B,), *state)`` with the state fields
+    :data:`LATTICE_STATE` (dtypes and shapes of
+    :class:`~torchrow.functional.lattice_tracking.LatticeTrackerState`) returns the tuple
+    :data:`LATTICE_OUTPUTS` (:func:`lattice_results` reads it back). Inactive sequences keep
+    their state.
+
+    Parameters
+    ----------
+    height, width : int
+        Working size of the frames (``params.video_width`` wide).
+    params : Params
+        Improved mode under the lattice tracker's conditions
+        (:func:`torchrow.reference.lattice_tracking.check_lattice_tracker`).
+    control_flow : bool
+        ``Loop`` and ``If`` (default), or masks.
+    """
+
+    def __init__(self, height: int, width: int, params: Params, control_flow: bool = True) -> None:
+        super().__init__()
+        check_lattice_tracker(params)
+        self.params = params
+        self.height, self.width = int(height), int(width)
+        self.flow = "loop" if control_flow else "always"
+
+    def forward(self, images: torch.Tensor, active: torch.Tensor, *state: torch.Tensor):
+        h, w = images.shape[2], images.shape[3]
+        if (h, w) != (self.height, self.width):
+            raise ValueError(f"StaticLatticeStep built for {self.width}x{self.height}, got frames {w}x{h}")
+        step, new = flt.lattice_advance(images, active, flt.LatticeTrackerState(*state), self.params, self.flow)
+        return (tuple(getattr(step.rows, f) for f in _ROWS) + tuple(getattr(step, f) for f in _STEP)
+                + tuple(getattr(new, f) for f in LATTICE_STATE))

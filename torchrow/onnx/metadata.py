@@ -14,8 +14,9 @@ from torchrow.onnx.passes import op_counts
 __all__ = ["model_info", "model_meta"]
 
 def model_info(path: str | Path) -> dict:
-    """Size (bytes), kind (``detector`` or ``tracker``), static shape, params, exporter and op
-    counts of an exported model (:func:`model_meta` plus ``ops``, which parses the graph)."""
+    """Size (bytes), kind (``detector`` or ``tracker``), mode (``params.mode``: an improved-mode
+    tracker is the lattice tracker step), static shape, params, exporter and op counts of an
+    exported model (:func:`model_meta` plus ``ops``, which parses the graph)."""
     import onnx
 
     info = model_meta(path)
@@ -88,8 +89,9 @@ def _model_meta(path_str: str, mtime_ns: int, size: int) -> dict:
         raise ValueError(f"{path} is not a torchrow ONNX detector (no torchrow metadata)")
     raw = json.loads(meta["params"])
     raw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in raw.items()}
-    return {"size": size, "kind": meta.get("kind", "detector"),
+    params = Params(**raw)
+    return {"size": size, "kind": meta.get("kind", "detector"), "mode": params.mode,
             "control_flow": meta.get("control_flow") == "True", "height": int(meta["height"]),
             "width": int(meta["width"]),
-            "batch": int(meta["batch"]), "params": Params(**raw), "exporter": meta.get("exporter", ""),
+            "batch": int(meta["batch"]), "params": params, "exporter": meta.get("exporter", ""),
             "opset": int(meta.get("opset", 0))}

@@ -221,6 +221,11 @@ class OnnxTracker(OnnxRunner):
     a slot's colour changes) and the sky (section 1); everything else, frame 0's ``info0``
     included, runs in the graph.
 
+    A model exported in improved mode (:class:`torchrow.onnx.graphs.StaticLatticeStep`, the
+    lattice tracker of ALGORITHM.md 11.7) runs as :class:`torchrow.Tracker` in improved
+    mode: :meth:`forward` returns ``(LatticeStep, LatticeTrackerState)`` and the records carry
+    the lattice tracker's fields; the host computes nothing (:attr:`improved` is ``True``).
+
     Parameters
     ----------
     model_path : str or Path
@@ -239,11 +244,15 @@ class OnnxTracker(OnnxRunner):
                  cache: bool = True, camera: CameraModel | None = None) -> None:
         check_optics(hfov_deg, camera)
         _open(self, model_path, "tracker", threads, cache)
+        self.hfov_deg = hfov_deg
+        self.camera = camera
+        #: the model is the lattice tracker step (improved mode)
+        self.improved = self.params.mode == "improved"
+        if self.improved:
+            return
         if self.session.get_inputs()[1].name != "k_table":
             raise ValueError(f"{self.path.name} is a tracker model of an older torchrow (it takes veg_lab, not "
                              "k_table); export it again with `torchrow export onnx --tracker`")
-        self.hfov_deg = hfov_deg
-        self.camera = camera
         n_k = self.params.video_k_max - self.params.video_k_min + 1
         self._table = np.full((self.batch, 1 << 24), n_k, dtype=np.uint8)  # the graph's k_table feed
         self._table_color: list = [None] * self.batch  # the colour each slot's table row holds
@@ -262,12 +271,9 @@ class OnnxTracker(OnnxRunner):
 
     def forward(self, frames: torch.Tensor, state=None, active: torch.Tensor | None = None):
         """One lock-step frame: ``uint8 (B, 3, H, W)`` frames at working size ->
-        ``(TrackStep, TrackerState)``, as :meth:`torchrow.Tracker.forward`."""
-        from torchrow.functional import color as fcolor
-        from torchrow.functional import sky as fsky
+        ``(TrackStep, TrackerState)`` (improved mode: ``(LatticeStep, LatticeTrackerState)``),
+        as :meth:`torchrow.Tracker.forward`."""
         from torchrow.functional._checks import check_images
-        from torchrow.functional.tracking import TrackerState, TrackStep
-        from torchrow.onnx.graphs import TRACKER_STATE, TRACKER_STEP
 
         check_images(frames, "frames")
         b, _, h, w = frames.shape
@@ -275,8 +281,15 @@ class OnnxTracker(OnnxRunner):
             raise ValueError(f"the model {self.path.name} takes {self.batch} frames of {self.width}x{self.height}, "
                              f"got {b} of {w}x{h}")
         x = frames.cpu().contiguous()
-        state = state if state is not None else TrackerState.empty(b, self.params)
         act = torch.ones(b, dtype=torch.bool) if active is None else active.to("cpu", torch.bool)
+        if self.improved:
+            return self._lattice_forward(x, state, act)
+        from torchrow.functional import color as fcolor
+        from torchrow.functional import sky as fsky
+        from torchrow.functional.tracking import TrackerState, TrackStep
+        from torchrow.onnx.graphs import TRACKER_STATE, TRACKER_STEP
+
+        state = state if state is not None else TrackerState.empty(b, self.params)
         color = state.veg_color.clone()
         sky = state.sky.clone()
         start = act & ~state.ready
@@ -293,6 +306,20 @@ class OnnxTracker(OnnxRunner):
         new = TrackerState(veg_color=color, **{f: o for f, o in zip(TRACKER_STATE, outs[len(TRACKER_STEP):])})
         return step, new
 
+    def _lattice_forward(self, x: torch.Tensor, state, act: torch.Tensor):
+        """:meth:`forward` of a lattice tracker step: the state in, the graph's outputs back as
+        the step and the new state (:func:`~torchrow.onnx.graphs.lattice_results`)."""
+        from torchrow.functional.lattice_tracking import LatticeTrackerState
+        from torchrow.onnx.graphs import LATTICE_STATE, lattice_results
+
+        state = state if state is not None else LatticeTrackerState.empty(self.batch)
+        if not isinstance(state, LatticeTrackerState):
+            raise TypeError(f"the lattice tracker model {self.path.name} takes a LatticeTrackerState, "
+                            f"got {type(state).__name__}")
+        feed = {"images": x.numpy(), "active": act.numpy()}
+        feed.update({"state_" + f: getattr(state, f).cpu().numpy() for f in LATTICE_STATE})
+        return lattice_results([torch.from_numpy(o) for o in self.session.run(None, feed)], act)
+
     __call__ = forward
 
     def step(self, frames, state=None, names=None):
@@ -306,11 +333,16 @@ class OnnxTracker(OnnxRunner):
             x = torch.from_numpy(np.stack([prepare_frame(f, self.params.video_width, self.params.max_pixels)
                                            for f in frames])).permute(0, 3, 1, 2)
         stepped, new = self.forward(x.contiguous(), state)
-        from torchrow.functional.tracking import records
+        return self._records(stepped, new, x.shape[3], x.shape[2], names), new
 
-        return records(stepped, new, x.shape[3], x.shape[2], self.params, self.hfov_deg, names,
-                       camera=self.camera), new
+    def _records(self, stepped, state, width: int, height: int, names=None, sources=None, indices=None):
+        """The records of a step: :func:`torchrow.functional.tracking.records`, or in improved
+        mode :func:`torchrow.functional.lattice_tracking.records` (the eager tracker's)."""
+        from torchrow.functional import lattice_tracking, tracking
 
+        fn = lattice_tracking.records if self.improved else tracking.records
+        return fn(stepped, state, width, height, self.params, self.hfov_deg, names, sources, indices,
+                  camera=self.camera)
 
     def track_iter(self, sequences, sources=None):
         """Track up to ``B`` (the model's batch) sequences in lock-step, lazily, as
@@ -341,4 +373,5 @@ class OnnxTracker(OnnxRunner):
                 yield stepped, state
 
         return lockstep(sequences, step, self.params, size=(h, w), sources=sources, hfov_deg=self.hfov_deg,
-                        camera=self.camera, size_note=f" (the size the model {self.path.name} takes)")
+                        camera=self.camera, size_note=f" (the size the model {self.path.name} takes)",
+                        records_fn=self._records)

@@ -8,7 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-from torchrow.apps.commands.shared import CLIError, add_common, parse_params, replace_params
+from torchrow.apps.commands.shared import CLIError, add_common, add_mode, parse_params, replace_params, with_mode
 
 __all__ = ["add_parser", "run"]
 
@@ -20,7 +20,8 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
     p = esub.add_parser("onnx", help="static-shape ONNX graph (torch dynamo exporter)")
     p.add_argument("--out", required=True, help="output .onnx file")
     p.add_argument("--tracker", action="store_true",
-                   help="export the video tracker step (frame + state -> rows + new state) instead of the detector")
+                   help="export the video tracker step (frame + state -> rows + new state) instead of the detector; "
+                        "with --mode improved, the lattice tracker step (ALGORITHM.md 11.7)")
     p.add_argument("--no-control-flow", action="store_true",
                    help="no ONNX Loop or If: every line-search step to the static bound (and, tracker, both "
                         "branches) runs, masks choose (slower, same results)")
@@ -34,6 +35,7 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
     p.add_argument("--batch", type=int, default=1, help="static batch size (default 1)")
     p.add_argument("--opset", type=int, default=18, help="ONNX opset, >= 18 (default 18)")
     add_common(p)
+    add_mode(p)
     p.set_defaults(func=run)
 
 
@@ -46,7 +48,12 @@ def run(args: argparse.Namespace) -> int:
     from torchrow.onnx.export import to_onnx
     from torchrow.onnx.metadata import model_info
 
-    params = parse_params(args.param)
+    params = with_mode(parse_params(args.param), args)
+    improved = params.mode == "improved"
+    if improved and not args.tracker:
+        raise CLIError("--mode improved exports the lattice tracker step only: add --tracker")
+    if improved and args.scatter_free:
+        raise CLIError("--scatter-free: the improved mode's tracker step has no scatter-free form")
     if args.tracker:
         width = args.width if args.width is not None else params.video_width
         if args.height is None:
@@ -77,7 +84,8 @@ def run(args: argparse.Namespace) -> int:
         raise CLIError(str(exc)) from None
     info = model_info(out)
     ops = ", ".join(f"{k} {v}" for k, v in sorted(info["ops"].items()))
-    what = "tracker step: frames + k_table + active + state" if args.tracker else "images + veg_lab"
+    what = ("lattice tracker step: frames + active + state" if improved else
+            "tracker step: frames + k_table + active + state" if args.tracker else "images + veg_lab")
     print(f"torchrow: exported {out} in {time.perf_counter() - t0:.0f} s: {info['size'] / 2**20:.1f} MiB, "
           f"{what}, uint8 frames ({args.batch}, 3, {height}, {width}), "
           f"opset {info['opset']}, {sum(info['ops'].values())} nodes")

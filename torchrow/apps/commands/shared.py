@@ -141,10 +141,9 @@ def with_mode(params: Params, args: argparse.Namespace) -> Params:
     mode = getattr(args, "mode", None)
     if mode is None:
         return params
-    if mode == "improved" and getattr(args, "impl", None) == "onnx":
-        if args.command == "video":
-            raise CLIError("--mode improved: no ONNX export of the improved tracker yet; use --impl tensor or reference")
-        raise CLIError("--mode improved has no ONNX export yet; use --impl tensor or reference")
+    if mode == "improved" and getattr(args, "impl", None) == "onnx" and args.command != "video":
+        raise CLIError("--mode improved: no ONNX export of the improved detector (only of its tracker step, for "
+                       "torchrow video); use --impl tensor or reference")
     if mode == "improved" and args.command == "video":
         try:  # the lattice tracker's own conditions (ALGORITHM.md 11.7)
             from torchrow.reference.lattice_tracking import check_lattice_tracker
@@ -331,7 +330,8 @@ def check_engine(args: argparse.Namespace, onnx_workers: bool = False) -> None:
 
 def check_model(args: argparse.Namespace, kind: str = "detector") -> str | None:
     """``--model`` for ``--impl onnx``: present, readable, a torchrow ``kind`` export (detector
-    or tracker), onnxruntime installed; ``None`` for the other implementations."""
+    or tracker) of the mode ``--mode`` names (if given; the model's own otherwise), onnxruntime
+    installed; ``None`` for the other implementations."""
     model: str | None = getattr(args, "model", None)
     if args.impl != "onnx":
         if model:
@@ -356,6 +356,10 @@ def check_model(args: argparse.Namespace, kind: str = "detector") -> str | None:
         how = "without --tracker" if kind == "detector" else "--tracker"
         raise CLIError(f"{model} is a torchrow {info['kind']} model; {cmd} needs a {kind} model "
                        f"(torchrow export onnx {how})")
+    mode = getattr(args, "mode", None)
+    if mode is not None and mode != info["mode"]:
+        raise CLIError(f"--mode {mode}: {model} was exported in {info['mode']} mode (export one with "
+                       f"--mode {mode}{' --tracker' if kind == 'tracker' else ''}, or leave out --mode)")
     if args.param:
         raise CLIError("--param cannot change an exported model; export one with those --param values")
     want = info["params"].image_width if kind == "detector" else info["params"].video_width

@@ -93,7 +93,8 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
                    help="camera model (height_m, tilt_deg, and hfov_deg or fx, fy, cx, cy in source pixels): "
                         "records gain lateral_m, spacing_m and the ground heading_rad (README: video)")
     p.add_argument("--plot", default=None, help="plot file (default: --out with suffix .png); 'none': no plot")
-    add_impl(p, batch=8, item="sequence", export="a tracker step: torchrow export onnx --tracker")
+    add_impl(p, batch=8, item="sequence",
+             export="a tracker step: torchrow export onnx --tracker, with --mode improved for the improved mode")
     add_common(p)
     p.set_defaults(func=run)
 
@@ -201,7 +202,7 @@ def run(args: argparse.Namespace) -> int:
     from torchrow.apps.video import central_jumps, plot_tracks
     from torchrow.core.progress import progress
 
-    params = with_mode(parse_params(args.param), args)  # before --model: improved mode has no ONNX tracker
+    params = with_mode(parse_params(args.param), args)  # an exported model's params replace these below
     model = check_model(args, kind="tracker")
     if model is not None:
         onnx_host_threads()
