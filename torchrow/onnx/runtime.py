@@ -333,11 +333,13 @@ class OnnxTracker(OnnxRunner):
             x = torch.from_numpy(np.stack([prepare_frame(f, self.params.video_width, self.params.max_pixels)
                                            for f in frames])).permute(0, 3, 1, 2)
         stepped, new = self.forward(x.contiguous(), state)
-        return self._records(stepped, new, x.shape[3], x.shape[2], names), new
+        return self.results(stepped, new, x.shape[3], x.shape[2], names), new
 
-    def _records(self, stepped, state, width: int, height: int, names=None, sources=None, indices=None):
-        """The records of a step: :func:`torchrow.functional.tracking.records`, or in improved
-        mode :func:`torchrow.functional.lattice_tracking.records` (the eager tracker's)."""
+    def results(self, stepped, state, width: int, height: int, names=None, sources=None, indices=None):
+        """Per-sequence :class:`~torchrow.core.steering.FrameResult` of a step (``None`` for
+        inactive sequences), as :meth:`torchrow.Tracker.results`: the records of
+        :func:`torchrow.functional.tracking.records`, or in improved mode of
+        :func:`torchrow.functional.lattice_tracking.records`."""
         from torchrow.functional import lattice_tracking, tracking
 
         fn = lattice_tracking.records if self.improved else tracking.records
@@ -374,4 +376,4 @@ class OnnxTracker(OnnxRunner):
 
         return lockstep(sequences, step, self.params, size=(h, w), sources=sources, hfov_deg=self.hfov_deg,
                         camera=self.camera, size_note=f" (the size the model {self.path.name} takes)",
-                        records_fn=self._records)
+                        records_fn=self.results)

@@ -1,0 +1,107 @@
+"""The exported lattice tracker step (improved mode) against torch on every Caterra frame:
+``python benchmarks/check_lattice_onnx.py [--data DIR] [--model M.onnx] [--frames N]``.
+
+Exports the step at the real working size (500x281, ``Params(mode="improved",
+video_width=500, lattice_model="auto", lattice_min_spacing=16, lattice_max_spacing=320)``,
+batch 1; or uses ``--model``), tracks the frames with :class:`torchrow.Tracker` and with
+:class:`~torchrow.onnx.runtime.OnnxTracker`, and compares the records (discrete values equal,
+floats within 1e-4) and every field of every step and state (floats within 1e-9). Prints the
+export time, the model's size and op census, and onnxruntime's frames/s on one and on two
+intra-op threads (a rough figure: the host's frame loop included, frames read beforehand).
+Run from the repository root.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import data_root
+
+import torchrow
+from torchrow import Params
+from torchrow.core.io import load_image
+from torchrow.core.results import record_differences
+from torchrow.onnx.checks import step_differences
+from torchrow.onnx.export import to_onnx
+from torchrow.onnx.metadata import model_info
+from torchrow.onnx.runtime import OnnxTracker
+
+PARAMS = Params(mode="improved", video_width=500, lattice_model="auto", lattice_min_spacing=16,
+                lattice_max_spacing=320)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=None)
+    ap.add_argument("--model", default=None, help="an exported lattice tracker step (default: export one)")
+    ap.add_argument("--frames", type=int, default=None, help="the first N frames only")
+    args = ap.parse_args()
+    files = sorted((data_root(args.data) / "caterra_video").glob("*.jpg"))[:args.frames]
+    frames = [load_image(f, PARAMS.video_width) for f in files]
+    h, w = frames[0].shape[:2]
+    print(f"{len(frames)} Caterra frames at {w}x{h}", flush=True)
+    tmp = tempfile.TemporaryDirectory()
+    if args.model is None:
+        path = Path(tmp.name) / "lattice.onnx"
+        t0 = time.perf_counter()
+        to_onnx(path, height=h, width=w, batch=1, params=PARAMS, tracker=True,
+                progress=lambda phase: print(f"  export: {phase} ({time.perf_counter() - t0:.0f} s)", flush=True))
+        print(f"export: {time.perf_counter() - t0:.0f} s", flush=True)
+    else:
+        path = Path(args.model)
+    info = model_info(path)
+    print(f"model: {info['size'] / 2**20:.1f} MiB, {sum(info['ops'].values())} nodes; "
+          + ", ".join(f"{k} {v}" for k, v in sorted(info["ops"].items())), flush=True)
+    if info["params"] != PARAMS or (info["height"], info["width"], info["batch"]) != (h, w, 1):
+        raise SystemExit(f"{path} was not exported with this script's parameters, size and batch 1")
+
+    x = [torch.from_numpy(f).permute(2, 0, 1).unsqueeze(0).contiguous() for f in frames]
+    eager = torchrow.Tracker(PARAMS, workers=1)
+    ort = OnnxTracker(path, threads=1)
+    st_e = st_o = None
+    step_problems, record_problems, tracked, redo = [], [], 0, 0
+    for t, xt in enumerate(x):
+        step_e, st_e = eager(xt, st_e)
+        step_o, st_o = ort(xt, st_o)
+        diff = step_differences(step_e, step_o) + step_differences(st_e, st_o)
+        step_problems += [f"frame {t}: {d}" for d in diff]
+        rec_e = eager.results(step_e, st_e, w, h)[0]
+        rec_o = ort.results(step_o, st_o, w, h)[0]
+        assert rec_e is not None and rec_o is not None
+        record_problems += [f"frame {t}: {d}" for d in record_differences(rec_e.to_record(), rec_o.to_record(), 1e-4)]
+        tracked += int(not bool(step_e.full[0]))
+        redo += int(bool(step_e.redo[0]))
+    print(f"parity: {len(x)} frames ({tracked} tracked, {redo} redone in full); records differing: "
+          f"{len({p.split(':')[0] for p in record_problems})}; steps/states differing: "
+          f"{len({p.split(':')[0] for p in step_problems})}", flush=True)
+    for p in (record_problems + step_problems)[:10]:
+        print("  ", p[:300])
+
+    for threads in (1, 2):
+        ort = OnnxTracker(path, threads=threads)
+        st = None
+        ort(x[0], st)  # a first run allocates
+        t0 = time.perf_counter()
+        for xt in x:
+            _, st = ort(xt, st)
+        dt = time.perf_counter() - t0
+        print(f"onnxruntime, {threads} thread(s): {len(x) / dt:.1f} frames/s ({1000 * dt / len(x):.1f} ms/frame)",
+              flush=True)
+    st = None
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    for xt in x:
+        _, st = eager(xt, st)
+    dt = time.perf_counter() - t0
+    print(f"torch eager, 1 thread: {len(x) / dt:.1f} frames/s ({1000 * dt / len(x):.1f} ms/frame)", flush=True)
+
+
+if __name__ == "__main__":
+    main()
