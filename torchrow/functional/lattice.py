@@ -32,7 +32,7 @@ from torchrow.functional._checks import below_horizon
 
 __all__ = ["LatticeRows", "LatticePriorBatch", "vp_near", "improved_batch",
            "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_table",
-           "vp_search", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
+           "vp_search", "comb_table", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
            "normal_equations", "refine", "fit_lattice", "row_polynomials", "visible_rows", "VisibleRows", "improved_rows",
            "improved_status", "LatticeFitBatch"]
 
@@ -252,16 +252,56 @@ def vp_search(mask: torch.Tensor, params: Params, prior: LatticePriorBatch | Non
     return torch.where(seen.any(dim=1, keepdim=True), pick, fallback.expand_as(pick))
 
 
+_COMB_TABLES: dict[tuple, tuple[torch.Tensor, ...]] = {}
+
+
+def comb_table(width: int, params: Params, device: torch.device) -> tuple[torch.Tensor, ...]:
+    """The comb's candidate tables for ``width``-px images, built once per size, spacing range and
+    window, and cached: ``d``, ``p`` ``(Q,)`` int64 (candidate ``q``'s spacing and bin phase, in
+    spacing then phase order); ``hws`` ``(G,)`` int64 (the distinct tooth half-widths); per
+    half-width group ``g`` the spacings' rows ``rows[g]`` and ``tooth[g]``, ``anti[g]`` ``(n_g, 3W)``
+    int64: the candidate each bin's tooth window counts towards (``off_d + b mod d``) and the one
+    its window counts against as an anti-tooth (``off_d + (b - d//2) mod d`` for ``b >= d//2``,
+    else the spill index ``Q``). ``16 n_d 3W`` bytes (7 MB at 500 px, spacings 16..320)."""
+    key = (width, params.lattice_min_spacing, params.lattice_max_spacing, params.lattice_window, str(device))
+    table = _COMB_TABLES.get(key)
+    if table is None:
+        nb = 3 * width
+        spacings = list(range(params.lattice_min_spacing, params.lattice_max_spacing + 1))
+        hw_of = [int(math.floor(d * params.lattice_window)) for d in spacings]
+        b = torch.arange(nb, dtype=torch.int64, device=device)
+        off = 0
+        dq, pq, tooth, anti = [], [], [], []
+        for d in spacings:
+            dq.append(torch.full((d,), d, dtype=torch.int64, device=device))
+            pq.append(torch.arange(d, dtype=torch.int64, device=device))
+            tooth.append(off + b % d)
+            anti.append(torch.where(b >= d // 2, off + (b - d // 2) % d, torch.full_like(b, -1)))
+            off += d
+        anti = [torch.where(a < 0, torch.full_like(a, off), a) for a in anti]
+        hws = sorted(set(hw_of))
+        groups = [[i for i, h in enumerate(hw_of) if h == g] for g in hws]
+        table = (torch.cat(dq), torch.cat(pq), torch.tensor(hws, dtype=torch.int64, device=device),
+                 tuple(torch.stack([tooth[i] for i in grp]) for grp in groups),
+                 tuple(torch.stack([anti[i] for i in grp]) for grp in groups))
+        _COMB_TABLES.clear()  # one size at a time: a video or a batch has one working size
+        _COMB_TABLES[key] = table
+    return table
+
+
 def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params, prior: LatticePriorBatch | None = None):
     """Section 11.2 per image: ``(spacing, phase, found, contrast)``, each ``(B,)`` (int64, int64,
     bool, float64; ``contrast`` = the best score per binned pixel, 0 without pixels).
 
-    The candidates are scored spacing by spacing (a static loop over
-    ``lattice_min_spacing .. lattice_max_spacing``): every phase's teeth are one strided sum
-    of the windowed histogram, its anti-teeth (``lattice_comb == "contrast"``) the same sum of
-    the windowed histogram shifted by ``d // 2`` bins. ``prior`` (section 11.7): the central row
-    is the tooth nearest ``prior.centre``, and where ``prior.restrict`` only the candidates of
-    :func:`torchrow.reference.lattice.comb_near` compete (a mask per spacing).
+    Every candidate is scored at once: each bin's tooth window (the pixels within the tooth
+    half-width of it, one prefix-sum difference per distinct half-width) is scatter-added to the
+    candidate whose teeth it is on and, with ``lattice_comb == "contrast"``, subtracted from the one
+    whose anti-teeth (``d // 2`` bins on) it is on (:func:`comb_table`; integer sums, so the scores
+    are the reference's). ``prior`` (section 11.7): the central row is the tooth nearest
+    ``prior.centre``, and where ``prior.restrict`` only the candidates of
+    :func:`torchrow.reference.lattice.comb_near` compete. Peak memory per image: the ``(Q + 1)``
+    int64 scores and float64 masks, ``32 Q`` bytes (1.6 MB at 500 px, spacings 16..320), and
+    the ``(G, 3W)`` windows.
     """
     bsz, h, w = mask.shape
     dev = mask.device
@@ -281,45 +321,37 @@ def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params, prior: Lat
     hist.scatter_add_(1, bins.flatten(1), keep.flatten(1).to(torch.int64))
     n = keep.flatten(1).sum(dim=1)  # (B,)
     cs = torch.cat([torch.zeros((bsz, 1), dtype=torch.int64, device=dev), torch.cumsum(hist, dim=1)], dim=1)
+    d_all, p_all, hws, tooth, anti = comb_table(w, params, dev)
     centre = torch.arange(nb, device=dev)
-    scores, ds, ps = [], [], []
-    windows: dict[int, torch.Tensor] = {}
+    lo = torch.clamp(centre.view(1, -1) - hws.view(-1, 1), 0, nb)
+    hi = torch.clamp(centre.view(1, -1) + hws.view(-1, 1) + 1, 0, nb)
+    win = cs[:, hi] - cs[:, lo]  # (B, G, 3W): pixels in the tooth of each half-width centred on each bin
+    acc = torch.zeros((bsz, d_all.numel() + 1), dtype=torch.int64, device=dev)  # + the anti-teeth's spill
+    for g in range(hws.numel()):
+        src = win[:, g].unsqueeze(1).expand(bsz, tooth[g].shape[0], nb)
+        acc.scatter_add_(1, tooth[g].view(1, -1).expand(bsz, -1), src.reshape(bsz, -1))
+        if params.lattice_comb == "contrast":
+            acc.scatter_add_(1, anti[g].view(1, -1).expand(bsz, -1), -src.reshape(bsz, -1))
+    d_f = d_all.to(torch.float64)
+    if params.lattice_comb == "contrast":
+        allsc = acc[:, :-1].to(torch.float64)
+    else:
+        hw_d = torch.floor(d_f * params.lattice_window).to(torch.int64)
+        expect = (n.view(-1, 1) * (2 * hw_d + 1)).to(torch.float64) / d_f
+        allsc = acc[:, :-1].to(torch.float64) - expect
     if prior is not None:
         target = prior.centre.to(torch.float64).view(-1, 1)
         d_prev = prior.spacing.view(-1, 1)
-    for d in range(params.lattice_min_spacing, params.lattice_max_spacing + 1):
-        hw = int(math.floor(d * params.lattice_window))
-        win = windows.get(hw)
-        if win is None:
-            lo = torch.clamp(centre - hw, 0, nb)
-            hi = torch.clamp(centre + hw + 1, 0, nb)
-            win = cs[:, hi] - cs[:, lo]  # (B, 3W): pixels in the tooth centred on each bin
-            windows[hw] = win
-        teeth = -(-nb // d)
-        padded = torch.cat([win, torch.zeros((bsz, teeth * d - nb), dtype=torch.int64, device=dev)], dim=1)
-        cap = padded.view(bsz, teeth, d).sum(dim=1)  # (B, d): phase p sums bins p, p+d, ...
-        if params.lattice_comb == "contrast":
-            # anti-tooth centres p + d//2 + j d < 3W: the same strided sum, d//2 bins on
-            shifted = torch.cat([padded[:, d // 2:], torch.zeros((bsz, d // 2), dtype=torch.int64, device=dev)], dim=1)
-            scores.append((cap - shifted.view(bsz, teeth, d).sum(dim=1)).to(torch.float64))
-        else:
-            expect = (n * (2 * hw + 1)).to(torch.float64) / float(d)
-            scores.append(cap.to(torch.float64) - expect.unsqueeze(1))
-        if prior is not None:
-            df = float(d)
-            rel = target - (torch.arange(d, dtype=torch.int64, device=dev) - w).to(torch.float64).view(1, -1)
-            off = rel - df * torch.round(rel / df)
-            near_d = (d - d_prev).to(torch.float64).abs() <= params.lattice_track_spacing_tol * d_prev.to(torch.float64)
-            near = near_d & (off.abs() <= params.lattice_track_phase_tol * df)
-            near = near | ~prior.restrict.view(-1, 1)
-            scores[-1] = torch.where(near, scores[-1], torch.full_like(scores[-1], -math.inf))
-        ds.append(torch.full((d,), d, dtype=torch.int64, device=dev))
-        ps.append(torch.arange(d, dtype=torch.int64, device=dev))
-    allsc = torch.cat(scores, dim=1)
+        rel = target - (p_all - w).to(torch.float64).view(1, -1)
+        off = rel - d_f * torch.round(rel / d_f)
+        near_d = (d_all - d_prev).to(torch.float64).abs() <= params.lattice_track_spacing_tol * d_prev.to(torch.float64)
+        near = near_d & (off.abs() <= params.lattice_track_phase_tol * d_f)
+        near = near | ~prior.restrict.view(-1, 1)
+        allsc = torch.where(near, allsc, torch.full_like(allsc, -math.inf))
     q = torch.argmax(allsc, dim=1)  # first maximum: spacing, then phase order
     best = torch.gather(allsc, 1, q.unsqueeze(1)).squeeze(1)
-    d_q = torch.cat(ds)[q]
-    p_q = torch.cat(ps)[q] - w
+    d_q = d_all[q]
+    p_q = p_all[q] - w
     centre = torch.full((bsz,), float(w) / 2, dtype=torch.float64, device=dev) if prior is None else prior.centre
     k0 = torch.round((centre - p_q.to(torch.float64)) / d_q.to(torch.float64)).to(torch.int64)
     found = n > 0
