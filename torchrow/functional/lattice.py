@@ -30,7 +30,7 @@ from torchrow.core.params import VP_SLICE, Params
 from torchrow.core.results import STATUSES
 from torchrow.functional._checks import below_horizon
 
-__all__ = ["LatticeRows", "LatticePriorBatch", "vp_near", "improved_batch",
+__all__ = ["LatticeRows", "LatticePriorBatch", "improved_batch",
            "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_table",
            "vp_search", "comb_table", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
            "normal_equations", "refine", "fit_lattice", "row_polynomials", "visible_rows", "VisibleRows", "improved_rows",
@@ -78,26 +78,14 @@ class LatticeRows:
 class LatticePriorBatch(NamedTuple):
     """Section 11.7's prior per image (:class:`torchrow.reference.lattice.LatticePrior`): ``centre``
     ``(B,)`` float64, the bottom-row x the central row is chosen nearest to; ``restrict`` ``(B,)``
-    bool, a tracked frame (else a full search); ``vp`` ``(B, 2)`` int64 and ``spacing`` ``(B,)``
-    int64, the previous frame's (read where ``restrict``)."""
+    bool, a tracked frame (else a full search); ``vp`` ``(B, 2)`` int64, the VP the comb uses
+    there (the previous frame's lattice VP, not searched), and ``spacing`` ``(B,)`` int64, the
+    previous comb spacing (both read where ``restrict``)."""
 
     centre: torch.Tensor
     restrict: torch.Tensor
     vp: torch.Tensor
     spacing: torch.Tensor
-
-
-def vp_near(grid: torch.Tensor, vp: torch.Tensor, restrict: torch.Tensor, params: Params) -> torch.Tensor:
-    """Batched :func:`torchrow.reference.lattice.vp_near`: ``(B, V)`` bool, all True where not
-    ``restrict`` or where the previous VP's height is not a grid height."""
-    heights = torch.tensor(params.lattice_vp_heights, dtype=torch.int64, device=grid.device)
-    iy = torch.argmax((grid[:, 1:] == heights.view(1, -1)).to(torch.int64), dim=1)  # (V,)
-    hit = vp[:, 1:] == heights.view(1, -1)  # (B, n_heights)
-    iy_prev = torch.argmax(hit.to(torch.int64), dim=1)
-    s = params.lattice_track_vp_steps
-    near = ((grid[:, 0].view(1, -1) - vp[:, :1]).abs() <= s * params.lattice_vp_step) & (
-        (iy.view(1, -1) - iy_prev.view(-1, 1)).abs() <= s)
-    return near | ~(restrict & hit.any(dim=1)).view(-1, 1)
 
 
 class LatticeFitBatch(NamedTuple):
@@ -205,7 +193,7 @@ def vp_table(height: int, width: int, params: Params, device: torch.device) -> t
     return table
 
 
-def vp_search(mask: torch.Tensor, params: Params, prior: LatticePriorBatch | None = None) -> torch.Tensor:
+def vp_search(mask: torch.Tensor, params: Params) -> torch.Tensor:
     """Section 11.2 (``lattice_vp == "search"``): per image the grid VP whose folded contrast
     comb is strongest, ``(B, 2)`` int64; see :func:`torchrow.reference.lattice.vp_search`.
 
@@ -213,7 +201,6 @@ def vp_search(mask: torch.Tensor, params: Params, prior: LatticePriorBatch | Non
     ``(B, V, 3W)`` int32 histograms, then folded spacing by spacing (a static loop); every sum
     is an integer below ``2**31``, so the scores are the reference's. Peak memory: the
     histograms, ``4 V (3W + d_max)`` bytes per image (0.5 MB at 320x240), plus the table.
-    ``prior``: section 11.7's; where it restricts, only the VPs of :func:`vp_near` compete.
     """
     bsz, h, w = mask.shape
     dev = mask.device
@@ -243,8 +230,6 @@ def vp_search(mask: torch.Tensor, params: Params, prior: LatticePriorBatch | Non
         anti = cs[..., a + 2 * hw + 1:a + 2 * hw + 1 + d] - cs[..., a:a + d]
         best = torch.maximum(best, (tooth - anti).amax(dim=2))
     seen = total > 0
-    if prior is not None:
-        seen = seen & vp_near(grid, prior.vp, prior.restrict, params)
     value = torch.where(seen, best.to(torch.float64) / torch.clamp(total, min=1).to(torch.float64),
                         torch.full_like(total, -math.inf, dtype=torch.float64))
     pick = grid[torch.argmax(value, dim=1)]  # first maximum: the grid's order
@@ -503,8 +488,12 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, 
     bsz, h, w = mask.shape
     params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
     dev = mask.device
-    if params.lattice_vp == "search":
-        v = vp_search(mask, params, prior)
+    if params.lattice_vp == "search" and prior is not None:
+        v = prior.vp
+        if bool((~prior.restrict).any()):  # the grid search, skipped when every image is tracked (11.7)
+            v = torch.where(prior.restrict.view(-1, 1), prior.vp, vp_search(mask, params))
+    elif params.lattice_vp == "search":
+        v = vp_search(mask, params)
     elif vp is None or has_vp is None:
         raise ValueError(f"lattice_vp={params.lattice_vp!r} needs section 6's vp and has_vp, got None")
     else:
