@@ -153,6 +153,21 @@ HOUGH_MARK = (255, 80, 0)
 LATERAL = (255, 255, 0)
 
 
+def _lateral_arrow(img: np.ndarray, result, scale: int) -> bool:
+    """The image centre's tick at the bottom of ``img`` and, when the frame has ``lateral_px``,
+    an arrow from it to the central row's bottom x (in place); returns whether it has one."""
+    import cv2
+
+    h = img.shape[0]
+    cx = int(round(result.width / 2 * scale))
+    cv2.line(img, (cx, h - 1), (cx, h - 25), (255, 255, 255), 1, cv2.LINE_AA)
+    if result.lateral_px is None:
+        return False
+    xr = int(round((result.width / 2 + result.lateral_px) * scale))
+    cv2.arrowedLine(img, (cx, h - 12), (xr, h - 12), LATERAL, 2, cv2.LINE_AA, tipLength=0.2)
+    return True
+
+
 def draw_frame(rgb: np.ndarray, result, scale: int = 2, row_id: int | None = None) -> np.ndarray:
     """Annotated frame: :func:`torchrow.apps.annotate.draw_result` plus a Hough-frame marker, the
     steering signals as text (only those the frame has: ``heading_rad`` needs ``--fov`` or
@@ -170,7 +185,7 @@ def draw_frame(rgb: np.ndarray, result, scale: int = 2, row_id: int | None = Non
     from torchrow.apps.annotate import draw_result, legend, legend_entries
 
     img = draw_result(rgb, result, scale, with_legend=False)
-    h, w = img.shape[:2]
+    w = img.shape[1]
     font = cv2.FONT_HERSHEY_SIMPLEX
 
     def signal(label: str, parts: list[str]) -> str | None:
@@ -193,12 +208,8 @@ def draw_frame(rgb: np.ndarray, result, scale: int = 2, row_id: int | None = Non
         (tw, th), base = cv2.getTextSize(label, font, 0.6, 2)
         cv2.rectangle(img, (w - tw - 14, 2), (w - 2, th + base + 10), HOUGH_MARK, -1)
         cv2.putText(img, label, (w - tw - 8, th + 6), font, 0.6, (255, 255, 255), 2, cv2.LINE_AA)
-    cx = int(round(result.width / 2 * scale))
-    cv2.line(img, (cx, h - 1), (cx, h - 25), (255, 255, 255), 1, cv2.LINE_AA)
     entries = legend_entries(result)
-    if result.lateral_px is not None:
-        xr = int(round((result.width / 2 + result.lateral_px) * scale))
-        cv2.arrowedLine(img, (cx, h - 12), (xr, h - 12), LATERAL, 2, cv2.LINE_AA, tipLength=0.2)
+    if _lateral_arrow(img, result, scale):
         entries.append(("arrow", LATERAL, "lateral offset of the central row"))
     entries.append(("line", HOUGH_MARK, "HOUGH: Hough stage ran on this frame"))
     return np.concatenate([img, legend(w, entries)], 0)
@@ -244,7 +255,8 @@ def _box(img: np.ndarray, text: str, x: int, y: int, bg, fg, scale: float = 0.5,
 def _top_view(img: np.ndarray, result, size: int, corner: tuple[int, int]) -> None:
     """A top view of the rows around the camera from ``lateral_m``, ``heading_rad`` and
     ``spacing_m``: forward is up, the camera's nadir a white triangle, the row nearest it thick,
-    the lateral offset a yellow line to it. ``corner`` is the view's top-left pixel."""
+    the lateral offset a yellow line to it, the row end (``row_end_m``) amber across the rows.
+    ``corner`` is the view's top-left pixel."""
     import cv2
 
     from torchrow.apps.annotate import VALID
@@ -266,11 +278,16 @@ def _top_view(img: np.ndarray, result, size: int, corner: tuple[int, int]) -> No
         return int(round(cx + p[0] * px)), int(round(cy - p[1] * px))
 
     rect = (x0 + 1, y0 + 1, size - 2, size - 2)
+    end = result.row_end_m if result.state == "row_end_ahead" else None  # along the rows from the nadir
     for j in range(-4, 5) if spacing else [0]:
         foot = (result.lateral_m + j * (spacing or 0.0)) * normal
-        ok, a, b = cv2.clipLine(rect, pix(foot - 3 * half * along), pix(foot + 3 * half * along))
+        ok, a, b = cv2.clipLine(rect, pix(foot - 3 * half * along), pix(foot + (end or 3 * half) * along))
         if ok:
             cv2.line(img, a, b, VALID, 2 if j == 0 else 1, cv2.LINE_AA)
+    if end is not None:
+        ok, a, b = cv2.clipLine(rect, pix(end * along - 3 * half * normal), pix(end * along + 3 * half * normal))
+        if ok:
+            cv2.line(img, a, b, ROW_END, 2, cv2.LINE_AA)
     ok, a, b = cv2.clipLine(rect, pix(np.zeros(2)), pix(result.lateral_m * normal))
     if ok:
         cv2.line(img, a, b, LATERAL, 2, cv2.LINE_AA)
@@ -280,7 +297,7 @@ def _top_view(img: np.ndarray, result, size: int, corner: tuple[int, int]) -> No
     cv2.putText(img, "top view", (x0 + 4, y0 + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (230, 230, 230), 1, cv2.LINE_AA)
 
 
-def lattice_legend_entries() -> list[tuple[str, tuple[int, int, int], str]]:
+def _lattice_legend() -> list[tuple[str, tuple[int, int, int], str]]:
     """The legend of :func:`draw_lattice_frame`: every mark its frames can show, the same on
     every frame so that the frames of a video keep one size."""
     from torchrow.apps.annotate import INVALID, VALID
@@ -370,17 +387,12 @@ def draw_lattice_frame(rgb: np.ndarray, result, scale: int = 2, row_id: int | No
             y = left[3] + 4
         fg = (255, 255, 255) if sum(bg) < 400 else (0, 0, 0)
         y = _box(img, text, w - 8, y, bg, fg, size, thick, right=True)[3] + 4
-    # the lateral offset at the bottom, as in draw_frame
-    cx = int(round(result.width / 2 * s))
-    cv2.line(img, (cx, h - 1), (cx, h - 25), (255, 255, 255), 1, cv2.LINE_AA)
-    if result.lateral_px is not None:
-        xr = int(round((result.width / 2 + result.lateral_px) * s))
-        cv2.arrowedLine(img, (cx, h - 12), (xr, h - 12), LATERAL, 2, cv2.LINE_AA, tipLength=0.2)
+    _lateral_arrow(img, result, scale)
     if result.lateral_m is not None and result.heading_rad is not None:
         size = max(48, int(0.3 * min(h, w)))
         if h - size - 30 > y + 4 and size + 16 < w:  # below the badges (small pictures: none)
             _top_view(img, result, size, (w - size - 8, h - size - 30))
-    return np.concatenate([img, legend(w, lattice_legend_entries())], 0)
+    return np.concatenate([img, legend(w, _lattice_legend())], 0)
 
 
 def error_frame(width: int, height: int, text: str, scale: int = 2) -> np.ndarray:
