@@ -116,8 +116,10 @@ def test_cli_video_mode_improved(tmp_path, suffix: str) -> None:
         cv2.imwrite(str(d / f"f{i}.png"), cv2.cvtColor(f.image, cv2.COLOR_RGB2BGR))
     (tmp_path / "cam.json").write_text(json.dumps(CAM))
     out = tmp_path / f"v{suffix}"
+    pics = ["--annotate", str(tmp_path / "pics")] if suffix == ".jsonl" else []  # the lattice frames' pictures
     assert main(["video", str(d), "--out", str(out), "--mode", "improved", "--param", "video_width=320",
-                 "--plot", "none", "-q", "--camera", str(tmp_path / "cam.json")]) == 0
+                 "--plot", "none", "-q", "--camera", str(tmp_path / "cam.json"), *pics]) == 0
+    assert len(list(tmp_path.glob("pics/*.png"))) == (3 if pics else 0)
     recs = list(read_records(out))
     assert [r["state"] for r in recs] == ["in_row"] * 3 and [r["row_change"] for r in recs] == [0, 0, 0]
     assert all(abs(r["lateral_m"] - 0.05) < 0.02 and abs(r["heading_rad"]) < math.radians(1) for r in recs)
