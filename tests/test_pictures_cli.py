@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -69,6 +70,10 @@ def test_video_frame_without_fov_has_no_placeholder(monkeypatch):
     assert img.shape[1] == 160 and img.shape[0] > 120
     assert [t for t in seen if t.startswith("heading")] == ["heading -4.0 px"]
     assert "lateral offset +2.0 px / +0.10 rows" in seen and not any(t.endswith("/ -") for t in seen)
+    # a frame with an invalid row and no VP has the same size: a video keeps its first frame's size
+    rows = [dataclasses.replace(r, valid=False) for r in res.rows]
+    other = dataclasses.replace(res, rows=rows, vp=None, lateral_px=None, lateral_frac=None)
+    assert draw_frame(np.full((60, 80, 3), 90, np.uint8), other).shape == img.shape
 
 
 def _lattice_frame(**kw):

@@ -173,7 +173,8 @@ def draw_frame(rgb: np.ndarray, result, scale: int = 2, row_id: int | None = Non
     steering signals as text (only those the frame has: ``heading_rad`` needs ``--fov`` or
     ``--camera``, ``lateral_m`` ``--camera``), the
     central row's bottom x with the lateral offset drawn as an arrow from the image centre, and
-    a legend strip below. ``(H, W, 3)`` uint8 -> ``(scale*H + legend, scale*W, 3)``.
+    a legend strip below, the same on every frame (so a video's frames keep one size).
+    ``(H, W, 3)`` uint8 -> ``(scale*H + legend, scale*W, 3)``.
 
     A frame of the lattice tracker (``result.state`` set, ALGORITHM.md 11.7) is drawn by
     :func:`draw_lattice_frame` instead; ``row_id`` (:class:`torchrow.core.steering.RowId`) only
@@ -182,7 +183,7 @@ def draw_frame(rgb: np.ndarray, result, scale: int = 2, row_id: int | None = Non
         return draw_lattice_frame(rgb, result, scale, row_id)
     import cv2
 
-    from torchrow.apps.annotate import draw_result, legend, legend_entries
+    from torchrow.apps.annotate import HORIZON, INVALID, VALID, VP_COLOR, draw_result, legend
 
     img = draw_result(rgb, result, scale, with_legend=False)
     w = img.shape[1]
@@ -208,10 +209,14 @@ def draw_frame(rgb: np.ndarray, result, scale: int = 2, row_id: int | None = Non
         (tw, th), base = cv2.getTextSize(label, font, 0.6, 2)
         cv2.rectangle(img, (w - tw - 14, 2), (w - 2, th + base + 10), HOUGH_MARK, -1)
         cv2.putText(img, label, (w - tw - 8, th + 6), font, 0.6, (255, 255, 255), 2, cv2.LINE_AA)
-    entries = legend_entries(result)
-    if _lateral_arrow(img, result, scale):
-        entries.append(("arrow", LATERAL, "lateral offset of the central row"))
-    entries.append(("line", HOUGH_MARK, "HOUGH: Hough stage ran on this frame"))
+    _lateral_arrow(img, result, scale)
+    # one legend for every frame: a legend that follows each frame's marks changes the picture's
+    # height, and a video's frames must keep the first one's size
+    entries = [("line", VALID, "detected row"), ("line", INVALID, "invalid row (reason at its foot)"),
+               ("line", HORIZON, "horizon (rows above ignored)"), ("cross", VP_COLOR, "vanishing point"),
+               ("arrow", VP_COLOR, "towards the vanishing point (outside the picture)"),
+               ("arrow", LATERAL, "lateral offset of the central row"),
+               ("line", HOUGH_MARK, "HOUGH: Hough stage ran on this frame")]
     return np.concatenate([img, legend(w, entries)], 0)
 
 
