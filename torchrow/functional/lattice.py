@@ -193,13 +193,29 @@ def vp_table(height: int, width: int, params: Params, device: torch.device) -> t
     return table
 
 
+def _fold_peak(fold: torch.Tensor, d: int, params: Params) -> torch.Tensor:
+    """The best tooth minus anti-tooth of ``(B, V, d)`` int32 folds over the phases, ``(B, V)``.
+
+    With ``h = floor(d lattice_window)`` and ``a = d // 2``, the teeth of every phase ``p < d + a``
+    are differences of one cumulative sum of the circularly extended fold; the anti-tooth of
+    phase ``p`` is the tooth of ``p + a``."""
+    hw = int(math.floor(d * params.lattice_window))
+    a = d // 2
+    zero = torch.zeros(fold.shape[:-1] + (1,), dtype=fold.dtype, device=fold.device)
+    cs = torch.cumsum(torch.cat([zero, fold[..., d - hw:], fold, fold[..., :a + hw + 1]], dim=-1), dim=-1,
+                      dtype=torch.int32)
+    tooth = cs[..., 2 * hw + 1:2 * hw + 1 + d + a] - cs[..., :d + a]
+    return (tooth[..., :d] - tooth[..., a:a + d]).amax(dim=-1)
+
+
 def vp_search(mask: torch.Tensor, params: Params) -> torch.Tensor:
     """Section 11.2 (``lattice_vp == "search"``): per image the grid VP whose folded contrast
     comb is strongest, ``(B, 2)`` int64; see :func:`torchrow.reference.lattice.vp_search`.
 
     The cell counts are scattered once per grid VP (a static loop of ``V`` scatters) into
-    ``(B, V, 3W)`` int32 histograms, then folded spacing by spacing (a static loop); every sum
-    is an integer below ``2**31``, so the scores are the reference's. Peak memory: the
+    ``(B, V, 3W)`` int32 histograms, then folded spacing by spacing (a static loop; a spacing
+    whose double is searched too is folded from that fold, ``2d`` values instead of ``3W``);
+    every sum is an integer below ``2**31``, so the scores are the reference's. Peak memory: the
     histograms, ``4 V (3W + d_max)`` bytes per image (0.5 MB at 320x240), plus the table.
     """
     bsz, h, w = mask.shape
@@ -218,17 +234,19 @@ def vp_search(mask: torch.Tensor, params: Params) -> torch.Tensor:
     hist[:, :, nb] = 0  # the spill bin
     total = hist.sum(dim=2, dtype=torch.int64)
     best = torch.full((bsz, nv), -(2**31) + 1, dtype=torch.int32, device=dev)
-    for d in range(params.lattice_min_spacing, params.lattice_max_spacing + 1, params.lattice_vp_spacing_step):
+    spacings = range(params.lattice_min_spacing, params.lattice_max_spacing + 1, params.lattice_vp_spacing_step)
+    for top in spacings:
+        if 2 * top in spacings:
+            continue  # folded from its double's fold, below
+        d = top
         teeth = -(-nb // d)
         fold = hist[:, :, :teeth * d].view(bsz, nv, teeth, d).sum(dim=2, dtype=torch.int32)
-        hw = int(math.floor(d * params.lattice_window))
-        a = d // 2
-        # teeth of phase p and of p + d//2 as differences of one cumulative sum of the circular fold
-        ext = torch.cat([fold[..., d - hw:], fold, fold[..., :a + hw + 1]], dim=2)
-        cs = torch.nn.functional.pad(torch.cumsum(ext, dim=2, dtype=torch.int32), (1, 0))
-        tooth = cs[..., 2 * hw + 1:2 * hw + 1 + d] - cs[..., :d]
-        anti = cs[..., a + 2 * hw + 1:a + 2 * hw + 1 + d] - cs[..., a:a + d]
-        best = torch.maximum(best, (tooth - anti).amax(dim=2))
+        while True:
+            best = torch.maximum(best, _fold_peak(fold, d, params))
+            if d % 2 or d // 2 not in spacings:
+                break
+            d //= 2
+            fold = fold[..., :d] + fold[..., d:]  # bins = r mod d are those = r or r + d mod 2d
     seen = total > 0
     value = torch.where(seen, best.to(torch.float64) / torch.clamp(total, min=1).to(torch.float64),
                         torch.full_like(total, -math.inf, dtype=torch.float64))
