@@ -116,8 +116,10 @@ def test_cli_video_mode_improved(tmp_path, suffix: str) -> None:
         cv2.imwrite(str(d / f"f{i}.png"), cv2.cvtColor(f.image, cv2.COLOR_RGB2BGR))
     (tmp_path / "cam.json").write_text(json.dumps(CAM))
     out = tmp_path / f"v{suffix}"
+    pics = ["--annotate", str(tmp_path / "pics")] if suffix == ".jsonl" else []  # the lattice frames' pictures
     assert main(["video", str(d), "--out", str(out), "--mode", "improved", "--param", "video_width=320",
-                 "--plot", "none", "-q", "--camera", str(tmp_path / "cam.json")]) == 0
+                 "--plot", "none", "-q", "--camera", str(tmp_path / "cam.json"), *pics]) == 0
+    assert len(list(tmp_path.glob("pics/*.png"))) == (3 if pics else 0)
     recs = list(read_records(out))
     assert [r["state"] for r in recs] == ["in_row"] * 3 and [r["row_change"] for r in recs] == [0, 0, 0]
     assert all(abs(r["lateral_m"] - 0.05) < 0.02 and abs(r["heading_rad"]) < math.radians(1) for r in recs)
@@ -139,3 +141,38 @@ def test_prior_arguments_keep_the_default_search() -> None:
                                        torch.zeros((1, 2), dtype=torch.int64), torch.ones(1, dtype=torch.int64))
     a, b = flattice.fit_lattice(m, zero, None, None, p), flattice.fit_lattice(m, zero, None, None, p, prior)
     assert all(torch.equal(x, y) for x, y in zip(a, b))
+
+
+def test_lattice_vp_both_paths_on_adversarial_coefficients() -> None:
+    # converging, parallel, diverging, clamped near the bottom, non-finite: one rule in both paths
+    from torchrow.functional.lattice_tracking import lattice_vp as tvp
+    from torchrow.reference.lattice_tracking import lattice_vp as rvp
+
+    h = 240
+    coefs = [[160.0, 0.5, 0, 0, 40.0, 0.2, 0], [100.0, -0.3, 0, 0, 50.0, 0.0, 0], [100.0, -0.3, 0, 0, 50.0, -0.1, 0],
+             [10.0, 2.0, 0, 0, 40.0, 1e3, 0], [10.0, 2.0, 0, 0, 40.0, 1e-9, 0], [math.nan, 0.1, 0, 0, 40.0, 0.2, 0],
+             [160.5, 0.0, 0, 0, 30.0, 0.1, 0]]
+    fallback = (7, -9)
+    got = tvp(torch.tensor(coefs, dtype=torch.float64), h, torch.tensor([fallback] * len(coefs)))
+    want = [rvp(c, h, fallback) for c in coefs]
+    assert [tuple(v) for v in got.tolist()] == want
+    assert want[0] == (160 - 100, h - 1 - 200)  # t = -d0 / d1 = -200
+    assert want[1][1] == want[2][1] == h - 1 - 8 * h  # not converging upwards: the far VP
+    assert want[3][1] == h - 1 - h // 4  # clamped: never within a quarter height of the bottom
+    assert want[5] == fallback and want[6] == (160, h - 1 - 300)  # NaN; 160.5 rounds half to even
+
+
+def test_horizon_in_view_tracks_with_vp_heights_inside_the_image() -> None:
+    # a camera tilted 8 deg sees the horizon at image row 57; grid heights on it are admitted and
+    # the tracked VP follows the rows (both paths agree; lateral offset and heading hold)
+    cam = CameraModel.from_json({"height_m": 1.0, "tilt_deg": 8, "hfov_deg": 70}, (320, 180))
+    field = GroundField(plant_radius_m=0.03, seed=2)
+    keys = [CameraPose(0.05, 0.0, 0.0), CameraPose(0.05, 0.0, 1.0)]
+    frames = [render_camera(field, cam, p, frame=i).image for i, p in enumerate(camera_path(keys, 4))]
+    p = Params(video_width=320, mode="improved", lattice_vp_heights=(40, 50, 60, 70), **FORWARD)
+    got = torchrow.Tracker(p, camera=cam).track([frames])[0]
+    same(RefTracker(p, camera=cam).track(frames), got)
+    recs = [r.to_record() for r in got]
+    assert all(r["state"] == "in_row" for r in recs)
+    assert sum(not r["hough_ran"] for r in recs) >= 3  # tracked frames: no VP search
+    assert all(abs(r["lateral_m"] - 0.05) < 0.03 and abs(r["heading_rad"]) < math.radians(1.5) for r in recs)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -69,6 +70,75 @@ def test_video_frame_without_fov_has_no_placeholder(monkeypatch):
     assert img.shape[1] == 160 and img.shape[0] > 120
     assert [t for t in seen if t.startswith("heading")] == ["heading -4.0 px"]
     assert "lateral offset +2.0 px / +0.10 rows" in seen and not any(t.endswith("/ -") for t in seen)
+    # a frame with an invalid row and no VP has the same size: a video keeps its first frame's size
+    rows = [dataclasses.replace(r, valid=False) for r in res.rows]
+    other = dataclasses.replace(res, rows=rows, vp=None, lateral_px=None, lateral_frac=None)
+    assert draw_frame(np.full((60, 80, 3), 90, np.uint8), other).shape == img.shape
+
+
+def _lattice_frame(**kw):
+    """A lattice tracker frame (160x90 working image): rows k = -1, 0, 1 of 3 visible lattice rows."""
+    from torchrow.core.steering import FrameResult
+
+    rows = [Row(a=0.4 * k, b=80.0 + 40 * k, valid=True, reason="") for k in (-1, 0, 1)]
+    lattice = [LatticeRow(k, 0.4 * k, 80.0 + 40 * k, 0.0, 0.0, 0.8) for k in (-1, 0, 1)]
+    base = dict(width=160, height=90, status="ok", rows=rows, lattice_rows=lattice, frame=7, confidence=0.8,
+                lateral_px=0.0, lateral_frac=0.0, lateral_m=0.0, heading_rad=0.05, spacing_m=0.5,
+                state="in_row", row_change=0)
+    base.update(kw)
+    return FrameResult(**base)
+
+
+def test_lattice_frame_shows_state_row_id_and_row_change(monkeypatch):
+    import cv2
+
+    from torchrow.apps.video import STATE_COLORS, TRACKED
+    from torchrow.core.steering import RowId
+
+    seen: list[str] = []
+    real = cv2.putText
+    monkeypatch.setattr(cv2, "putText", lambda img, text, *a, **k: (seen.append(text), real(img, text, *a, **k))[1])
+    rgb = np.full((90, 160, 3), 90, np.uint8)
+
+    def badge(img: np.ndarray, color) -> bool:  # the state badge (its colour is in the legend too)
+        return bool(np.all(img[:180] == color, axis=2).any())
+
+    ids = RowId()
+    assert [ids.update(c) for c in (0, 1, None, 0, -1, -1)] == [0, 1, 1, 1, 0, -1]
+    steady = draw_frame(rgb, _lattice_frame(), row_id=0)
+    assert steady.shape[:2][1] == 320 and steady.shape[0] > 180 and badge(steady, STATE_COLORS["in_row"])
+    assert "row 0" in seen and "IN ROW" in seen and "heading +2.9 deg" in seen
+    # row 0 (x = 80 px) thick and pink; row 1 (x = 0.4 * y + 120 px) thin cyan
+    assert np.all(steady[150, 150:170] == TRACKED, axis=1).sum() >= 3
+    assert (np.abs(steady[150, 290:310].astype(int) - VALID).sum(axis=1) < 120).sum() in (1, 2)
+    change = draw_frame(rgb, _lattice_frame(row_change=1), row_id=1)
+    assert "ROW CHANGE row 0 -> row +1" in seen and "row +1" in seen
+    assert np.all(change[2, :] == TRACKED) and not np.all(steady[2, :] == TRACKED)  # the frame's border flashes
+    seen.clear()
+    end = draw_frame(rgb, _lattice_frame(state="row_end_ahead", row_end_y=60, row_end_m=4.2), row_id=1)
+    assert "ROW END 4.2 m" in seen and badge(end, STATE_COLORS["row_end_ahead"])
+    assert np.all(end[120] == STATE_COLORS["row_end_ahead"], axis=1).sum() > 40  # the dashed mark at image row 60
+    draw_frame(rgb, _lattice_frame(state="row_end_ahead", row_end_y=30, lateral_m=None, heading_rad=None,
+                                   spacing_m=None))
+    assert "ROW END y=30 px" in seen and "row 0 (tracked)" in seen
+    lost = draw_frame(rgb, _lattice_frame(status="weak", state="lost", lateral_px=None, lateral_m=None))
+    assert badge(lost, STATE_COLORS["lost"]) and not np.all(lost[:180] == TRACKED, axis=2).any()
+    # one legend for every frame: the frames of a video keep one size
+    assert steady.shape == change.shape == end.shape == lost.shape
+
+
+def test_lattice_plot_written(tmp_path: Path):
+    from torchrow.apps.video import plot_tracks
+    from torchrow.core.steering import FrameResult
+
+    recs = [_lattice_frame(frame=i, row_change=int(i == 2), hough_ran=i in (0, 3),
+                           state="row_end_ahead" if i >= 3 else "in_row", row_end_y=20 if i >= 3 else None,
+                           row_end_m=3.0 - 0.5 * i if i >= 3 else None).to_record() for i in range(5)]
+    recs.append(FrameResult.failed_frame("s", 5, "f5.png", "unreadable").to_record())
+    # a source with a camera model (metres, degrees) and one without (pixels)
+    plot_tracks({"s": recs, "t": [dict(r, lateral_m=None, heading_rad=None, row_end_m=None) for r in recs]},
+                tmp_path / "plot.png")
+    assert (tmp_path / "plot.png").read_bytes()[:4] == b"\x89PNG"
 
 
 @pytest.mark.parametrize("suffix", [".mp4", ".avi"])

@@ -11,7 +11,7 @@ import numpy as np
 
 from torchrow.core.results import ImageResult, LatticeRow
 
-__all__ = ["draw_result", "save_rgb", "legend", "legend_entries", "row_top", "GT_COLOR"]
+__all__ = ["draw_result", "draw_status", "save_rgb", "legend", "legend_entries", "row_top", "GT_COLOR"]
 
 VALID = (40, 230, 255)  # cyan-ish, readable on green and brown
 INVALID = (255, 60, 60)
@@ -47,7 +47,7 @@ def legend(width: int, entries: Sequence[tuple[str, tuple[int, int, int], str]])
     """A black strip, ``width`` px wide, explaining the marks of a picture.
 
     ``entries`` are ``(kind, rgb, text)`` with kind ``"line"``, ``"thin"`` (a 1-px line),
-    ``"cross"`` or ``"arrow"``. Entries flow left to right and wrap onto new lines.
+    ``"cross"``, ``"arrow"`` or ``"box"`` (a filled square). Entries flow left to right and wrap onto new lines.
     Returns ``(h, width, 3)`` uint8 RGB.
     """
     pad, sw, gap, line_h = 8, 26, 18, 22
@@ -67,6 +67,8 @@ def legend(width: int, entries: Sequence[tuple[str, tuple[int, int, int], str]])
             cv2.drawMarker(strip, (x + sw // 2, yc), color, cv2.MARKER_CROSS, 12, 2, cv2.LINE_AA)
         elif kind == "arrow":
             cv2.arrowedLine(strip, (x, yc), (x + sw, yc), color, 2, cv2.LINE_AA, tipLength=0.4)
+        elif kind == "box":
+            cv2.rectangle(strip, (x + sw // 2 - 7, yc - 7), (x + sw // 2 + 7, yc + 7), color, -1)
         else:
             cv2.line(strip, (x, yc), (x + sw, yc), color, 1 if kind == "thin" else 2, cv2.LINE_AA)
         cv2.putText(strip, text, (x + sw + 6, yc + 5), FONT, 0.45, (235, 235, 235), 1, cv2.LINE_AA)
@@ -110,7 +112,7 @@ def row_top(result: ImageResult, height: int) -> float:
 
 def draw_result(rgb: np.ndarray, result: ImageResult, scale: int = 2,
                 ground_truth: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
-                with_legend: bool = True) -> np.ndarray:
+                with_legend: bool = True, thin_rows: bool = False) -> np.ndarray:
     """Annotated copy of a working image, upscaled by ``scale`` for legibility.
 
     Parameters
@@ -120,6 +122,8 @@ def draw_result(rgb: np.ndarray, result: ImageResult, scale: int = 2,
     scale : integer upscaling of the picture (drawing stays sharp).
     ground_truth : optional list of ``(ys, xs)`` polylines drawn thin in white.
     with_legend : append a strip below the picture that explains every mark on it.
+    thin_rows : draw the valid rows 1 px wide like the other lattice rows (the lattice
+        tracker's frames, :func:`torchrow.apps.video.draw_frame`, emphasise one row instead).
 
     Returns
     -------
@@ -156,13 +160,14 @@ def draw_result(rgb: np.ndarray, result: ImageResult, scale: int = 2,
             continue
         (x0, y0), (x1, y1) = seg
         color = VALID if row.valid else INVALID
+        width = 1 if thin_rows and row.valid else th
         if (row.c != 0.0 or row.e != 0.0) and math.isfinite(row.c) and math.isfinite(row.e):  # a curve: a polyline
             ys = np.linspace(y_top, h - 1, 48)
             pts = np.stack([np.asarray(row.x_at(ys)) * s, ys * s], 1).round().astype(np.int32)
-            cv2.polylines(img, [pts], False, color, th, cv2.LINE_AA)
+            cv2.polylines(img, [pts], False, color, width, cv2.LINE_AA)
             x1 = int(pts[-1, 0])
         else:
-            cv2.line(img, (x0, y0), (x1, y1), color, th, cv2.LINE_AA)
+            cv2.line(img, (x0, y0), (x1, y1), color, width, cv2.LINE_AA)
         if not row.valid:
             labels.append((x1, f"row {i}: {row.reason}"))
     for j, (x, text) in enumerate(sorted(labels)):
@@ -179,11 +184,16 @@ def draw_result(rgb: np.ndarray, result: ImageResult, scale: int = 2,
             ex, ey = cx + (vx - cx) * t, cy + (vy - cy) * t
             sx, sy = cx + (vx - cx) * t * 0.85, cy + (vy - cy) * t * 0.85
             cv2.arrowedLine(img, (int(sx), int(sy)), (int(ex), int(ey)), VP_COLOR, 2, cv2.LINE_AA, tipLength=0.4)
-    label = f"{result.status}  valid rows {sum(r.valid for r in result.rows)}/{len(result.rows)}"
-    _text_box(img, label, (6, 20), (255, 255, 255))
+    draw_status(img, result)
     if with_legend:
         img = np.concatenate([img, legend(img.shape[1], legend_entries(result, bool(ground_truth)))], 0)
     return img
+
+
+def draw_status(img: np.ndarray, result: ImageResult) -> None:
+    """The status label of :func:`draw_result` in the top-left corner of ``img`` (in place)."""
+    label = f"{result.status}  valid rows {sum(r.valid for r in result.rows)}/{len(result.rows)}"
+    _text_box(img, label, (6, 20), (255, 255, 255))
 
 
 def save_rgb(path, rgb: np.ndarray) -> None:

@@ -126,7 +126,6 @@ class Params:
     lattice_min_image_confidence: float = 0.0  # status ok needs the image confidence at least this
     # --- section 11.7 (torchrow extension): the lattice tracker ------------------------------
     lattice_track_every: int = 10  # video: a full (unrestricted) search at least every this many frames
-    lattice_track_vp_steps: int = 1  # prior: grid VPs within this many steps (x and height) of the last VP
     lattice_track_spacing_tol: float = 0.15  # prior: comb spacings within this fraction of the last spacing
     lattice_track_phase_tol: float = 0.25  # prior: a tooth within this fraction of the spacing of the tracked row
     lattice_track_hysteresis: float = 0.1  # row change: the tracked row is (0.5 + this) spacings off the centre
@@ -396,7 +395,7 @@ _RULES: dict[str, Rule] = {
     "lattice_vp": Rule("choice", choices=("search", "section6")),
     "lattice_vp_step": Rule("int", 1, 4096), "lattice_vp_cell": Rule("int", 1, 64),
     "lattice_vp_spacing_step": Rule("int", 1, 4096),
-    "lattice_vp_heights": Rule("ints", -(2**20), -1, why="the grid's VPs lie above the image",
+    "lattice_vp_heights": Rule("ints", -(2**20), 2**20, why="image rows of the grid's VPs",
                                count_why="the search runs one comb per VP"),
     "green_floor": Rule("int", -(2**31) + 1, 2**31 - 1),
     "lattice_vp_max_y": Rule("int", -(2**31) + 1, 2**31 - 1),
@@ -416,7 +415,6 @@ _RULES: dict[str, Rule] = {
     "lattice_min_spacing_px": _F0, "lattice_pivot_tol": Rule("float", 0, 1, why="a fraction of a pivot"),
     "lattice_min_confidence": Rule("float", 0, 1),
     "lattice_track_every": Rule("int", 1, 2**31 - 1),
-    "lattice_track_vp_steps": Rule("int", 0, 4096, why="grid steps"),
     "lattice_track_spacing_tol": Rule("float", 0, 1, why="a fraction of the spacing"),
     "lattice_track_phase_tol": Rule("float", 0, 0.5, why="a fraction of the spacing (0.5: any phase)"),
     "lattice_track_hysteresis": Rule("float", 0, 0.5, why="a fraction of the spacing"),

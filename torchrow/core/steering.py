@@ -59,7 +59,7 @@ import numpy as np
 from torchrow.core.camera import CameraModel, MetricSteering, metric_steering, row_end_distance
 from torchrow.core.results import ImageResult, Row
 
-__all__ = ["LATTICE_STATES", "LatticeTrack",
+__all__ = ["LATTICE_STATES", "LatticeTrack", "RowId",
            "FrameResult", "Steering", "steering", "focal_from_fov", "row_coverage", "confidence", "check_optics"]
 
 
@@ -178,6 +178,27 @@ class LatticeTrack:
     row_end_y: int | None = None
     full_search: bool = True
     redo: bool = False
+
+
+class RowId:
+    """Running identity of the lattice tracker's row 0 in one sequence, for pictures and plots.
+
+    The id is the sum of the ``row_change`` of the sequence's frames so far, counted from 0 at
+    the sequence start: ``row 0`` is the row tracked on frame 0, ``row +1`` the next one to its
+    right in the image, and a row change moves the id by one on the frame that reports it. After
+    a ``lost`` or ``headland`` frame the tracker takes the row nearest the image centre afresh
+    (ALGORITHM.md 11.7), so the count goes on from the last tracked row without proof that it
+    is the same row. Feed every frame of the sequence in order (frames without ``row_change``,
+    e.g. unreadable ones, count 0).
+    """
+
+    def __init__(self) -> None:
+        self.current = 0
+
+    def update(self, row_change: int | None) -> int:
+        """Add one frame's ``row_change`` (``None`` counts 0); returns the id of its row 0."""
+        self.current += int(row_change or 0)
+        return self.current
 
 
 @dataclass

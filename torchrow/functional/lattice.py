@@ -29,11 +29,11 @@ from torchrow.core.io import check_lattice_size, lattice_params
 from torchrow.core.params import VP_SLICE, Params
 from torchrow.core.results import STATUSES
 from torchrow.functional._checks import below_horizon
-from torchrow.functional._flow import repeat
+from torchrow.functional._flow import branch, repeat
 
-__all__ = ["LatticeRows", "LatticePriorBatch", "vp_near", "improved_batch",
+__all__ = ["LatticeRows", "LatticePriorBatch", "improved_batch",
            "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_table",
-           "vp_search", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
+           "vp_search", "comb_table", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
            "normal_equations", "refine", "fit_lattice", "row_polynomials", "visible_rows", "VisibleRows", "improved_rows",
            "improved_status", "LatticeFitBatch"]
 
@@ -79,26 +79,14 @@ class LatticeRows:
 class LatticePriorBatch(NamedTuple):
     """Section 11.7's prior per image (:class:`torchrow.reference.lattice.LatticePrior`): ``centre``
     ``(B,)`` float64, the bottom-row x the central row is chosen nearest to; ``restrict`` ``(B,)``
-    bool, a tracked frame (else a full search); ``vp`` ``(B, 2)`` int64 and ``spacing`` ``(B,)``
-    int64, the previous frame's (read where ``restrict``)."""
+    bool, a tracked frame (else a full search); ``vp`` ``(B, 2)`` int64, the VP the comb uses
+    there (the previous frame's lattice VP, not searched), and ``spacing`` ``(B,)`` int64, the
+    previous comb spacing (both read where ``restrict``)."""
 
     centre: torch.Tensor
     restrict: torch.Tensor
     vp: torch.Tensor
     spacing: torch.Tensor
-
-
-def vp_near(grid: torch.Tensor, vp: torch.Tensor, restrict: torch.Tensor, params: Params) -> torch.Tensor:
-    """Batched :func:`torchrow.reference.lattice.vp_near`: ``(B, V)`` bool, all True where not
-    ``restrict`` or where the previous VP's height is not a grid height."""
-    heights = torch.tensor(params.lattice_vp_heights, dtype=torch.int64, device=grid.device)
-    iy = torch.argmax((grid[:, 1:] == heights.view(1, -1)).to(torch.int64), dim=1)  # (V,)
-    hit = vp[:, 1:] == heights.view(1, -1)  # (B, n_heights)
-    iy_prev = torch.argmax(hit.to(torch.int64), dim=1)
-    s = params.lattice_track_vp_steps
-    near = ((grid[:, 0].view(1, -1) - vp[:, :1]).abs() <= s * params.lattice_vp_step) & (
-        (iy.view(1, -1) - iy_prev.view(-1, 1)).abs() <= s)
-    return near | ~(restrict & hit.any(dim=1)).view(-1, 1)
 
 
 class LatticeFitBatch(NamedTuple):
@@ -208,15 +196,30 @@ def vp_table(height: int, width: int, params: Params, device: torch.device) -> t
     return table
 
 
-def vp_search(mask: torch.Tensor, params: Params, prior: LatticePriorBatch | None = None) -> torch.Tensor:
+def _fold_peak(fold: torch.Tensor, d: int, params: Params) -> torch.Tensor:
+    """The best tooth minus anti-tooth of ``(B, V, d)`` int32 folds over the phases, ``(B, V)``.
+
+    With ``h = floor(d lattice_window)`` and ``a = d // 2``, the teeth of every phase ``p < d + a``
+    are differences of one cumulative sum of the circularly extended fold; the anti-tooth of
+    phase ``p`` is the tooth of ``p + a``."""
+    hw = int(math.floor(d * params.lattice_window))
+    a = d // 2
+    zero = torch.zeros(fold.shape[:-1] + (1,), dtype=fold.dtype, device=fold.device)
+    cs = torch.cumsum(torch.cat([zero, fold[..., d - hw:], fold, fold[..., :a + hw + 1]], dim=-1), dim=-1,
+                      dtype=torch.int32)
+    tooth = cs[..., 2 * hw + 1:2 * hw + 1 + d + a] - cs[..., :d + a]
+    return (tooth[..., :d] - tooth[..., a:a + d]).amax(dim=-1)
+
+
+def vp_search(mask: torch.Tensor, params: Params) -> torch.Tensor:
     """Section 11.2 (``lattice_vp == "search"``): per image the grid VP whose folded contrast
     comb is strongest, ``(B, 2)`` int64; see :func:`torchrow.reference.lattice.vp_search`.
 
     The cell counts are scattered once per grid VP (a static loop of ``V`` scatters) into
-    ``(B, V, 3W)`` int32 histograms, then folded spacing by spacing (a static loop); every sum
-    is an integer below ``2**31``, so the scores are the reference's. Peak memory: the
+    ``(B, V, 3W)`` int32 histograms, then folded spacing by spacing (a static loop; a spacing
+    whose double is searched too is folded from that fold, ``2d`` values instead of ``3W``);
+    every sum is an integer below ``2**31``, so the scores are the reference's. Peak memory: the
     histograms, ``4 V (3W + d_max)`` bytes per image (0.5 MB at 320x240), plus the table.
-    ``prior``: section 11.7's; where it restricts, only the VPs of :func:`vp_near` compete.
     """
     bsz, h, w = mask.shape
     dev = mask.device
@@ -234,20 +237,20 @@ def vp_search(mask: torch.Tensor, params: Params, prior: LatticePriorBatch | Non
     hist[:, :, nb] = 0  # the spill bin
     total = hist.sum(dim=2, dtype=torch.int64)
     best = torch.full((bsz, nv), -(2**31) + 1, dtype=torch.int32, device=dev)
-    for d in range(params.lattice_min_spacing, params.lattice_max_spacing + 1, params.lattice_vp_spacing_step):
+    spacings = range(params.lattice_min_spacing, params.lattice_max_spacing + 1, params.lattice_vp_spacing_step)
+    for top in spacings:
+        if 2 * top in spacings:
+            continue  # folded from its double's fold, below
+        d = top
         teeth = -(-nb // d)
         fold = hist[:, :, :teeth * d].view(bsz, nv, teeth, d).sum(dim=2, dtype=torch.int32)
-        hw = int(math.floor(d * params.lattice_window))
-        a = d // 2
-        # teeth of phase p and of p + d//2 as differences of one cumulative sum of the circular fold
-        ext = torch.cat([fold[..., d - hw:], fold, fold[..., :a + hw + 1]], dim=2)
-        cs = torch.nn.functional.pad(torch.cumsum(ext, dim=2, dtype=torch.int32), (1, 0))
-        tooth = cs[..., 2 * hw + 1:2 * hw + 1 + d] - cs[..., :d]
-        anti = cs[..., a + 2 * hw + 1:a + 2 * hw + 1 + d] - cs[..., a:a + d]
-        best = torch.maximum(best, (tooth - anti).amax(dim=2))
+        while True:
+            best = torch.maximum(best, _fold_peak(fold, d, params))
+            if d % 2 or d // 2 not in spacings:
+                break
+            d //= 2
+            fold = fold[..., :d] + fold[..., d:]  # bins = r mod d are those = r or r + d mod 2d
     seen = total > 0
-    if prior is not None:
-        seen = seen & vp_near(grid, prior.vp, prior.restrict, params)
     value = torch.where(seen, best.to(torch.float64) / torch.clamp(total, min=1).to(torch.float64),
                         torch.full_like(total, -math.inf, dtype=torch.float64))
     pick = grid[torch.argmax(value, dim=1)]  # first maximum: the grid's order
@@ -255,16 +258,58 @@ def vp_search(mask: torch.Tensor, params: Params, prior: LatticePriorBatch | Non
     return torch.where(seen.any(dim=1, keepdim=True), pick, fallback.expand_as(pick))
 
 
+_CombTable = tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple[torch.Tensor, ...], tuple[torch.Tensor, ...]]
+_COMB_TABLES: dict[tuple, _CombTable] = {}
+
+
+def comb_table(width: int, params: Params, device: torch.device) -> _CombTable:
+    """The comb's candidate tables for ``width``-px images, built once per size, spacing range and
+    window, and cached: ``d``, ``p`` ``(Q,)`` int64 (candidate ``q``'s spacing and bin phase, in
+    spacing then phase order); ``hws`` ``(G,)`` int64 (the distinct tooth half-widths); per
+    half-width group ``g`` the spacings' rows ``rows[g]`` and ``tooth[g]``, ``anti[g]`` ``(n_g, 3W)``
+    int64: the candidate each bin's tooth window counts towards (``off_d + b mod d``) and the one
+    its window counts against as an anti-tooth (``off_d + (b - d//2) mod d`` for ``b >= d//2``,
+    else the spill index ``Q``). ``16 n_d 3W`` bytes (7 MB at 500 px, spacings 16..320)."""
+    key = (width, params.lattice_min_spacing, params.lattice_max_spacing, params.lattice_window, str(device))
+    table = _COMB_TABLES.get(key)
+    if table is None:
+        nb = 3 * width
+        spacings = list(range(params.lattice_min_spacing, params.lattice_max_spacing + 1))
+        hw_of = [int(math.floor(d * params.lattice_window)) for d in spacings]
+        b = torch.arange(nb, dtype=torch.int64, device=device)
+        off = 0
+        dq, pq, tooth, anti = [], [], [], []
+        for d in spacings:
+            dq.append(torch.full((d,), d, dtype=torch.int64, device=device))
+            pq.append(torch.arange(d, dtype=torch.int64, device=device))
+            tooth.append(off + b % d)
+            anti.append(torch.where(b >= d // 2, off + (b - d // 2) % d, torch.full_like(b, -1)))
+            off += d
+        anti = [torch.where(a < 0, torch.full_like(a, off), a) for a in anti]
+        hws = sorted(set(hw_of))
+        groups = [[i for i, h in enumerate(hw_of) if h == g] for g in hws]
+        table = (torch.cat(dq), torch.cat(pq), torch.tensor(hws, dtype=torch.int64, device=device),
+                 tuple(torch.stack([tooth[i] for i in grp]) for grp in groups),
+                 tuple(torch.stack([anti[i] for i in grp]) for grp in groups))
+        if not torch.compiler.is_exporting():  # never cache a tensor traced by torch.export
+            _COMB_TABLES.clear()  # one size at a time: a video or a batch has one working size
+            _COMB_TABLES[key] = table
+    return table
+
+
 def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params, prior: LatticePriorBatch | None = None):
     """Section 11.2 per image: ``(spacing, phase, found, contrast)``, each ``(B,)`` (int64, int64,
     bool, float64; ``contrast`` = the best score per binned pixel, 0 without pixels).
 
-    The candidates are scored spacing by spacing (a static loop over
-    ``lattice_min_spacing .. lattice_max_spacing``): every phase's teeth are one strided sum
-    of the windowed histogram, its anti-teeth (``lattice_comb == "contrast"``) the same sum of
-    the windowed histogram shifted by ``d // 2`` bins. ``prior`` (section 11.7): the central row
-    is the tooth nearest ``prior.centre``, and where ``prior.restrict`` only the candidates of
-    :func:`torchrow.reference.lattice.comb_near` compete (a mask per spacing).
+    Every candidate is scored at once: each bin's tooth window (the pixels within the tooth
+    half-width of it, one prefix-sum difference per distinct half-width) is scatter-added to the
+    candidate whose teeth it is on and, with ``lattice_comb == "contrast"``, subtracted from the one
+    whose anti-teeth (``d // 2`` bins on) it is on (:func:`comb_table`; integer sums, so the scores
+    are the reference's). ``prior`` (section 11.7): the central row is the tooth nearest
+    ``prior.centre``, and where ``prior.restrict`` only the candidates of
+    :func:`torchrow.reference.lattice.comb_near` compete. Peak memory per image: the ``(Q + 1)``
+    int64 scores and float64 masks, ``32 Q`` bytes (1.6 MB at 500 px, spacings 16..320), and
+    the ``(G, 3W)`` windows.
     """
     bsz, h, w = mask.shape
     dev = mask.device
@@ -284,45 +329,37 @@ def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params, prior: Lat
     hist.scatter_add_(1, bins.flatten(1), keep.flatten(1).to(torch.int64))
     n = keep.flatten(1).sum(dim=1)  # (B,)
     cs = torch.cat([torch.zeros((bsz, 1), dtype=torch.int64, device=dev), torch.cumsum(hist, dim=1)], dim=1)
+    d_all, p_all, hws, tooth, anti = comb_table(w, params, dev)
     centre = torch.arange(nb, device=dev)
-    scores, ds, ps = [], [], []
-    windows: dict[int, torch.Tensor] = {}
+    lo = torch.clamp(centre.view(1, -1) - hws.view(-1, 1), 0, nb)
+    hi = torch.clamp(centre.view(1, -1) + hws.view(-1, 1) + 1, 0, nb)
+    win = cs[:, hi] - cs[:, lo]  # (B, G, 3W): pixels in the tooth of each half-width centred on each bin
+    acc = torch.zeros((bsz, d_all.numel() + 1), dtype=torch.int64, device=dev)  # + the anti-teeth's spill
+    for g in range(hws.numel()):
+        src = win[:, g].unsqueeze(1).expand(bsz, tooth[g].shape[0], nb)
+        acc.scatter_add_(1, tooth[g].view(1, -1).expand(bsz, -1), src.reshape(bsz, -1))
+        if params.lattice_comb == "contrast":
+            acc.scatter_add_(1, anti[g].view(1, -1).expand(bsz, -1), -src.reshape(bsz, -1))
+    d_f = d_all.to(torch.float64)
+    if params.lattice_comb == "contrast":
+        allsc = acc[:, :-1].to(torch.float64)
+    else:
+        hw_d = torch.floor(d_f * params.lattice_window).to(torch.int64)
+        expect = (n.view(-1, 1) * (2 * hw_d + 1)).to(torch.float64) / d_f
+        allsc = acc[:, :-1].to(torch.float64) - expect
     if prior is not None:
         target = prior.centre.to(torch.float64).view(-1, 1)
         d_prev = prior.spacing.view(-1, 1)
-    for d in range(params.lattice_min_spacing, params.lattice_max_spacing + 1):
-        hw = int(math.floor(d * params.lattice_window))
-        win = windows.get(hw)
-        if win is None:
-            lo = torch.clamp(centre - hw, 0, nb)
-            hi = torch.clamp(centre + hw + 1, 0, nb)
-            win = cs[:, hi] - cs[:, lo]  # (B, 3W): pixels in the tooth centred on each bin
-            windows[hw] = win
-        teeth = -(-nb // d)
-        padded = torch.cat([win, torch.zeros((bsz, teeth * d - nb), dtype=torch.int64, device=dev)], dim=1)
-        cap = padded.view(bsz, teeth, d).sum(dim=1)  # (B, d): phase p sums bins p, p+d, ...
-        if params.lattice_comb == "contrast":
-            # anti-tooth centres p + d//2 + j d < 3W: the same strided sum, d//2 bins on
-            shifted = torch.cat([padded[:, d // 2:], torch.zeros((bsz, d // 2), dtype=torch.int64, device=dev)], dim=1)
-            scores.append((cap - shifted.view(bsz, teeth, d).sum(dim=1)).to(torch.float64))
-        else:
-            expect = (n * (2 * hw + 1)).to(torch.float64) / float(d)
-            scores.append(cap.to(torch.float64) - expect.unsqueeze(1))
-        if prior is not None:
-            df = float(d)
-            rel = target - (torch.arange(d, dtype=torch.int64, device=dev) - w).to(torch.float64).view(1, -1)
-            off = rel - df * torch.round(rel / df)
-            near_d = (d - d_prev).to(torch.float64).abs() <= params.lattice_track_spacing_tol * d_prev.to(torch.float64)
-            near = near_d & (off.abs() <= params.lattice_track_phase_tol * df)
-            near = near | ~prior.restrict.view(-1, 1)
-            scores[-1] = torch.where(near, scores[-1], torch.full_like(scores[-1], -math.inf))
-        ds.append(torch.full((d,), d, dtype=torch.int64, device=dev))
-        ps.append(torch.arange(d, dtype=torch.int64, device=dev))
-    allsc = torch.cat(scores, dim=1)
+        rel = target - (p_all - w).to(torch.float64).view(1, -1)
+        off = rel - d_f * torch.round(rel / d_f)
+        near_d = (d_all - d_prev).to(torch.float64).abs() <= params.lattice_track_spacing_tol * d_prev.to(torch.float64)
+        near = near_d & (off.abs() <= params.lattice_track_phase_tol * d_f)
+        near = near | ~prior.restrict.view(-1, 1)
+        allsc = torch.where(near, allsc, torch.full_like(allsc, -math.inf))
     q = torch.argmax(allsc, dim=1)  # first maximum: spacing, then phase order
     best = torch.gather(allsc, 1, q.unsqueeze(1)).squeeze(1)
-    d_q = torch.cat(ds)[q]
-    p_q = torch.cat(ps)[q] - w
+    d_q = d_all[q]
+    p_q = p_all[q] - w
     centre = torch.full((bsz,), float(w) / 2, dtype=torch.float64, device=dev) if prior is None else prior.centre
     k0 = torch.round((centre - p_q.to(torch.float64)) / d_q.to(torch.float64)).to(torch.int64)
     found = n > 0
@@ -474,13 +511,21 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, 
     so the normal equations equal the reference's bit for bit. Memory: two ``(B, H, W+1)``
     int64 prefix sums (about 40 MB each for 64 images of 320x240) besides the mask; a step's
     own temporaries are ``(B, H, 2K+1)``. ``prior``: section 11.7's (the lattice tracker);
-    ``flow``: :func:`refine`'s.
+    ``flow``: how the grid search (which tracked images skip) and :func:`refine` skip work
+    (:mod:`torchrow.functional._flow`; results never depend on it).
     """
     bsz, h, w = mask.shape
     params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
     dev = mask.device
-    if params.lattice_vp == "search":
-        v = vp_search(mask, params, prior)
+    if params.lattice_vp == "search" and prior is not None:
+        def search(mask, restrict, vp):
+            return (torch.where(restrict.view(-1, 1), vp, vp_search(mask, params)),)
+
+        # the grid search, skipped when every image is tracked (11.7)
+        v = branch(flow, (~prior.restrict).any(), search, lambda mask, restrict, vp: (vp.clone(),),
+                   (mask, prior.restrict, prior.vp))[0]
+    elif params.lattice_vp == "search":
+        v = vp_search(mask, params)
     elif vp is None or has_vp is None:
         raise ValueError(f"lattice_vp={params.lattice_vp!r} needs section 6's vp and has_vp, got None")
     else:
@@ -571,7 +616,7 @@ def improved_rows(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | No
 
     ``sky (B,)`` is section 1's row (any values when ``lattice_horizon="image"``: not used); the
     lattice starts at :func:`horizon_row`. ``prior``: section 11.7's (the lattice tracker);
-    ``flow``: how :func:`refine` ends (:mod:`torchrow.functional._flow`; results never depend on it).
+    ``flow``: :func:`fit_lattice`'s.
     """
     h = images.shape[2]
     top = horizon_row(sky, params)

@@ -26,7 +26,8 @@ from torchrow.functional._flow import branch
 from torchrow.functional.lattice import LatticePriorBatch, LatticeRows
 from torchrow.functional.ransac import image_status
 
-__all__ = ["LatticeTrackerState", "LatticeStep", "lattice_advance", "row_end", "resolvable_row", "records"]
+__all__ = ["LatticeTrackerState", "LatticeStep", "lattice_advance", "row_end", "resolvable_row", "lattice_vp",
+           "records"]
 
 _OK = STATUSES.index("ok")
 _CODE = {s: i for i, s in enumerate(LATTICE_STATES)}
@@ -38,8 +39,8 @@ class LatticeTrackerState:
 
     ``ready`` bool: a frame was seen; ``frames``/``age`` int64 (frames processed; since the last
     full search, that frame counting 1); ``last`` int64: the previous frame's state code
-    (:data:`~torchrow.core.steering.LATTICE_STATES`, -1 before frame 0); ``vp`` ``(B, 2)`` int64 and
-    ``spacing`` int64: its grid VP and comb spacing; ``centre`` float64 with ``has_centre`` bool:
+    (:data:`~torchrow.core.steering.LATTICE_STATES`, -1 before frame 0); ``vp`` ``(B, 2)`` int64:
+    its lattice VP (:func:`lattice_vp`); ``spacing`` int64: its comb spacing; ``centre`` float64 with ``has_centre`` bool:
     the tracked row's bottom-row x for the next frame; ``pending`` int64: the row change the next
     frame reports.
     """
@@ -124,6 +125,19 @@ def resolvable_row(coef: torch.Tensor, height: int, params: Params) -> torch.Ten
     return torch.where(ok.any(dim=1), first, torch.full_like(first, height))
 
 
+def lattice_vp(coef: torch.Tensor, height: int, fallback: torch.Tensor) -> torch.Tensor:
+    """Batched :func:`torchrow.reference.lattice_tracking.lattice_vp` of ``coef (B, 7)`` float64:
+    ``(B, 2)`` int64, ``fallback`` ``(B, 2)`` int64 where not finite."""
+    c0, c1, d0, d1 = coef[:, 0], coef[:, 1], coef[:, 4], coef[:, 5]
+    far, near = -float(8 * height), -float(height) / 4
+    pos = d1 > 0
+    t = torch.where(pos, torch.clamp(-d0 / torch.where(pos, d1, torch.ones_like(d1)), min=far, max=near),
+                    torch.full_like(d1, far))
+    xy = torch.stack([c0 + c1 * t, float(height - 1) + t], dim=1)
+    fine = torch.isfinite(xy).all(dim=1, keepdim=True)
+    return torch.where(fine, torch.round(torch.where(fine, xy, torch.zeros_like(xy))).to(torch.int64), fallback)
+
+
 def _lattice(images: torch.Tensor, prior: LatticePriorBatch, params: Params,
              flow: str) -> tuple[LatticeRows, torch.Tensor]:
     """Section 11 with the prior: rows and status codes (as the detector's improved mode)."""
@@ -139,11 +153,11 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
     their step entries are meaningless).
 
     ``flow`` (:mod:`torchrow.functional._flow`) says how work no sequence needs is skipped:
-    eagerly (``"sync"``) the redo pass runs only when some sequence needs it and the refits
-    end once every image has stopped; in an exported graph (``"loop"``,
-    :class:`torchrow.onnx.graphs.StaticLatticeStep`) the redo pass is an ONNX ``If`` and the
-    refits an ONNX ``Loop``; ``"always"`` runs both to their static bounds, masked. Results
-    never depend on it."""
+    eagerly (``"sync"``) the redo pass and the VP grid search run only when some sequence
+    needs them and the refits end once every image has stopped; in an exported graph
+    (``"loop"``, :class:`torchrow.onnx.graphs.StaticLatticeStep`) the redo pass and the grid
+    search are ONNX ``If`` nodes and the refits ONNX ``Loop`` nodes; ``"always"`` runs all of
+    them to their static bounds, masked. Results never depend on it."""
     h, w = images.shape[2], images.shape[3]
     tracked = state.ready & state.has_centre
     full = ~tracked | (state.age >= params.lattice_track_every)
@@ -186,12 +200,12 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
     searched_full = full | redo
     new = LatticeTrackerState(
         ready=torch.ones_like(state.ready), frames=state.frames + 1,
-        age=torch.where(searched_full, one, state.age + 1), last=code, vp=rows.vp, spacing=rows.spacing,
+        age=torch.where(searched_full, one, state.age + 1), last=code, vp=lattice_vp(rows.coef, h, rows.vp),
+        spacing=rows.spacing,
         centre=x0 + pend.to(torch.float64) * d0, has_centre=keep, pending=torch.where(keep, pend, torch.zeros_like(pend)))
     new = _where(active, new, state)
     end = torch.where(code == _CODE["row_end_ahead"], y_end, torch.full_like(y_end, -1))
     return LatticeStep(rows, status, code, change, end, searched_full, redo, active), new
-
 
 
 def records(step: LatticeStep, state: LatticeTrackerState, width: int, height: int, params: Params,

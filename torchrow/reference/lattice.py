@@ -28,7 +28,7 @@ from torchrow.core.io import lattice_params
 from torchrow.core.params import VP_SLICE, Params
 from torchrow.core.results import ImageResult, LatticeRow, Row
 
-__all__ = ["LatticeFit", "LatticePrior", "vp_near", "comb_near",
+__all__ = ["LatticeFit", "LatticePrior", "comb_near",
            "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_grid",
            "vp_cells", "vp_search", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
            "normal_equations", "refine", "fit_lattice", "improved_status", "lattice_rows", "row_polynomial",
@@ -47,24 +47,13 @@ class LatticePrior:
     """The lattice tracker's prior for one frame (section 11.7).
 
     ``centre``: bottom-row x (px) the central row is chosen nearest to (``W/2`` without a tracked
-    row). ``vp``/``spacing``: the previous frame's grid VP and comb spacing; ``None`` = a full
-    search (no restriction of the VP grid or the comb)."""
+    row). ``vp``/``spacing``: on a tracked frame the VP the comb uses (the previous frame's
+    lattice VP, not searched) and the previous comb spacing; ``None`` = a full search (the VP
+    grid searched, the comb unrestricted)."""
 
     centre: float
     vp: tuple[int, int] | None = None
     spacing: int | None = None
-
-
-def vp_near(grid: np.ndarray, vp: tuple[int, int], params: Params) -> np.ndarray:
-    """Section 11.7: the grid VPs searched on a tracked frame, ``(V,)`` bool: ``|xv - xv'| <=
-    s lattice_vp_step`` and height indices within ``s`` of the previous VP's, ``s =
-    lattice_track_vp_steps``; every VP when the previous one's height is not a grid height."""
-    heights = list(params.lattice_vp_heights)
-    if vp[1] not in heights:
-        return np.ones(grid.shape[0], bool)
-    iy = np.array([heights.index(int(y)) for y in grid[:, 1]], np.int64)
-    s = params.lattice_track_vp_steps
-    return (np.abs(grid[:, 0] - vp[0]) <= s * params.lattice_vp_step) & (np.abs(iy - heights.index(vp[1])) <= s)
 
 
 def comb_near(d: np.ndarray, p: np.ndarray, width: int, prior: LatticePrior, params: Params) -> np.ndarray:
@@ -195,7 +184,7 @@ def vp_cells(height: int, width: int, params: Params) -> tuple[np.ndarray, np.nd
     return yc, xc
 
 
-def vp_search(mask: np.ndarray, params: Params, near: tuple[int, int] | None = None) -> tuple[int, int]:
+def vp_search(mask: np.ndarray, params: Params) -> tuple[int, int]:
     """Section 11.2: the grid VP whose folded contrast comb is strongest (``lattice_vp == "search"``).
 
     The green pixels are counted in cells (:func:`vp_cells`). For each VP of :func:`vp_grid`,
@@ -208,8 +197,7 @@ def vp_search(mask: np.ndarray, params: Params, near: tuple[int, int] | None = N
     holds ``F[(p-h) mod d] + ... + F[(p+h) mod d]`` and its anti-tooth is the tooth of phase
     ``(p + d // 2) mod d``. The VP scores ``max_{d,p} (tooth - anti-tooth) / n`` (integer
     numerator and denominator, one float64 division); the highest wins, the first on ties.
-    Without a binned count at any VP: ``(W // 2, lattice_vp_fallback_y)``. ``near``: section 11.7's
-    previous VP; only the grid VPs of :func:`vp_near` compete.
+    Without a binned count at any VP: ``(W // 2, lattice_vp_fallback_y)``.
     """
     h, w = mask.shape
     s = params.lattice_vp_cell
@@ -246,10 +234,6 @@ def vp_search(mask: np.ndarray, params: Params, near: tuple[int, int] | None = N
         tooth = cs[:, 2 * hw + 1:2 * hw + 1 + d] - cs[:, :d]
         best = np.maximum(best, (tooth - np.roll(tooth, -(d // 2), axis=1)).max(axis=1))
     seen = total > 0
-    if near is not None:
-        seen &= vp_near(grid, near, params)
-        if not seen.any():
-            return w // 2, params.lattice_vp_fallback_y
     value = np.where(seen, best.astype(np.float64) / np.maximum(total, 1).astype(np.float64), -np.inf)
     q = int(np.argmax(value))
     return int(grid[q, 0]), int(grid[q, 1])
@@ -500,12 +484,12 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
     a straight and a curved refine, both from the start, the curved one kept only where its inlier
     pixels exceed ``(1 + lattice_curve_gain)`` times the straight lattice's (float64), so
     straight rows stay straight unless the pixels demand a bend. ``prior``: section 11.7's
-    restriction of the VP search and the comb on a tracked frame.
+    tracked frame (its VP instead of the search, the comb restricted).
     """
     h, w = mask.shape
     params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
     if params.lattice_vp == "search":
-        v = vp_search(mask, params, None if prior is None else prior.vp)
+        v = vp_search(mask, params) if prior is None or prior.vp is None else prior.vp
     else:
         v = init_vp(vp, w, params)
     d, phase, found, contrast = comb_search(mask, v, params, prior)

@@ -1,7 +1,8 @@
 """Reference lattice tracker (ALGORITHM.md 11.7, torchrow extension), one sequence, plain loop.
 
 The improved mode's lattice (section 11) carried from frame to frame: the previous frame's
-grid VP, comb spacing and tracked row restrict the next frame's search (a prior), the central
+lattice VP, comb spacing and tracked row are the next frame's prior (its VP is not searched,
+its comb is restricted), the central
 row keeps its identity, and each frame gets a state (``in_row``, ``row_end_ahead``,
 ``headland``, ``lost``) and a ``row_change``. The batched twin is
 :mod:`torchrow.functional.lattice_tracking`; both follow the same rules, stated in the spec.
@@ -21,7 +22,7 @@ from torchrow.core.params import Params
 from torchrow.core.steering import FrameResult, LatticeTrack, check_optics
 from torchrow.reference.lattice import LatticePrior, centre_spacing, horizon_row, improved_result, improved_rows
 
-__all__ = ["LatticeSequenceState", "LatticeTracker", "row_end", "resolvable_row", "check_lattice_tracker"]
+__all__ = ["LatticeSequenceState", "LatticeTracker", "row_end", "resolvable_row", "lattice_vp", "check_lattice_tracker"]
 
 
 def check_lattice_tracker(params: Params) -> None:
@@ -57,6 +58,25 @@ def resolvable_row(coef: Iterable[float], height: int, params: Params) -> int:
     return int(np.argmax(ok)) if ok.any() else height
 
 
+def lattice_vp(coef: Iterable[float], height: int, fallback: tuple[int, int]) -> tuple[int, int]:
+    """Section 11.7: where the fitted rows converge, the next tracked frame's VP (int px).
+
+    From the lattice's terms of degree at most one at the bottom (``c0, c1, d0, d1``), ``d(t) = 0``
+    at ``t = -d0 / d1``, clamped to ``[-8 H, -H / 4]`` (``-8 H`` where ``d1 <= 0``: rows that do
+    not converge upwards keep their bottom direction through a far VP); the VP is
+    ``(round_half_even(c0 + c1 t), round_half_even((H-1) + t))`` (float64, this order),
+    ``fallback`` (the comb's VP) where that is not finite.
+    """
+    c = np.asarray(tuple(coef), np.float64)
+    c0, c1, d0, d1 = c[0], c[1], c[4], c[5]
+    far, near = -np.float64(8 * height), -np.float64(height) / 4
+    t = min(max(-d0 / d1, far), near) if d1 > 0 else far
+    x, y = c0 + c1 * t, np.float64(height - 1) + t
+    if not (np.isfinite(x) and np.isfinite(y)):
+        return fallback
+    return int(np.rint(x)), int(np.rint(y))
+
+
 def frame_state(status: str, last: str | None, y_end: int | None, y_res: int, height: int, params: Params) -> str:
     """Section 11.7's state of a frame: ``lost`` / ``headland`` when not ``ok``, else by the row end."""
     if status != "ok":
@@ -73,7 +93,8 @@ class LatticeSequenceState:
     """What the lattice tracker carries for one sequence (11.7).
 
     ``frames``: frames processed; ``age``: frames since the last full search (that frame counts
-    1); ``last``: the previous frame's state; ``vp``/``spacing``: its grid VP and comb spacing;
+    1); ``last``: the previous frame's state; ``vp``: its lattice VP (:func:`lattice_vp`);
+    ``spacing``: its comb spacing;
     ``centre``: the tracked row's bottom-row x for the next frame (``None``: no identity, the next
     frame starts from ``W/2`` with a full search); ``pending``: the row change the next frame
     reports (its central row is the previous frame's row ``k = pending``).
@@ -151,7 +172,8 @@ class LatticeTracker:
             pending = -1 if off > lim else 1 if off < -lim else 0
             new_centre = float(x0 + np.float64(pending) * d0)
         new = LatticeSequenceState(width=w, height=h, frames=state.frames + 1,
-                                   age=1 if (full or redo) else state.age + 1, last=st, vp=fit.vp,
+                                   age=1 if (full or redo) else state.age + 1, last=st,
+                                   vp=lattice_vp(fit.coef, h, fit.vp),
                                    spacing=fit.spacing, centre=new_centre, pending=pending)
         track = LatticeTrack(st, change, y_end if st == "row_end_ahead" else None, full or redo, redo)
         out = FrameResult.build(res, source=source, frame=state.frames if index is None else index,

@@ -41,7 +41,7 @@ if TYPE_CHECKING:
     from torchrow.apps.video import VideoWriter
     from torchrow.core.frames import FrameSource
     from torchrow.core.rosbag import BagSource
-    from torchrow.core.steering import FrameResult
+    from torchrow.core.steering import FrameResult, RowId
     Source = FrameSource | BagSource
 
 __all__ = ["add_parser", "run", "Tracked", "Recorded"]
@@ -123,7 +123,8 @@ def _open_sources(raw: Sequence[str], topic: str | None = None) -> list[Source]:
 class _Annotator:
     """Writes annotated frames: one video per source (``OUT.mp4``: H.264; ``OUT.avi``: MJPG) or
     PNGs in a folder. A video's frame rate is ``fps`` if given, else its source's (a video file's
-    own rate; ``DEFAULT_FPS`` for a folder of frames)."""
+    own rate; ``DEFAULT_FPS`` for a folder of frames). Lattice tracker frames name their tracked
+    row by its running id (:class:`torchrow.core.steering.RowId`, one per source)."""
 
     VIDEO = (".mp4", ".avi", ".mov", ".mkv", ".m4v")
 
@@ -132,6 +133,7 @@ class _Annotator:
         self.is_video = self.target is not None and self.target.suffix.lower() in self.VIDEO
         self.writers: dict[int, VideoWriter] = {}
         self.size: dict[int, tuple[int, int]] = {}
+        self.row_ids: dict[int, RowId] = {}
         self.fps: list[float] = [fps or getattr(s, "fps", None) or DEFAULT_FPS for s in sources]
         self.stems = source_stems(sources)
         if self.target is not None:
@@ -160,14 +162,21 @@ class _Annotator:
             return [t]
         return cls._video_paths(t, source_stems(sources))
 
+    def count(self, i: int, res: FrameResult) -> int:
+        """Source ``i``'s running row id after frame ``res`` (every frame counts, drawn or not)."""
+        from torchrow.core.steering import RowId
+
+        return self.row_ids.setdefault(i, RowId()).update(res.row_change)
+
     def write(self, i: int, res: FrameResult, rgb: np.ndarray | None) -> None:
         from torchrow.apps.annotate import save_rgb
         from torchrow.apps.video import VideoWriter, draw_frame, error_frame
 
+        row_id = self.count(i, res)
         if self.target is None:
             return
         if rgb is not None:
-            img = draw_frame(rgb, res)
+            img = draw_frame(rgb, res, row_id=row_id)
             self.size.setdefault(i, (img.shape[1], img.shape[0]))
         elif i in self.size:  # same size as the drawn frames, so that a video keeps its timing
             img = error_frame(*self.size[i], f"frame {res.frame}: {res.error}", scale=1)
@@ -314,6 +323,7 @@ def run(args: argparse.Namespace) -> int:
                 else:
                     i, res, rgb = item
                     if (names[i], res.frame) in sink:
+                        ann.count(i, res)  # not drawn again, but its row change counts for the next ones
                         continue
                     rec = res.to_record()
                     ann.write(i, res, rgb)
