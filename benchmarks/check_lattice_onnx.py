@@ -1,9 +1,13 @@
 """The exported lattice tracker step (improved mode) against torch on every Caterra frame:
-``python benchmarks/check_lattice_onnx.py [--data DIR] [--model M.onnx] [--frames N]``.
+``python benchmarks/check_lattice_onnx.py [--data DIR] [--model M.onnx | --out M.onnx] [--horizon]
+[--frames N]``.
 
 Exports the step at the real working size (500x281, ``Params(mode="improved",
 video_width=500, lattice_model="auto", lattice_min_spacing=16, lattice_max_spacing=320)``,
-batch 1; or uses ``--model``), tracks the frames with :class:`torchrow.Tracker` and with
+batch 1; or uses ``--model``). With these parameters every Caterra frame is ``weak`` (its VP
+lies inside the frame, below the search grid: ALGORITHM.md 11.5), so every frame runs the full
+search; ``--horizon`` adds VP heights on that camera's horizon (105, 125, 145 px), where the
+frames pass as ``ok`` and are tracked, with redos. Tracks the frames with :class:`torchrow.Tracker` and with
 :class:`~torchrow.onnx.runtime.OnnxTracker`, and compares the records (discrete values equal,
 floats within 1e-4) and every field of every step and state (floats within 1e-9). Prints the
 export time, the model's size and op census, and onnxruntime's frames/s on one and on two
@@ -35,23 +39,27 @@ from torchrow.onnx.runtime import OnnxTracker
 
 PARAMS = Params(mode="improved", video_width=500, lattice_model="auto", lattice_min_spacing=16,
                 lattice_max_spacing=320)
+HORIZON = (105, 125, 145)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=None)
     ap.add_argument("--model", default=None, help="an exported lattice tracker step (default: export one)")
+    ap.add_argument("--out", default=None, help="keep the exported model here")
+    ap.add_argument("--horizon", action="store_true", help="VP heights on the Caterra camera's horizon too")
     ap.add_argument("--frames", type=int, default=None, help="the first N frames only")
     args = ap.parse_args()
+    params = PARAMS.replace(lattice_vp_heights=PARAMS.lattice_vp_heights + HORIZON) if args.horizon else PARAMS
     files = sorted((data_root(args.data) / "caterra_video").glob("*.jpg"))[:args.frames]
-    frames = [load_image(f, PARAMS.video_width) for f in files]
+    frames = [load_image(f, params.video_width) for f in files]
     h, w = frames[0].shape[:2]
     print(f"{len(frames)} Caterra frames at {w}x{h}", flush=True)
     tmp = tempfile.TemporaryDirectory()
     if args.model is None:
-        path = Path(tmp.name) / "lattice.onnx"
+        path = Path(args.out) if args.out else Path(tmp.name) / "lattice.onnx"
         t0 = time.perf_counter()
-        to_onnx(path, height=h, width=w, batch=1, params=PARAMS, tracker=True,
+        to_onnx(path, height=h, width=w, batch=1, params=params, tracker=True,
                 progress=lambda phase: print(f"  export: {phase} ({time.perf_counter() - t0:.0f} s)", flush=True))
         print(f"export: {time.perf_counter() - t0:.0f} s", flush=True)
     else:
@@ -59,14 +67,15 @@ def main() -> None:
     info = model_info(path)
     print(f"model: {info['size'] / 2**20:.1f} MiB, {sum(info['ops'].values())} nodes; "
           + ", ".join(f"{k} {v}" for k, v in sorted(info["ops"].items())), flush=True)
-    if info["params"] != PARAMS or (info["height"], info["width"], info["batch"]) != (h, w, 1):
+    if info["params"] != params or (info["height"], info["width"], info["batch"]) != (h, w, 1):
         raise SystemExit(f"{path} was not exported with this script's parameters, size and batch 1")
 
     x = [torch.from_numpy(f).permute(2, 0, 1).unsqueeze(0).contiguous() for f in frames]
-    eager = torchrow.Tracker(PARAMS, workers=1)
+    eager = torchrow.Tracker(params, workers=1)
     ort = OnnxTracker(path, threads=1)
     st_e = st_o = None
     step_problems, record_problems, tracked, redo = [], [], 0, 0
+    states: dict = {}
     for t, xt in enumerate(x):
         step_e, st_e = eager(xt, st_e)
         step_o, st_o = ort(xt, st_o)
@@ -78,7 +87,8 @@ def main() -> None:
         record_problems += [f"frame {t}: {d}" for d in record_differences(rec_e.to_record(), rec_o.to_record(), 1e-4)]
         tracked += int(not bool(step_e.full[0]))
         redo += int(bool(step_e.redo[0]))
-    print(f"parity: {len(x)} frames ({tracked} tracked, {redo} redone in full); records differing: "
+        states[rec_e.state] = states.get(rec_e.state, 0) + 1
+    print(f"parity: {len(x)} frames ({tracked} tracked, {redo} redone in full; states {states}); records differing: "
           f"{len({p.split(':')[0] for p in record_problems})}; steps/states differing: "
           f"{len({p.split(':')[0] for p in step_problems})}", flush=True)
     for p in (record_problems + step_problems)[:10]:

@@ -190,3 +190,24 @@ def test_cli_video_onnx_equals_tensor_and_mode_mismatch(model_path: Path, drive:
     assert main(["export", "onnx", "--out", str(tmp_path / "x.onnx"), "--mode", "improved"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "add --tracker" in err[0]
+
+
+@pytest.mark.heavy
+def test_graph_without_control_flow_equals_the_eager_tracker(drive: list[np.ndarray], tmp_path: Path) -> None:
+    """``control_flow=False``: no ``Loop`` or ``If`` (every refit to ``lattice_iterations``,
+    the grid search and the redo on every frame, masks choose), the same steps. Heavy: the
+    unrolled refits make the export several minutes long."""
+    import onnx
+
+    path = exported(TINY, BATCH, tmp_path, HEIGHT, WIDTH, tracker=True, control_flow=False)
+    ops = op_counts(onnx.load(str(path)))
+    assert ops["If"] == ops["Loop"] == 0, ops
+    tracker, eager = OnnxTracker(path), torchrow.Tracker(TINY, workers=1)
+    st_e = st_o = None
+    problems = []
+    for t in range(len(drive)):
+        x = _tensor([drive[t], drive[-1 - t]])
+        step_e, st_e = eager(x, st_e)
+        step_o, st_o = tracker(x, st_o)
+        problems += [f"frame {t}: {d}" for d in step_differences(step_e, step_o) + step_differences(st_e, st_o)]
+    assert not problems, "\n".join(problems[:20])

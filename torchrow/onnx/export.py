@@ -1,8 +1,9 @@
 """ONNX export of the image-mode detector and of the tracker step: :func:`to_onnx`.
 
 :func:`to_onnx` exports :class:`torchrow.onnx.graphs.StaticDetector` (a static-shape,
-scatter-free formulation of ALGORITHM.md sections 1 and 3-7) or
-:class:`torchrow.onnx.graphs.StaticTrackerStep` with torch's dynamo-based exporter
+scatter-free formulation of ALGORITHM.md sections 1 and 3-7),
+:class:`torchrow.onnx.graphs.StaticTrackerStep` or, in improved mode,
+:class:`torchrow.onnx.graphs.StaticLatticeStep` with torch's dynamo-based exporter
 (``torch.onnx.export(..., dynamo=True)``, opset 18 by default) for one working size and batch
 size, under the exporter shims of :mod:`torchrow.onnx.shims`, then applies the passes of
 :mod:`torchrow.onnx.passes` and stores the torchrow metadata (:mod:`torchrow.onnx.metadata`).
@@ -72,19 +73,24 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
 
     tracker : bool
         Export :class:`torchrow.onnx.graphs.StaticTrackerStep` (one frame of ``B``
-        sequences + their state -> rows + new state; run it with :class:`OnnxTracker`).
-        ``width`` must then equal ``params.video_width`` (set it with ``params``).
+        sequences + their state -> rows + new state; run it with :class:`OnnxTracker`), or
+        with ``params.mode == "improved"`` the lattice tracker step
+        :class:`torchrow.onnx.graphs.StaticLatticeStep` (ALGORITHM.md 11.7; also run by
+        :class:`OnnxTracker`). ``width`` must then equal ``params.video_width`` (set it with
+        ``params``). The detector exports in faithful mode only.
     control_flow : bool
         Skip work no image needs (default): the line search is one ONNX ``Loop`` that stops
         once every image is finished (its body traced and stored once: the export takes
         about a minute, not twenty), and ``If`` nodes skip vote chunks past every image's
         pixel count and, for the tracker, the Hough stage and the tracked fit. ``False``
         gives a graph without ``Loop`` or ``If`` that always runs every step to the static
-        bound and masks the results (slower; same results).
+        bound and masks the results (slower; same results). The lattice tracker step: the
+        refits are ``Loop`` nodes, the VP grid search and the redo pass ``If`` nodes.
     scatter_free : bool
         Vote without ``ScatterElements(reduction="add")`` (prefix sums of constant
         permutations, re-voted at every line-search step) for runtimes without a scatter
-        reduction (TensorRT). Slower on a CPU; same results.
+        reduction (TensorRT). Slower on a CPU; same results. Not for the lattice tracker step
+        (its histograms are scatter-adds).
     progress : callable, optional
         Called with a short phase name (``"trace"``, ``"onnx"``, ``"optimize"``, ``"save"``)
         as each phase of the export starts.
@@ -95,7 +101,9 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         ``path``. The detector has inputs ``images`` uint8 ``(B, 3, H, W)`` and ``veg_lab``
         float64 ``(B, 3)`` and the outputs :data:`torchrow.onnx.graphs.GRAPH_OUTPUTS`;
         the tracker step has the inputs :data:`~torchrow.onnx.graphs.TRACKER_INPUTS`
-        and outputs :data:`~torchrow.onnx.graphs.TRACKER_OUTPUTS`.
+        and outputs :data:`~torchrow.onnx.graphs.TRACKER_OUTPUTS`; the lattice tracker step
+        :data:`~torchrow.onnx.graphs.LATTICE_INPUTS` and
+        :data:`~torchrow.onnx.graphs.LATTICE_OUTPUTS`.
     """
     import json
     import warnings

@@ -1,5 +1,6 @@
 """Static-shape, scatter-free formulation of the image-mode detector and of the tracker step
-(:class:`StaticTrackerStep`, at the end), for ONNX export (:mod:`torchrow.onnx.export`).
+(:class:`StaticTrackerStep`), and the lattice tracker step of the improved mode
+(:class:`StaticLatticeStep`, at the end), for ONNX export (:mod:`torchrow.onnx.export`).
 
 Same results as :class:`torchrow.engines.detector.CropRowDetector` (ALGORITHM.md sections 1 and 3-7),
 written so that ``torch.onnx.export(..., dynamo=True)`` gives a graph whose every shape is
