@@ -4,8 +4,9 @@ A rendered drive (``torchrow.evaluation.synthetic.render_camera``: camera 1 m hi
 field of view, 50 cm rows; along a row, a turn, over to the next row, on past the rows' end) at
 500x281, the working size of ``video_width`` 500:
 
-1. frames/s of the tensor tracker ``torchrow.Tracker(mode="improved")`` for one sequence and for a
-   batch of 8 sequences in lock-step (8 shifted windows of the drive), and of the reference
+1. frames/s of the tensor tracker ``torchrow.Tracker(mode="improved")`` for one sequence (with
+   each frame's time: tracked frames, full searches, the worst after frame 0) and for a batch
+   of 8 sequences in lock-step (8 shifted windows of the drive), and of the reference
    ``torchrow.reference.Tracker(mode="improved")`` on the first frames;
 2. the records' accuracy against the renderer's truth: ``lateral_m`` and ``heading_rad`` error
    medians (frames more than 1.5 m before the rows' end), the row end error on ``row_end_ahead``
@@ -58,10 +59,21 @@ def main() -> None:
     ten = torchrow.Tracker(p, camera=cam)
     ten.track([frames[:2]])  # warm-up: the VP table of this size, allocator
     rows = []
-    t0 = time.perf_counter()
-    got = ten.track([frames])[0]
+    got, per_frame = [], []
+    t0 = tick = time.perf_counter()
+    for _, rec, _ in ten.track_iter([frames]):
+        now = time.perf_counter()
+        got.append(rec)
+        per_frame.append((now - tick, bool(rec.hough_ran)))
+        tick = now
     t1 = time.perf_counter() - t0
     rows.append(("tensor, B = 1", len(frames), t1))
+    later = per_frame[1:]
+    full = [t for t, f in later if f]
+    tracked = [t for t, f in later if not f]
+    frame_ms = (f"B = 1 per frame after frame 0: tracked median {1e3 * float(np.median(tracked)):.1f} ms "
+                f"({len(tracked)} frames), full search median {1e3 * float(np.median(full)) if full else 0:.1f} ms "
+                f"({len(full)} frames), worst {1e3 * max(t for t, _ in later):.1f} ms")
     n = max(2, len(frames) - 7)
     batch = [frames[b:b + n] for b in range(8)]
     t0 = time.perf_counter()
@@ -74,6 +86,7 @@ def main() -> None:
     diff = [d for r, g in zip(ref, got) for d in record_differences(r.to_record(), g.to_record())]
     for name, count, sec in rows:
         print(f"  {name}: {count} frames in {sec:.2f} s, {count / sec:.1f} frames/s")
+    print(f"  {frame_ms}")
     print(f"  tensor = reference on the first {k} frames: {not diff}" + (f" ({diff[:3]})" if diff else ""))
 
     lat = [abs(r.lateral_m - f.lateral_m) for r, f in zip(got, truth)
@@ -97,7 +110,7 @@ def main() -> None:
                        "python benchmarks/bench_lattice_tracker.py " + " ".join(f"--{k.replace('_', '-')} {v}"
                                                                              for k, v in vars(args).items()
                                                                              if k != "no_write"),
-                       "\n".join(table + ["", acc]))
+                       "\n".join(table + ["", frame_ms, "", acc]))
 
 
 if __name__ == "__main__":

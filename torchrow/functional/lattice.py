@@ -375,28 +375,28 @@ def solve_normal(m: torch.Tensor, r: torch.Tensor, params: Params) -> tuple[torc
     Returns ``(z (B, n), singular (B,) bool)``; ``z`` is meaningless where singular.
     """
     n = r.shape[1]
-    a = [[m[:, i, j] for j in range(n)] for i in range(n)]
-    z = [r[:, i] for i in range(n)]
-    scale = [torch.clamp(a[i][i], min=1.0) for i in range(n)]
-    singular = torch.zeros_like(scale[0], dtype=torch.bool)
-    one = torch.ones_like(scale[0])
+    a = m.clone()
+    z = r.clone()
+    scale = torch.clamp(torch.diagonal(m, dim1=1, dim2=2), min=1.0)
+    singular = torch.zeros_like(scale[:, 0], dtype=torch.bool)
+    one = torch.ones_like(scale[:, 0])
     for i in range(n):
-        piv = a[i][i]
-        bad = ~(piv > params.lattice_pivot_tol * scale[i])
+        piv = a[:, i, i]
+        bad = ~(piv > params.lattice_pivot_tol * scale[:, i])
         singular = singular | bad
         piv = torch.where(bad, one, piv)
-        a[i][i] = piv
-        for j in range(i + 1, n):
-            f = a[j][i] / piv
-            for k in range(i, n):
-                a[j][k] = a[j][k] - f * a[i][k]
-            z[j] = z[j] - f * z[i]
+        a[:, i, i] = piv
+        # every row below at once: each entry is still the reference's f * a[i][k] subtracted
+        # from a[j][k] (a multiplication, then a subtraction, each rounded), so the same bits
+        f = a[:, i + 1:, i] / piv.unsqueeze(1)
+        a[:, i + 1:, i:] = a[:, i + 1:, i:] - f.unsqueeze(2) * a[:, i:i + 1, i:]
+        z[:, i + 1:] = z[:, i + 1:] - f * z[:, i:i + 1]
     out = [one] * n
     for i in range(n - 1, -1, -1):
-        s = z[i]
+        acc = z[:, i]
         for k in range(i + 1, n):
-            s = s - a[i][k] * out[k]
-        out[i] = s / a[i][i]
+            acc = acc - a[:, i, k] * out[k]
+        out[i] = acc / a[:, i, i]
     return torch.stack(out, dim=1), singular
 
 
