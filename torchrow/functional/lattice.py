@@ -464,12 +464,12 @@ def normal_equations(cnt: torch.Tensor, sx: torch.Tensor, params: Params,
     q = torch.where(occ, q.to(torch.int64), torch.zeros_like(cnt))
     t = (torch.arange(h, device=dev, dtype=torch.int64) - (h - 1)).view(1, h, 1)
     k = (torch.arange(r, device=dev, dtype=torch.int64) - params.lattice_half).view(1, 1, r)
-    phi = [(t**p) * (k**e) for p, e in params.lattice_basis(straight)]  # (1, H, R) int64 each
-    n = len(phi)
-    o = occ.to(torch.int64)
-    m = torch.stack([torch.stack([(o * (phi[i] * phi[j])).sum(dim=(1, 2)) for j in range(n)], dim=1)
-                     for i in range(n)], dim=1)
-    rr = torch.stack([(q * phi[i]).sum(dim=(1, 2)) for i in range(n)], dim=1)
+    phi = torch.stack([((t**p) * (k**e)).view(h * r) for p, e in params.lattice_basis(straight)])  # (n, H R)
+    n = phi.shape[0]
+    o = occ.to(torch.int64).view(-1, 1, h * r)
+    # every entry at once: integer sums, so the same values in any order ((B, n*n, H R) int64)
+    m = (o * (phi.unsqueeze(0) * phi.unsqueeze(1)).view(1, n * n, h * r)).sum(dim=2).view(-1, n, n)
+    rr = (q.view(-1, 1, h * r) * phi.unsqueeze(0)).sum(dim=2)
     return m.to(torch.float64), rr.to(torch.float64) / float(grid)
 
 
