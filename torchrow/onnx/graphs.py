@@ -399,11 +399,13 @@ class StaticLatticeStep(nn.Module):
 
     The rules are :func:`torchrow.functional.lattice_tracking.lattice_advance` itself, with
     ``flow="loop"`` (``control_flow=True``, default): the least-squares refits of each fit are
-    one ONNX ``Loop`` that stops once every image has stopped, and the full-search redo of a
-    failed tracked frame sits in an ``If`` that runs only when some sequence needs it.
-    ``control_flow=False`` (``flow="always"``) runs every refit and the redo for the whole
-    batch and lets masks choose (no ``Loop`` or ``If``). Section 11.2's tables (the VP
-    search's bins, the comb's windows) are constants of the graph, built for its working size.
+    one ONNX ``Loop`` that stops once every image has stopped, and the VP grid search and the
+    full-search redo of a failed tracked frame each sit in an ``If`` that runs only when some
+    sequence needs it. ``control_flow=False`` (``flow="always"``) runs every refit, the grid
+    search and the redo for the whole batch and lets masks choose (no ``Loop`` or ``If``).
+    Section 11.2's tables (the VP search's bins, the comb's candidate tables) are constants of
+    the graph, built for its working size (:func:`~torchrow.onnx.export.to_onnx` builds them
+    with one eager step before tracing).
     Unlike section 8's tracker step, nothing runs on the host: the lattice tracker has no
     frame-0 colour or sky (ALGORITHM.md 11.7).
 
