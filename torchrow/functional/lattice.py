@@ -165,14 +165,14 @@ _VP_TABLES: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
 
 def vp_table(height: int, width: int, params: Params, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
     """The search's grid ``(V, 2)`` int64 (:func:`torchrow.reference.lattice.vp_grid`'s order) and
-    the bin of every cell under every grid VP, ``(V, C)`` int64, into histograms of ``L = 3W + 1 +
-    lattice_max_spacing`` bins (bin ``L - 1`` where a cell is not binned: a spill bin past any
-    fold's last tooth). It depends on the sizes and the grid only, so it is built once
+    the bin of every cell under every grid VP, ``(V, C)`` int64, as a flat index into ``V``
+    histograms of ``3W + 1`` bins laid end to end (``v (3W + 1) + bin``; bin ``3W`` where a cell
+    is not binned, a spill bin). It depends on the sizes and the grid only, so it is built once
     (float64, the reference's expression, ``VP_SLICE`` (VP, cell) pairs at a time) and cached:
     ``8 V C`` bytes, 18 MB at 320x240; sizes whose tables exceed the bound of
     :meth:`Params.lattice_table_bytes` raise :class:`~torchrow.core.io.ImageError` first."""
     key = (height, width, params.lattice_vp_step, params.lattice_vp_heights, params.lattice_vp_cell,
-           params.lattice_vp_margin, params.lattice_max_spacing, str(device))
+           params.lattice_vp_margin, str(device))
     table = _VP_TABLES.get(key)
     if table is None:
         check_lattice_size(width, height, params)
@@ -184,14 +184,14 @@ def vp_table(height: int, width: int, params: Params, device: torch.device) -> t
         hs = torch.tensor(params.lattice_vp_heights, dtype=torch.int64, device=device)
         grid = torch.stack([xs.repeat(hs.numel()), hs.repeat_interleave(xs.numel())], dim=1)
         idx = torch.empty((grid.shape[0], yc.numel()), dtype=torch.int64, device=device)
-        span = 3 * width + 1 + params.lattice_max_spacing
         step = max(1, VP_SLICE // max(yc.numel(), 1))  # VPs per slice: bounded float64 temporaries
         for v0 in range(0, grid.shape[0], step):
             xv = grid[v0:v0 + step, :1].to(torch.float64)
             yv = grid[v0:v0 + step, 1:].to(torch.float64)
             b = torch.floor(xv + ((xc - xv) * (float(height - 1) - yv)) / (yc - yv))
             keep = ((yc - yv) > params.lattice_vp_margin) & (b >= -width) & (b < 2 * width)
-            idx[v0:v0 + step] = torch.where(keep, b + width, torch.full_like(b, span - 1)).to(torch.int64)
+            row = torch.arange(v0, v0 + b.shape[0], dtype=torch.int64, device=device).view(-1, 1) * (3 * width + 1)
+            idx[v0:v0 + step] = torch.where(keep, b + width, torch.full_like(b, 3 * width)).to(torch.int64) + row
         table = (grid, idx)
         if not torch.compiler.is_exporting():  # never cache a tensor traced by torch.export
             _VP_TABLES[key] = table
@@ -217,11 +217,12 @@ def vp_search(mask: torch.Tensor, params: Params) -> torch.Tensor:
     """Section 11.2 (``lattice_vp == "search"``): per image the grid VP whose folded contrast
     comb is strongest, ``(B, 2)`` int64; see :func:`torchrow.reference.lattice.vp_search`.
 
-    The cell counts are scattered into ``(B, V, 3W)`` int32 histograms (one scatter of
-    :func:`vp_table`'s bins), then folded spacing by spacing (a static loop; a spacing
+    The cell counts are scattered into ``(B, V, 3W)`` int32 histograms (``VP_SLICE`` (image, VP,
+    cell) triples per scatter, through :func:`vp_table`'s flat index), then folded spacing by spacing (a static loop; a spacing
     whose double is searched too is folded from that fold, ``2d`` values instead of ``3W``);
     every sum is an integer below ``2**31``, so the scores are the reference's. Peak memory: the
-    histograms, ``4 V (3W + d_max)`` bytes per image (0.5 MB at 320x240), plus the table.
+    histograms, ``4 V (3W + d_max)`` bytes per image (0.5 MB at 320x240), the repeated counts of
+    one scatter, ``4 VP_SLICE`` bytes (16 MB), plus the table.
     """
     bsz, h, w = mask.shape
     dev = mask.device
@@ -233,11 +234,15 @@ def vp_search(mask: torch.Tensor, params: Params) -> torch.Tensor:
     padded[:, :h, :w] = mask
     cnt = padded.view(bsz, hc, s, wc, s).sum(dim=(2, 4), dtype=torch.int32).view(bsz, ncell)
     nb = 3 * w
-    span = nb + 1 + params.lattice_max_spacing  # a fold's last tooth may reach past 3W: zeros there
-    hist = torch.zeros((bsz, nv, span), dtype=torch.int32, device=dev)
-    # one scatter; the table and the counts are broadcast views (no (B, V, C) temporary)
-    hist.scatter_add_(2, idx.unsqueeze(0).expand(bsz, nv, ncell), cnt.view(bsz, 1, ncell).expand(bsz, nv, ncell))
-    total = hist[:, :, :nb].sum(dim=2, dtype=torch.int32).to(torch.int64)  # the last bin is the spill bin
+    flat = torch.zeros((bsz, nv * (nb + 1)), dtype=torch.int32, device=dev)
+    step = max(1, VP_SLICE // max(bsz * ncell, 1))  # VPs per scatter: (B, step C) int32 counts at a time
+    for v0 in range(0, nv, step):
+        k = min(step, nv - v0)
+        flat.scatter_add_(1, idx[v0:v0 + k].reshape(1, k * ncell).expand(bsz, k * ncell), cnt.repeat(1, k))
+    # the spill bin dropped, zeros appended: a fold's last tooth may reach past 3W
+    tail = torch.zeros((bsz, nv, 1 + params.lattice_max_spacing), dtype=torch.int32, device=dev)
+    hist = torch.cat([flat.view(bsz, nv, nb + 1)[:, :, :nb], tail], dim=2)
+    total = hist.sum(dim=2, dtype=torch.int64)
     best = torch.full((bsz, nv), -(2**31) + 1, dtype=torch.int32, device=dev)
     spacings = range(params.lattice_min_spacing, params.lattice_max_spacing + 1, params.lattice_vp_spacing_step)
     for top in spacings:
