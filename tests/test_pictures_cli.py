@@ -199,3 +199,16 @@ def test_progress_plain_lines_when_not_a_terminal():
     with progress(10, "x", enabled=False, file=silent) as s:
         s.update(10)
     assert silent.getvalue() == ""
+
+
+def test_central_jumps_leave_out_row_change_frames():
+    from torchrow.apps.video import central_jumps
+
+    def rec(frame, x, **kw):  # one valid vertical row at bottom x (a = 0, b = x)
+        return {"frame": frame, "width": 100, "height": 50, "status": "ok", "hough_ran": False,
+                "rows": [{"a": 0.0, "b": x, "valid": True}], **kw}
+
+    steady = [rec(0, 50.0), rec(1, 52.0), rec(2, 20.0, row_change=1), rec(3, 21.0)]
+    jumps = central_jumps(steady)
+    assert jumps["tracked"] == [2.0, 1.0]  # the relabelled frame 2 is no jump of row 0
+    assert central_jumps(steady[:3] + [rec(3, 60.0)])["tracked"] == [2.0, 40.0]

@@ -127,6 +127,9 @@ def central_jumps(records: list[dict]) -> dict[str, list[float]]:
       ``x`` to the nearest valid row of frame ``t``.
     * ``"lateral"``: ``|lateral_px(t) - lateral_px(t-1)|``, which also counts a switch of the
       central row to its neighbour when the camera is about half a row spacing off.
+
+    A frame that reports a row change (the lattice tracker's ``row_change``) is left out of
+    ``"tracked"`` and ``"hough"``: its rows are labelled from the neighbouring row by design.
     """
     out: dict[str, list[float]] = {"tracked": [], "hough": [], "lateral": []}
     for prev, cur in itertools.pairwise(records):
@@ -140,6 +143,8 @@ def central_jumps(records: list[dict]) -> dict[str, list[float]]:
         if not valid_p or not valid_c:
             continue
         _, c, x = min(valid_p)
+        if cur.get("row_change"):
+            continue
         if not cur.get("hough_ran"):
             xc = cb[c] if c < len(cb) else None
             if xc is not None:
@@ -409,6 +414,19 @@ def error_frame(width: int, height: int, text: str, scale: int = 2) -> np.ndarra
     return img
 
 
+def _confidence_axis(ax, recs: list[dict]) -> None:
+    """The frames' confidence (dashed grey, 0-1) on a second y axis of ``ax``, one legend for both."""
+    conf = [(r["frame"], r["confidence"]) for r in recs if r.get("confidence") is not None and r.get("status") != "error"]
+    twin = ax.twinx()
+    if conf:
+        twin.plot(*zip(*conf), c="tab:gray", lw=0.8, ls="--", label="confidence")
+    twin.set_ylim(0, 1.05)
+    twin.set_ylabel("confidence")
+    h1, l1 = ax.get_legend_handles_labels()
+    h2, l2 = twin.get_legend_handles_labels()
+    ax.legend(h1 + h2, l1 + l2, fontsize=7, loc="upper right")
+
+
 def plot_tracks(records_by_source: dict[str, list[dict]], path: str | Path) -> None:
     """PNG: per source, the valid rows' bottom x over time (central row highlighted, Hough
     frames marked), then ``heading_px``, ``lateral_px`` and ``confidence`` over time.
@@ -453,15 +471,7 @@ def plot_tracks(records_by_source: dict[str, list[dict]], path: str | Path) -> N
         ax2.axhline(0, c="k", lw=0.5)
         ax2.set_ylabel("px (image convention)")
         ax2.set_xlabel("frame")
-        ax3 = ax2.twinx()
-        conf = [(r["frame"], r["confidence"]) for r in recs if r.get("confidence") is not None and r["status"] != "error"]
-        if conf:
-            ax3.plot(*zip(*conf), c="tab:gray", lw=0.8, ls="--", label="confidence")
-        ax3.set_ylim(0, 1.05)
-        ax3.set_ylabel("confidence")
-        h1, l1 = ax2.get_legend_handles_labels()
-        h2, l2 = ax3.get_legend_handles_labels()
-        ax2.legend(h1 + h2, l1 + l2, fontsize=7, loc="upper right")
+        _confidence_axis(ax2, recs)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -524,15 +534,7 @@ def plot_lattice_tracks(records_by_source: dict[str, list[dict]], path: str | Pa
             ax_lat.plot(*zip(*lat), c="tab:blue", lw=1.2, marker=".", ms=3, label=f"lateral offset ({unit})")
         ax_lat.axhline(0, c="k", lw=0.5)
         ax_lat.set_ylabel(f"lateral offset ({unit})")
-        conf = [(r["frame"], r["confidence"]) for r in recs if r.get("status") != "error" and r.get("confidence") is not None]
-        ax_conf = ax_lat.twinx()
-        if conf:
-            ax_conf.plot(*zip(*conf), c="tab:gray", lw=0.8, ls="--", label="confidence")
-        ax_conf.set_ylim(0, 1.05)
-        ax_conf.set_ylabel("confidence")
-        h1, l1 = ax_lat.get_legend_handles_labels()
-        h2, l2 = ax_conf.get_legend_handles_labels()
-        ax_lat.legend(h1 + h2, l1 + l2, fontsize=7, loc="upper right")
+        _confidence_axis(ax_lat, recs)
         ax_lat.set_title(f"{display_name(str(src))}: lattice tracker, full search on {len(full)} of {len(recs)} "
                          f"frames, {len(changes)} row change(s)", fontsize=9)
         head = [(f, math.degrees(v)) for f, v in series("heading_rad")]

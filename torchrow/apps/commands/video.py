@@ -360,8 +360,8 @@ def run(args: argparse.Namespace) -> int:
         if params.mode == "improved":  # the lattice tracker (ALGORITHM.md 11.7): hough_ran = the full search ran
             moves = sum(1 for r in recs if r.get("row_change"))
             print(f"  {src}: full search on {hough} of {len(recs)} frames; {moves} row change(s); largest move of "
-                  f"row 0 at the bottom: {worst('tracked')} into a tracked frame, {worst('hough')} into a full-search "
-                  "frame", file=sys.stderr)
+                  f"row 0 at the bottom (row changes aside): {worst('tracked')} into a tracked frame, {worst('hough')} "
+                  "into a full-search frame", file=sys.stderr)
             continue
         print(f"  {src}: Hough on {hough} of {len(recs)} frames; largest move of the central row at the "
               f"bottom: {worst('tracked')} into a tracked frame, {worst('hough')} into a Hough frame",
