@@ -176,3 +176,24 @@ def test_horizon_in_view_tracks_with_vp_heights_inside_the_image() -> None:
     assert all(r["state"] == "in_row" for r in recs)
     assert sum(not r["hough_ran"] for r in recs) >= 3  # tracked frames: no VP search
     assert all(abs(r["lateral_m"] - 0.05) < 0.03 and abs(r["heading_rad"]) < math.radians(1.5) for r in recs)
+
+
+def test_frame_state_both_paths_on_every_case() -> None:
+    # every status x previous state x row end (none, near the top, mid, bottom quarter) x resolvable row
+    import itertools
+
+    from torchrow.core.steering import LATTICE_STATES
+    from torchrow.functional.lattice_tracking import frame_state as tstate
+    from torchrow.reference.lattice_tracking import frame_state as rstate
+
+    h, p = 240, P
+    cases = list(itertools.product(("ok", "weak"), (None, *LATTICE_STATES), (None, 0, 30, 100, 200, 239),
+                                   (0, 25, 92, 240)))
+    want = [rstate(st, last, y, res, h, p) for st, last, y, res in cases]
+    got = tstate(torch.tensor([st == "ok" for st, *_ in cases]),
+                 torch.tensor([-1 if last is None else LATTICE_STATES.index(last) for _, last, _, _ in cases]),
+                 torch.tensor([0 if y is None else y for _, _, y, _ in cases]),
+                 torch.tensor([y is not None for _, _, y, _ in cases]),
+                 torch.tensor([res for *_, res in cases]), h, p)
+    assert [LATTICE_STATES[c] for c in got.tolist()] == want
+    assert set(want) == set(LATTICE_STATES)

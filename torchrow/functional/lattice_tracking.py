@@ -26,8 +26,8 @@ from torchrow.functional._flow import branch
 from torchrow.functional.lattice import LatticePriorBatch, LatticeRows
 from torchrow.functional.ransac import image_status
 
-__all__ = ["LatticeTrackerState", "LatticeStep", "lattice_advance", "row_end", "resolvable_row", "lattice_vp",
-           "records"]
+__all__ = ["LatticeTrackerState", "LatticeStep", "lattice_advance", "row_end", "resolvable_row", "frame_state",
+           "lattice_vp", "records"]
 
 _OK = STATUSES.index("ok")
 _CODE = {s: i for i, s in enumerate(LATTICE_STATES)}
@@ -125,6 +125,20 @@ def resolvable_row(coef: torch.Tensor, height: int, params: Params) -> torch.Ten
     return torch.where(ok.any(dim=1), first, torch.full_like(first, height))
 
 
+def frame_state(ok: torch.Tensor, last: torch.Tensor, y_end: torch.Tensor, has_end: torch.Tensor,
+                y_res: torch.Tensor, height: int, params: Params) -> torch.Tensor:
+    """Batched :func:`torchrow.reference.lattice_tracking.frame_state`: ``(B,)`` int64 codes into
+    :data:`~torchrow.core.steering.LATTICE_STATES` from ``ok`` (status ``ok``), the previous
+    frame's code ``last``, the row end ``y_end`` (where ``has_end``) and ``y_res``, all ``(B,)``."""
+    head_rows = int(math.floor(params.lattice_headland_frac * height))
+    code = torch.full_like(y_end, _CODE["in_row"])
+    code = torch.where(y_end > y_res + params.lattice_end_margin, torch.full_like(code, _CODE["row_end_ahead"]), code)
+    code = torch.where(~has_end | (y_end > (height - 1) - head_rows), torch.full_like(code, _CODE["headland"]), code)
+    ended = (last == _CODE["row_end_ahead"]) | (last == _CODE["headland"])
+    failed = torch.where(ended, torch.full_like(code, _CODE["headland"]), torch.full_like(code, _CODE["lost"]))
+    return torch.where(ok, code, failed)
+
+
 def lattice_vp(coef: torch.Tensor, height: int, fallback: torch.Tensor) -> torch.Tensor:
     """Batched :func:`torchrow.reference.lattice_tracking.lattice_vp` of ``coef (B, 7)`` float64:
     ``(B, 2)`` int64, ``fallback`` ``(B, 2)`` int64 where not finite."""
@@ -182,13 +196,7 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
     ok = status == _OK
     y_end, has_end = row_end(rows.lit, params)
     y_res = resolvable_row(rows.coef, h, params)
-    head_rows = int(math.floor(params.lattice_headland_frac * h))
-    code = torch.full_like(y_end, _CODE["in_row"])
-    code = torch.where(y_end > y_res + params.lattice_end_margin, torch.full_like(code, _CODE["row_end_ahead"]), code)
-    code = torch.where(~has_end | (y_end > (h - 1) - head_rows), torch.full_like(code, _CODE["headland"]), code)
-    ended = (state.last == _CODE["row_end_ahead"]) | (state.last == _CODE["headland"])
-    failed = torch.where(ended, torch.full_like(code, _CODE["headland"]), torch.full_like(code, _CODE["lost"]))
-    code = torch.where(ok, code, failed)
+    code = frame_state(ok, state.last, y_end, has_end, y_res, h, params)
     change = torch.where(tracked & ok, state.pending, torch.zeros_like(state.pending))
     # identity: the tracked row, or its neighbour once the neighbour is clearly nearer the centre
     x0, d0 = rows.coef[:, 0], rows.coef[:, 4]
