@@ -53,7 +53,7 @@ def main() -> None:
     truth = [render_camera(field, cam, p, frame=i) for i, p in enumerate(camera_path(keys, args.frames_per_leg))]
     frames = [f.image for f in truth]
     p = Params(mode="improved", video_width=WIDTH, lattice_model="auto", lattice_min_spacing=16,
-               lattice_max_spacing=320)  # the forward-camera setting (ALGORITHM.md 11.3.1)
+               lattice_max_spacing=320, lattice_vp_origin="sky")  # the forward-camera setting (11.3.1)
     print(f"{len(frames)} rendered frames at {WIDTH}x{HEIGHT}, torch threads {torch.get_num_threads()}", flush=True)
 
     ten = torchrow.Tracker(p, camera=cam)

@@ -1,13 +1,14 @@
 """The exported lattice tracker step (improved mode) against torch on every Caterra frame:
-``python benchmarks/check_lattice_onnx.py [--data DIR] [--model M.onnx | --out M.onnx] [--horizon]
+``python benchmarks/check_lattice_onnx.py [--data DIR] [--model M.onnx | --out M.onnx] [--top]
 [--frames N]``.
 
-Exports the step at the real working size (500x281, ``Params(mode="improved",
-video_width=500, lattice_model="auto", lattice_min_spacing=16, lattice_max_spacing=320)``,
-batch 1; or uses ``--model``). With these parameters every Caterra frame is ``weak`` (its VP
-lies inside the frame, below the search grid: ALGORITHM.md 11.5), so every frame runs the full
-search; ``--horizon`` adds VP heights on that camera's horizon (105, 125, 145 px), where the
-frames pass as ``ok`` and are tracked, with redos. Tracks the frames with :class:`torchrow.Tracker` and with
+Exports the step at the real working size (500x281, the forward-camera setting
+``Params(mode="improved", video_width=500, lattice_model="auto", lattice_min_spacing=16,
+lattice_max_spacing=320, lattice_vp_origin="sky")``, batch 1; or uses ``--model``). The VP grid
+counts from the camera's horizon (ALGORITHM.md 11.2), the frames pass as ``ok`` and are
+tracked, with redos and scheduled full searches (section 1 inside a graph ``If``); with
+``--top`` (the grid above the image) every frame is ``weak``, so every frame runs the full search.
+Tracks the frames with :class:`torchrow.Tracker` and with
 :class:`~torchrow.onnx.runtime.OnnxTracker`, and compares the records (discrete values equal,
 floats within 1e-4) and every field of every step and state (floats within 1e-9). Prints the
 export time, the model's size and op census, and onnxruntime's frames/s on one and on two
@@ -38,8 +39,7 @@ from torchrow.onnx.metadata import model_info
 from torchrow.onnx.runtime import OnnxTracker
 
 PARAMS = Params(mode="improved", video_width=500, lattice_model="auto", lattice_min_spacing=16,
-                lattice_max_spacing=320)
-HORIZON = (105, 125, 145)
+                lattice_max_spacing=320, lattice_vp_origin="sky")
 
 
 def main() -> None:
@@ -47,10 +47,10 @@ def main() -> None:
     ap.add_argument("--data", default=None)
     ap.add_argument("--model", default=None, help="an exported lattice tracker step (default: export one)")
     ap.add_argument("--out", default=None, help="keep the exported model here")
-    ap.add_argument("--horizon", action="store_true", help="VP heights on the Caterra camera's horizon too")
+    ap.add_argument("--top", action="store_true", help="the VP grid counted from row 0 (every frame weak)")
     ap.add_argument("--frames", type=int, default=None, help="the first N frames only")
     args = ap.parse_args()
-    params = PARAMS.replace(lattice_vp_heights=PARAMS.lattice_vp_heights + HORIZON) if args.horizon else PARAMS
+    params = PARAMS.replace(lattice_vp_origin="top") if args.top else PARAMS
     files = sorted((data_root(args.data) / "caterra_video").glob("*.jpg"))[:args.frames]
     frames = [load_image(f, params.video_width) for f in files]
     h, w = frames[0].shape[:2]

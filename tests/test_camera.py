@@ -116,6 +116,12 @@ def test_steering_uses_the_tangent_at_the_bottom_row() -> None:
     st = metric_steering(bent, cam, 240)
     assert (st.lateral_m, st.heading_rad, st.spacing_m) == (
         pytest.approx(0.1, abs=1e-6), pytest.approx(-0.06, abs=1e-6), pytest.approx(0.6, abs=1e-6))
+    # the pixel signals too: bottom x of the whole polynomial, as for the straight rows
+    from torchrow.core.steering import steering
+
+    px, straight = steering(bent, None, 320, 240), steering(rows, None, 320, 240)
+    assert straight.lateral_px is not None and px.lateral_px == pytest.approx(straight.lateral_px, abs=1e-6)
+    assert px.lateral_frac == pytest.approx(straight.lateral_frac, abs=1e-9)
 
 
 def test_steering_central_row_signs_and_missing_rows() -> None:

@@ -473,6 +473,40 @@ def test_vp_search_tensor_equals_reference_batched_and_alone(change: dict) -> No
     assert empty.shape == (0, 2)
 
 
+def test_vp_origin_both_paths_on_every_case() -> None:
+    # with lattice_vp_origin "sky" a horizon is in view from 16 s >= H (H = 240: s >= 15); the
+    # grid then counts from s + 40, at most H; sky 0 (no horizon) and "top" count from row 0
+    skies = [0, 1, 14, 15, 16, 100, 120, 199, 200, 239, 240]
+    cases = [({}, [0, 0, 0, 55, 56, 140, 160, 239, 240, 240, 240]), ({"lattice_vp_origin": "top"}, [0] * 11),
+             ({"lattice_vp_sky": -300}, [0] * 11), ({"lattice_vp_sky": 0, "lattice_vp_sky_div": 240}, [0] + skies[1:])]
+    for change, want in cases:
+        params = IMPROVED.replace(lattice_vp_origin="sky").replace(**change)
+        assert [rlat.vp_origin(s, 240, params) for s in skies] == want, change
+        assert flat.vp_origin(torch.tensor(skies), 240, params).tolist() == want, change
+
+
+def _converging(yv: float, spacing: float = 60.0, h: int = 240, w: int = 320) -> np.ndarray:
+    """A mask of thin lines through ``(W/2, yv)``, ``spacing`` px apart on the bottom row."""
+    ys, xs = np.mgrid[0:h, 0:w]
+    scale = (ys - yv) / (h - 1 - yv)
+    on = [(np.abs(xs - (w / 2 + k * spacing * scale)) < 2 * scale + 0.5) & (ys > yv) for k in range(-4, 5)]
+    return np.logical_or.reduce(on)
+
+
+def test_vp_search_counts_its_grid_from_the_origin() -> None:
+    # lines meeting inside the image (a horizon in view): the grid above the image cannot hold
+    # their VP; counted from the origin its first height (origin - 20) does, exactly
+    masks = [_converging(yv) for yv in (100, 60, 30)] + [_converging(100)] * 2 + [np.zeros((240, 320), bool)]
+    origins = [120, 80, 50, 0, 240, 120]
+    got = flat.vp_search(torch.from_numpy(np.stack(masks)), IMPROVED, torch.tensor(origins))
+    want = [rlat.vp_search(m, IMPROVED, o) for m, o in zip(masks, origins)]
+    assert [tuple(v) for v in got.tolist()] == want
+    assert want[:3] == [(160, 100), (160, 60), (160, 30)]
+    assert want[3][1] < 0  # from row 0: some height above the image
+    # origin H: every row moved out; like an empty mask, the absolute fallback
+    assert want[4] == want[5] == (160, IMPROVED.lattice_vp_fallback_y)
+
+
 def test_vp_search_odd_sizes_and_no_green_fall_back() -> None:
     rng = np.random.default_rng(9)
     for m in (rng.random((37, 53)) < 0.3, np.zeros((5, 7), bool), np.ones((3, 3), bool)):
@@ -661,9 +695,10 @@ def _both(images: list[np.ndarray], params: Params) -> list[tuple[ImageResult, I
 
 
 def test_improved_mode_runs_only_the_stages_it_uses(monkeypatch) -> None:
-    # lattice_vp "search" with lattice_horizon "image" needs none of sections 1-6; "sky" needs
-    # section 1 only; "section6" needs sections 1-6 (its VP starts the comb). Either way the
-    # records null sections 2-6's fields, and sky is the lattice's first row
+    # lattice_vp "search" needs none of sections 1-6; section 1 only for a grid counted from a
+    # horizon in view (lattice_vp_origin "sky") or lattice_horizon "sky"; "section6" needs
+    # sections 1-6 (its VP starts the comb). Either way the records null sections 2-6's
+    # fields, and sky is the lattice's first row
     import torchrow.engines.detector as engine
     import torchrow.reference.pipeline as pipeline
     from torchrow.reference.sky import sky_row
@@ -682,7 +717,7 @@ def test_improved_mode_runs_only_the_stages_it_uses(monkeypatch) -> None:
     img[:40] = (208, 208, 240)  # a sky band: section 1 puts its row below it
     sky = sky_row(img, IMPROVED)
     assert sky > 0
-    for change, want in (({}, set()), ({"lattice_horizon": "sky"}, {"sky_row"}),
+    for change, want in (({}, set()), ({"lattice_vp_origin": "sky"}, {"sky_row"}), ({"lattice_horizon": "sky"}, {"sky_row"}),
                          ({"lattice_vp": "section6"}, {"sky_row", "vegetation_color", "find_lines"})):
         calls.clear()
         params = IMPROVED.replace(**change)

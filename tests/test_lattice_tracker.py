@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 
@@ -54,9 +55,19 @@ def test_caterra_frames_tensor_equals_reference(data_dir) -> None:
     folder = data_dir / "caterra_video"
     if not folder.is_dir():
         pytest.skip(f"caterra_video not found under {data_dir}")
-    items = [(p.name, cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB)) for p in sorted(folder.glob("*.jpg"))[:3]]
+    items = [(p.name, cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB)) for p in sorted(folder.glob("*.jpg"))[:8]]
     params = Params(mode="improved", **FORWARD)
-    same(RefTracker(params).track(items, source="c"), torchrow.Tracker(params).track([items], sources=["c"])[0])
+    # the rover's camera sees the horizon (section 1's row 88-123 of 281): with the VP grid
+    # counted from it (11.2) the rows are found and tracked; from row 0 every frame is weak
+    sky = params.replace(lattice_vp_origin="sky")
+    got = torchrow.Tracker(sky).track([items], sources=["c"])[0]
+    same(RefTracker(sky).track(items, source="c"), got)
+    assert all(r.status == "ok" and r.state == "in_row" for r in got)
+    base = [(r.rows[1].x_at(280.0), r.rows[2].x_at(280.0) - r.rows[1].x_at(280.0), r.row_change) for r in got]
+    moves = [abs(x1 - x0) / d1 for (x0, _, _), (x1, d1, ch) in itertools.pairwise(base) if ch == 0]
+    # row 0 moves 0.08-0.1 spacings a frame at the start, 0.28 on frame 4 (a redo), then < 0.02
+    assert np.median(moves) < 0.15 and max(moves) < 0.35
+    assert all(r.state == "lost" for r in torchrow.Tracker(params).track([items[3:5]])[0])
 
 
 def test_identity_row_change_and_row_end() -> None:
@@ -180,8 +191,6 @@ def test_horizon_in_view_tracks_with_vp_heights_inside_the_image() -> None:
 
 def test_frame_state_both_paths_on_every_case() -> None:
     # every status x previous state x row end (none, near the top, mid, bottom quarter) x resolvable row
-    import itertools
-
     from torchrow.core.steering import LATTICE_STATES
     from torchrow.functional.lattice_tracking import frame_state as tstate
     from torchrow.reference.lattice_tracking import frame_state as rstate

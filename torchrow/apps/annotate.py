@@ -103,10 +103,22 @@ def _other_lattice_rows(result: ImageResult) -> list[LatticeRow]:
 
 def row_top(result: ImageResult, height: int) -> float:
     """First image row a picture draws the rows from: below the horizon, and below the
-    vanishing point when it lies inside the picture (rows cross there and mean nothing above)."""
+    vanishing point when it lies inside the picture (rows cross there and mean nothing above).
+    The improved mode's records have no section-6 VP: there the outermost reported rows'
+    crossing counts, the lowest image row above which they are no longer at least 1 px apart
+    in the order they have on the bottom row."""
     top = float(max(result.sky, 0))
     if result.vp is not None and all(math.isfinite(v) for v in result.vp) and result.vp[1] < height - 1:
         top = max(top, float(result.vp[1]))
+    elif result.vp is None and len(result.rows) >= 2 and height > 1:
+        first, last = result.rows[0], result.rows[-1]
+        coefs = (first.a, first.b, first.c, first.e, last.a, last.b, last.c, last.e)
+        if all(v is not None and math.isfinite(v) for v in coefs):
+            ys = np.arange(height - 1, -1, -1, dtype=np.float64)
+            gap = np.asarray(last.x_at(ys)) - np.asarray(first.x_at(ys))
+            apart = np.sign(gap[0]) * gap >= 1.0
+            if apart[0] and not apart.all():
+                top = max(top, float(ys[int(np.argmin(apart))] + 1))
     return top
 
 

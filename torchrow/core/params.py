@@ -108,6 +108,9 @@ class Params:
     lattice_vp_max_y: int = 0  # a section-6 VP below this image row is not trusted
     lattice_vp_fallback_y: int = -60  # y of the VP used instead, at x = W // 2
     lattice_vp_margin: int = 10  # px: only pixels this far below the VP are projected
+    lattice_vp_origin: str = "top"  # grid heights from: "top" (row 0) or "sky" (a horizon in view; forward cameras, 11.2)
+    lattice_vp_sky: int = 40  # px: with a horizon in view the heights count from section 1's row + this
+    lattice_vp_sky_div: int = 16  # a horizon is in view when section 1's row s has lattice_vp_sky_div * s >= H
     lattice_min_spacing: int = 40  # px, smallest bottom-row spacing the comb tries
     lattice_max_spacing: int = 180  # px, largest (forward cameras: 320, ALGORITHM.md 11.3.1)
     lattice_window: float = 0.1  # comb tooth half-width, fraction of the spacing
@@ -166,8 +169,13 @@ class Params:
 
     def runs_sky(self) -> bool:
         """Whether section 1 (the sky row) runs: for sections 2-6, or for the improved mode's
-        ``lattice_horizon="sky"`` (ALGORITHM.md 11.1)."""
-        return self.runs_section6() or self.lattice_horizon == "sky"
+        ``lattice_horizon="sky"`` (ALGORITHM.md 11.1) or its VP grid below a horizon in view (11.2)."""
+        return self.runs_section6() or self.lattice_horizon == "sky" or self.lattice_vp_sky_origin()
+
+    def lattice_vp_sky_origin(self) -> bool:
+        """Whether the improved mode's VP grid is measured from a horizon in view (``lattice_vp="search"``,
+        ``lattice_vp_origin="sky"``; ALGORITHM.md 11.2), so section 1's row is needed."""
+        return self.mode == "improved" and self.lattice_vp == "search" and self.lattice_vp_origin == "sky"
 
     def lattice_visible_half(self, width: int) -> int:
         """Section 11.4's static bound ``K_v`` on the visible rows ``k = -K_v .. K_v`` of a
@@ -401,6 +409,9 @@ _RULES: dict[str, Rule] = {
     "lattice_vp_max_y": Rule("int", -(2**31) + 1, 2**31 - 1),
     "lattice_vp_fallback_y": Rule("int", -(2**31) + 1, -1, why="the fallback VP lies above the image"),
     "lattice_vp_margin": _INT_PX,
+    "lattice_vp_origin": Rule("choice", choices=("sky", "top")),
+    "lattice_vp_sky": Rule("int", -(2**20), 2**20, why="image rows"),
+    "lattice_vp_sky_div": Rule("int", 1, 2**20),
     "lattice_min_spacing": Rule("int", 1, 4096, why=_COST), "lattice_max_spacing": Rule("int", 1, 4096, why=_COST),
     "lattice_half": Rule("int", 1, 64, why=_COST), "lattice_min_points": Rule("int", 1, _PX, why=_PXS),
     "lattice_iterations": Rule("int", 0, 1000, why=_COST),

@@ -96,7 +96,7 @@ def steering(rows: Sequence[Row], vp: tuple[float, float] | None, width: int, he
     Parameters
     ----------
     rows : sequence of Row
-        Fitted rows ``x = a*y + b`` (px); only valid rows are used.
+        Fitted rows ``x = e*y**3 + c*y**2 + a*y + b`` (px); only valid rows are used.
     vp : (float, float) or None
         Vanishing point (px).
     width, height : int
@@ -115,7 +115,9 @@ def steering(rows: Sequence[Row], vp: tuple[float, float] | None, width: int, he
         heading_px = float(vp[0] - centre)
         if hfov_deg is not None:
             heading_rad = math.atan2(-heading_px, focal_from_fov(width, hfov_deg))
-    bottoms = sorted(r.a * (height - 1) + r.b for r in rows if r.valid)
+    # the whole polynomial: the improved mode's rows bend (faithful rows have c = e = 0, and
+    # x_at gives their a * (H-1) + b bit for bit)
+    bottoms = sorted(float(r.x_at(float(height - 1))) for r in rows if r.valid)
     if bottoms:
         # min() keeps the first of equal distances, the order being bottom x
         c = min(range(len(bottoms)), key=lambda i: abs(bottoms[i] - centre))

@@ -33,7 +33,7 @@ from torchrow.functional._flow import branch, repeat
 
 __all__ = ["LatticeRows", "LatticePriorBatch", "improved_batch",
            "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_table",
-           "vp_search", "comb_table", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
+           "vp_origin", "vp_search", "comb_table", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
            "normal_equations", "refine", "fit_lattice", "row_polynomials", "visible_rows", "VisibleRows", "improved_rows",
            "improved_status", "LatticeFitBatch"]
 
@@ -213,9 +213,22 @@ def _fold_peak(fold: torch.Tensor, d: int, params: Params) -> torch.Tensor:
     return (tooth[..., :d] - tooth[..., a:a + d]).amax(dim=-1)
 
 
-def vp_search(mask: torch.Tensor, params: Params) -> torch.Tensor:
+def vp_origin(sky: torch.Tensor, height: int, params: Params) -> torch.Tensor:
+    """Section 11.2: the row the VP grid's heights count from, ``(B,)`` int64 from section 1's
+    ``sky (B,)`` (:func:`torchrow.reference.lattice.vp_origin`): 0, or ``min(sky +
+    lattice_vp_sky, H)`` where a horizon is in view (``sky > 0``, ``lattice_vp_sky_div * sky >= H``)."""
+    sky = sky.to(torch.int64)
+    if params.lattice_vp_origin != "sky":
+        return torch.zeros_like(sky)
+    seen = (sky > 0) & (params.lattice_vp_sky_div * sky >= height)
+    return torch.where(seen, torch.clamp(sky + params.lattice_vp_sky, min=0, max=height), torch.zeros_like(sky))
+
+
+def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = None) -> torch.Tensor:
     """Section 11.2 (``lattice_vp == "search"``): per image the grid VP whose folded contrast
     comb is strongest, ``(B, 2)`` int64; see :func:`torchrow.reference.lattice.vp_search`.
+    ``origin (B,)`` int64 (:func:`vp_origin`; ``None``: zeros): each image's rows ``origin .. H-1``
+    are searched moved up to row 0 (one gather of the mask) and ``origin`` is added to the VP's row.
 
     The cell counts are scattered into ``(B, V, 3W)`` int32 histograms (``VP_SLICE`` (image, VP,
     cell) triples per scatter, through :func:`vp_table`'s flat index), then folded spacing by spacing (a static loop; a spacing
@@ -227,6 +240,11 @@ def vp_search(mask: torch.Tensor, params: Params) -> torch.Tensor:
     bsz, h, w = mask.shape
     dev = mask.device
     grid, idx = vp_table(h, w, params, dev)
+    if origin is not None:
+        rows = torch.arange(h, device=dev).view(1, h) + origin.view(-1, 1)  # (B, H): the source row
+        inside = (rows < h).view(bsz, h, 1)
+        src = torch.clamp(rows, max=h - 1).view(bsz, h, 1).expand(bsz, h, w)
+        mask = torch.gather(mask, 1, src) & inside
     nv, ncell = idx.shape
     s = params.lattice_vp_cell
     hc, wc = -(-h // s), -(-w // s)
@@ -261,6 +279,8 @@ def vp_search(mask: torch.Tensor, params: Params) -> torch.Tensor:
     value = torch.where(seen, best.to(torch.float64) / torch.clamp(total, min=1).to(torch.float64),
                         torch.full_like(total, -math.inf, dtype=torch.float64))
     pick = grid[torch.argmax(value, dim=1)]  # first maximum: the grid's order
+    if origin is not None:
+        pick = pick + torch.stack([torch.zeros_like(origin), origin], dim=1)
     fallback = torch.tensor([w // 2, params.lattice_vp_fallback_y], dtype=torch.int64, device=dev)
     return torch.where(seen.any(dim=1, keepdim=True), pick, fallback.expand_as(pick))
 
@@ -511,7 +531,8 @@ def refine(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: P
 
 
 def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Tensor | None,
-                params: Params, prior: LatticePriorBatch | None = None, flow: str = "sync") -> LatticeFitBatch:
+                params: Params, prior: LatticePriorBatch | None = None, flow: str = "sync",
+                origin: torch.Tensor | None = None) -> LatticeFitBatch:
     """Sections 11.2-11.3.1 per image (:func:`torchrow.reference.lattice.fit_lattice`).
 
     The cells (count and x sum of the inliers per image row and lattice row) are integer sums,
@@ -519,20 +540,23 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, 
     int64 prefix sums (about 40 MB each for 64 images of 320x240) besides the mask; a step's
     own temporaries are ``(B, H, 2K+1)``. ``prior``: section 11.7's (the lattice tracker);
     ``flow``: how the grid search (which tracked images skip) and :func:`refine` skip work
-    (:mod:`torchrow.functional._flow`; results never depend on it).
+    (:mod:`torchrow.functional._flow`; results never depend on it). ``origin (B,)``: the VP
+    grid's (:func:`vp_origin`; ``None``: zeros).
     """
     bsz, h, w = mask.shape
     params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
     dev = mask.device
+    if origin is None:
+        origin = torch.zeros((bsz,), dtype=torch.int64, device=dev)
     if params.lattice_vp == "search" and prior is not None:
-        def search(mask, restrict, vp):
-            return (torch.where(restrict.view(-1, 1), vp, vp_search(mask, params)),)
+        def search(mask, restrict, vp, origin):
+            return (torch.where(restrict.view(-1, 1), vp, vp_search(mask, params, origin)),)
 
         # the grid search, skipped when every image is tracked (11.7)
-        v = branch(flow, (~prior.restrict).any(), search, lambda mask, restrict, vp: (vp.clone(),),
-                   (mask, prior.restrict, prior.vp))[0]
+        v = branch(flow, (~prior.restrict).any(), search, lambda mask, restrict, vp, origin: (vp.clone(),),
+                   (mask, prior.restrict, prior.vp, origin))[0]
     elif params.lattice_vp == "search":
-        v = vp_search(mask, params)
+        v = vp_search(mask, params, origin)
     elif vp is None or has_vp is None:
         raise ValueError(f"lattice_vp={params.lattice_vp!r} needs section 6's vp and has_vp, got None")
     else:
@@ -617,18 +641,22 @@ def visible_rows(mask: torch.Tensor, top: torch.Tensor, coef: torch.Tensor, foun
 
 
 def improved_rows(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Tensor | None,
-                  params: Params, prior: LatticePriorBatch | None = None, flow: str = "sync") -> LatticeRows:
+                  params: Params, prior: LatticePriorBatch | None = None, flow: str = "sync",
+                  grid_sky: torch.Tensor | None = None) -> LatticeRows:
     """Section 11 on ``uint8 (B, 3, H, W)`` working images; ``vp (B, 2)`` float64 with ``has_vp``:
     section 6's, for ``lattice_vp="section6"`` (``None`` otherwise).
 
-    ``sky (B,)`` is section 1's row (any values when ``lattice_horizon="image"``: not used); the
-    lattice starts at :func:`horizon_row`. ``prior``: section 11.7's (the lattice tracker);
-    ``flow``: :func:`fit_lattice`'s.
+    ``sky (B,)`` is section 1's row (zeros where :meth:`Params.runs_sky` is false: not used);
+    the lattice starts at :func:`horizon_row` and the VP grid at :func:`vp_origin` of
+    ``grid_sky`` (``None``: ``sky``; the lattice tracker passes zero ``sky`` and its full
+    searches' rows). ``prior``: section 11.7's (the lattice tracker); ``flow``: :func:`fit_lattice`'s.
     """
     h = images.shape[2]
     top = horizon_row(sky, params)
     mask = green_mask(images, top, params)
-    coef, spacing, phase, found, v, cnt, contrast, curved = fit_lattice(mask, top, vp, has_vp, params, prior, flow)
+    origin = vp_origin(sky if grid_sky is None else grid_sky, h, params)
+    coef, spacing, phase, found, v, cnt, contrast, curved = fit_lattice(mask, top, vp, has_vp, params, prior, flow,
+                                                                        origin)
     support = (cnt > 0).sum(dim=1).to(torch.float64)  # (B, R)
     conf = support / _span(top, h).unsqueeze(1)
     ks = torch.arange(-params.lattice_half, params.lattice_half + 1, device=images.device, dtype=torch.float64)

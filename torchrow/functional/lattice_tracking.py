@@ -22,6 +22,7 @@ from torchrow.core.params import Params
 from torchrow.core.results import STATUSES
 from torchrow.core.steering import LATTICE_STATES, FrameResult, LatticeTrack
 from torchrow.functional import lattice as flattice
+from torchrow.functional import sky as fsky
 from torchrow.functional._flow import branch
 from torchrow.functional.lattice import LatticePriorBatch, LatticeRows
 from torchrow.functional.ransac import image_status
@@ -152,11 +153,23 @@ def lattice_vp(coef: torch.Tensor, height: int, fallback: torch.Tensor) -> torch
     return torch.where(fine, torch.round(torch.where(fine, xy, torch.zeros_like(xy))).to(torch.int64), fallback)
 
 
+def grid_sky(images: torch.Tensor, search: torch.Tensor, params: Params, flow: str) -> torch.Tensor:
+    """Section 1's row where the VP grid counts from it (:meth:`Params.lattice_vp_sky_origin`),
+    ``(B,)`` int64; zeros elsewhere, and computed only when some image (``search``, bool ``(B,)``)
+    searches the grid (a graph ``If`` when exported)."""
+    zeros = torch.zeros(images.shape[0], dtype=torch.int64, device=images.device)
+    if not params.lattice_vp_sky_origin():
+        return zeros
+    return branch(flow, search.any(), lambda images, zeros: (fsky.sky_row(images, params),),
+                  lambda images, zeros: (zeros.clone(),), (images, zeros))[0]
+
+
 def _lattice(images: torch.Tensor, prior: LatticePriorBatch, params: Params,
              flow: str) -> tuple[LatticeRows, torch.Tensor]:
     """Section 11 with the prior: rows and status codes (as the detector's improved mode)."""
     top = torch.zeros(images.shape[0], dtype=torch.int64, device=images.device)
-    rows = flattice.improved_rows(images, top, None, None, params, prior, flow)
+    rows = flattice.improved_rows(images, top, None, None, params, prior, flow,
+                                  grid_sky(images, ~prior.restrict, params, flow))
     return rows, flattice.improved_status(rows, image_status(flattice.as_row_fits(rows)), params)
 
 

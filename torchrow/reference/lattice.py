@@ -30,7 +30,7 @@ from torchrow.core.results import ImageResult, LatticeRow, Row
 
 __all__ = ["LatticeFit", "LatticePrior", "comb_near",
            "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_grid",
-           "vp_cells", "vp_search", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
+           "vp_cells", "vp_origin", "vp_search", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
            "normal_equations", "refine", "fit_lattice", "improved_status", "lattice_rows", "row_polynomial",
            "visible_rows", "improved_rows", "ImprovedRows", "N_COEF", "improved_result"]
 
@@ -184,8 +184,25 @@ def vp_cells(height: int, width: int, params: Params) -> tuple[np.ndarray, np.nd
     return yc, xc
 
 
-def vp_search(mask: np.ndarray, params: Params) -> tuple[int, int]:
+def vp_origin(sky: int, height: int, params: Params) -> int:
+    """Section 11.2: the image row the VP grid's heights count from, ``0`` or, with a horizon in
+    view, ``min(sky + lattice_vp_sky, H)``.
+
+    A horizon is in view when ``lattice_vp_origin == "sky"`` and section 1's row ``sky`` has
+    ``sky > 0`` and ``lattice_vp_sky_div * sky >= H``: the rows of a level field converge on the
+    horizon, which lies at or below the last row of sky (trees and buildings rise above it).
+    """
+    if params.lattice_vp_origin != "sky" or sky <= 0 or params.lattice_vp_sky_div * sky < height:
+        return 0
+    return min(max(sky + params.lattice_vp_sky, 0), height)
+
+
+def vp_search(mask: np.ndarray, params: Params, origin: int = 0) -> tuple[int, int]:
     """Section 11.2: the grid VP whose folded contrast comb is strongest (``lattice_vp == "search"``).
+
+    ``origin`` (:func:`vp_origin`): the search runs on the mask's rows ``origin .. H-1`` moved
+    up to rows ``0 .. H-1-origin`` (the rows below are empty) and adds ``origin`` to the VP's
+    row, so the grid's heights count from row ``origin``.
 
     The green pixels are counted in cells (:func:`vp_cells`). For each VP of :func:`vp_grid`,
     every cell with ``yc - yv > lattice_vp_margin`` projects its count through the VP onto the
@@ -203,7 +220,7 @@ def vp_search(mask: np.ndarray, params: Params) -> tuple[int, int]:
     s = params.lattice_vp_cell
     hc, wc = -(-h // s), -(-w // s)
     padded = np.zeros((hc * s, wc * s), np.int64)
-    padded[:h, :w] = mask
+    padded[:h - origin, :w] = mask[origin:]
     cnt = padded.reshape(hc, s, wc, s).sum(axis=(1, 3)).ravel()
     yc, xc = vp_cells(h, w, params)
     occupied = cnt > 0  # only counted cells are binned
@@ -236,7 +253,7 @@ def vp_search(mask: np.ndarray, params: Params) -> tuple[int, int]:
     seen = total > 0
     value = np.where(seen, best.astype(np.float64) / np.maximum(total, 1).astype(np.float64), -np.inf)
     q = int(np.argmax(value))
-    return int(grid[q, 0]), int(grid[q, 1])
+    return int(grid[q, 0]), int(grid[q, 1]) + origin
 
 
 def _comb_tables(width: int, params: Params) -> tuple[np.ndarray, ...]:
@@ -475,7 +492,7 @@ def refine(pre: tuple[np.ndarray, np.ndarray], coef: np.ndarray, height: int, pa
 
 
 def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, params: Params,
-                prior: LatticePrior | None = None) -> LatticeFit:
+                prior: LatticePrior | None = None, origin: int = 0) -> LatticeFit:
     """Sections 11.2-11.4 on a green mask: comb start, then the refits of 11.3 and 11.3.1.
 
     Start: ``c(t) = phase + ((phase - xv) / (H-1 - yv)) t``, ``d(t) = d + (d / (H-1 - yv)) t``,
@@ -484,12 +501,13 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
     a straight and a curved refine, both from the start, the curved one kept only where its inlier
     pixels exceed ``(1 + lattice_curve_gain)`` times the straight lattice's (float64), so
     straight rows stay straight unless the pixels demand a bend. ``prior``: section 11.7's
-    tracked frame (its VP instead of the search, the comb restricted).
+    tracked frame (its VP instead of the search, the comb restricted). ``origin``: the VP grid's
+    (:func:`vp_origin`).
     """
     h, w = mask.shape
     params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
     if params.lattice_vp == "search":
-        v = vp_search(mask, params) if prior is None or prior.vp is None else prior.vp
+        v = vp_search(mask, params, origin) if prior is None or prior.vp is None else prior.vp
     else:
         v = init_vp(vp, w, params)
     d, phase, found, contrast = comb_search(mask, v, params, prior)
@@ -605,16 +623,18 @@ class ImprovedRows(NamedTuple):
 
 
 def improved_rows(rgb: np.ndarray, sky: int, vp: tuple[float, float] | None, params: Params,
-                  prior: LatticePrior | None = None) -> ImprovedRows:
+                  prior: LatticePrior | None = None, grid_sky: int | None = None) -> ImprovedRows:
     """Section 11 on one working image.
 
-    ``sky`` is section 1's row (any value when ``lattice_horizon="image"``: it is not used); the
-    lattice starts at :func:`horizon_row`. ``vp``: section 6's, for ``lattice_vp="section6"``.
-    ``prior``: section 11.7's (the lattice tracker).
+    ``sky`` is section 1's row (0 where :meth:`Params.runs_sky` is false: not used); the
+    lattice starts at :func:`horizon_row` and the VP grid at :func:`vp_origin` of ``grid_sky``
+    (``None``: ``sky``; the lattice tracker passes ``sky = 0`` and its full searches' row).
+    ``vp``: section 6's, for ``lattice_vp="section6"``. ``prior``: section 11.7's.
     """
     top = horizon_row(sky, params)
     mask = green_mask(rgb, top, params)
-    fit = fit_lattice(mask, top, vp, params, prior)
+    origin = vp_origin(sky if grid_sky is None else grid_sky, rgb.shape[0], params)
+    fit = fit_lattice(mask, top, vp, params, prior, origin)
     rows = lattice_rows(fit, rgb.shape[0], params)
     conf = sum(r.confidence for r in rows) / len(rows)  # in row order, as the tensor path
     return ImprovedRows(rows, conf, fit, visible_rows(mask, top, fit, params))

@@ -21,6 +21,7 @@ from torchrow.core.io import resize_to_width, to_rgb8
 from torchrow.core.params import Params
 from torchrow.core.steering import FrameResult, LatticeTrack, check_optics
 from torchrow.reference.lattice import LatticePrior, centre_spacing, horizon_row, improved_result, improved_rows
+from torchrow.reference.sky import sky_row
 
 __all__ = ["LatticeSequenceState", "LatticeTracker", "row_end", "resolvable_row", "lattice_vp", "check_lattice_tracker"]
 
@@ -152,12 +153,15 @@ class LatticeTracker:
         full = not tracked or state.age >= p.lattice_track_every
         centre = state.centre if state.centre is not None else np.float64(w) / 2
         wide = LatticePrior(float(centre))
-        imp = improved_rows(rgb, 0, None, p, wide if full else LatticePrior(float(centre), state.vp, state.spacing))
+        # section 1's row only where the VP grid is searched (a full search) and counts from it
+        grid_sky = sky_row(rgb, p) if full and p.lattice_vp_sky_origin() else 0
+        imp = improved_rows(rgb, 0, None, p, wide if full else LatticePrior(float(centre), state.vp, state.spacing),
+                            grid_sky)
         res = improved_result(imp, w, h, top, p, name)
         redo = False
         if not full and res.status != "ok":  # a tracked frame that fails is searched again in full
             redo = True
-            imp = improved_rows(rgb, 0, None, p, wide)
+            imp = improved_rows(rgb, 0, None, p, wide, sky_row(rgb, p) if p.lattice_vp_sky_origin() else 0)
             res = improved_result(imp, w, h, top, p, name)
         fit = imp.fit
         ok = res.status == "ok"
