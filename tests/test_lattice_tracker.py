@@ -70,6 +70,31 @@ def test_caterra_frames_tensor_equals_reference(data_dir) -> None:
     assert all(r.state == "lost" for r in torchrow.Tracker(params).track([items[3:5]])[0])
 
 
+def test_sky_origin_steps_equal_under_every_flow(data_dir) -> None:
+    # the exported step's flows compute section 1 on every frame (not only on full searches) and
+    # run every refit to its bound: the same steps and states as the eager tracker's
+    folder = data_dir / "caterra_video"
+    if not folder.is_dir():
+        pytest.skip(f"caterra_video not found under {data_dir}")
+    from torchrow.core.io import load_image
+    from torchrow.core.results import STATUSES
+    from torchrow.functional.lattice_tracking import LatticeTrackerState, lattice_advance
+    from torchrow.onnx.checks import step_differences
+
+    params = Params(mode="improved", video_width=320, lattice_vp_origin="sky", **FORWARD)
+    frames = [load_image(f, 320) for f in sorted(folder.glob("*.jpg"))[:12:3]]
+    states = {flow: LatticeTrackerState.empty(1) for flow in ("sync", "always")}
+    active = torch.ones(1, dtype=torch.bool)
+    for rgb in frames:
+        x = torch.from_numpy(rgb).permute(2, 0, 1)[None].contiguous()
+        steps = {}
+        for flow in states:
+            steps[flow], states[flow] = lattice_advance(x, active, states[flow], params, flow)
+        assert not step_differences(steps["sync"], steps["always"])
+        assert not step_differences(states["sync"], states["always"])
+        assert steps["sync"].status.tolist() == [STATUSES.index("ok")]  # the grid counted from the horizon
+
+
 def test_identity_row_change_and_row_end() -> None:
     # straight along a row, then over to the row on the camera's right, then past the rows' end
     keys = [CameraPose(0.1, 0.0, 0.0), CameraPose(0.1, 0.0, 1.0), CameraPose(-0.45, 0.0, 2.0), CameraPose(-0.45, 0.0, 7.0)]

@@ -129,6 +129,7 @@ class Params:
     lattice_min_image_confidence: float = 0.0  # status ok needs the image confidence at least this
     # --- section 11.7 (torchrow extension): the lattice tracker ------------------------------
     lattice_track_every: int = 10  # video: a full (unrestricted) search at least every this many frames
+    lattice_track_iterations: int = 8  # video: a frame's refits stop after this many steps (images: lattice_iterations)
     lattice_track_spacing_tol: float = 0.15  # prior: comb spacings within this fraction of the last spacing
     lattice_track_phase_tol: float = 0.25  # prior: a tooth within this fraction of the spacing of the tracked row
     lattice_track_hysteresis: float = 0.1  # row change: the tracked row is (0.5 + this) spacings off the centre
@@ -171,6 +172,11 @@ class Params:
         """Whether section 1 (the sky row) runs: for sections 2-6, or for the improved mode's
         ``lattice_horizon="sky"`` (ALGORITHM.md 11.1) or its VP grid below a horizon in view (11.2)."""
         return self.runs_section6() or self.lattice_horizon == "sky" or self.lattice_vp_sky_origin()
+
+    def tracking(self) -> Params:
+        """The parameters the lattice tracker (ALGORITHM.md 11.7) runs section 11 with, in both
+        paths: ``lattice_iterations`` = ``lattice_track_iterations``."""
+        return self.replace(lattice_iterations=self.lattice_track_iterations)
 
     def lattice_vp_sky_origin(self) -> bool:
         """Whether the improved mode's VP grid is measured from a horizon in view (``lattice_vp="search"``,
@@ -426,6 +432,7 @@ _RULES: dict[str, Rule] = {
     "lattice_min_spacing_px": _F0, "lattice_pivot_tol": Rule("float", 0, 1, why="a fraction of a pivot"),
     "lattice_min_confidence": Rule("float", 0, 1),
     "lattice_track_every": Rule("int", 1, 2**31 - 1),
+    "lattice_track_iterations": Rule("int", 0, 1000, why=_COST),
     "lattice_track_spacing_tol": Rule("float", 0, 1, why="a fraction of the spacing"),
     "lattice_track_phase_tol": Rule("float", 0, 0.5, why="a fraction of the spacing (0.5: any phase)"),
     "lattice_track_hysteresis": Rule("float", 0, 0.5, why="a fraction of the spacing"),

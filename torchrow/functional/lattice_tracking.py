@@ -155,21 +155,25 @@ def lattice_vp(coef: torch.Tensor, height: int, fallback: torch.Tensor) -> torch
 
 def grid_sky(images: torch.Tensor, search: torch.Tensor, params: Params, flow: str) -> torch.Tensor:
     """Section 1's row where the VP grid counts from it (:meth:`Params.lattice_vp_sky_origin`),
-    ``(B,)`` int64; zeros elsewhere, and computed only when some image (``search``, bool ``(B,)``)
-    searches the grid (a graph ``If`` when exported)."""
+    ``(B,)`` int64 (zeros elsewhere; only the images of ``search``, bool ``(B,)``, use it).
+    Eagerly it runs only when some image searches the grid; in an exported graph on every frame
+    (tracing section 1 inside a ``torch.cond`` took the exporter over ten minutes). Results
+    never depend on it."""
     zeros = torch.zeros(images.shape[0], dtype=torch.int64, device=images.device)
     if not params.lattice_vp_sky_origin():
         return zeros
+    if flow != "sync":
+        return fsky.sky_row(images, params)
     return branch(flow, search.any(), lambda images, zeros: (fsky.sky_row(images, params),),
                   lambda images, zeros: (zeros.clone(),), (images, zeros))[0]
 
 
-def _lattice(images: torch.Tensor, prior: LatticePriorBatch, params: Params,
-             flow: str) -> tuple[LatticeRows, torch.Tensor]:
-    """Section 11 with the prior: rows and status codes (as the detector's improved mode)."""
+def _lattice(images: torch.Tensor, prior: LatticePriorBatch, params: Params, flow: str,
+             sky: torch.Tensor) -> tuple[LatticeRows, torch.Tensor]:
+    """Section 11 with the prior and the VP grid's ``sky`` rows: rows and status codes (as the
+    detector's improved mode)."""
     top = torch.zeros(images.shape[0], dtype=torch.int64, device=images.device)
-    rows = flattice.improved_rows(images, top, None, None, params, prior, flow,
-                                  grid_sky(images, ~prior.restrict, params, flow))
+    rows = flattice.improved_rows(images, top, None, None, params, prior, flow, sky)
     return rows, flattice.improved_status(rows, image_status(flattice.as_row_fits(rows)), params)
 
 
@@ -184,27 +188,34 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
     needs them and the refits end once every image has stopped; in an exported graph
     (``"loop"``, :class:`torchrow.onnx.graphs.StaticLatticeStep`) the redo pass and the grid
     search are ONNX ``If`` nodes and the refits ONNX ``Loop`` nodes; ``"always"`` runs all of
-    them to their static bounds, masked. Results never depend on it."""
+    them to their static bounds, masked. Results never depend on it. Section 11 runs with
+    :meth:`Params.tracking` (the refits' bound ``lattice_track_iterations``)."""
+    params = params.tracking()
     h, w = images.shape[2], images.shape[3]
     tracked = state.ready & state.has_centre
     full = ~tracked | (state.age >= params.lattice_track_every)
     centre = torch.where(tracked, state.centre, torch.full_like(state.centre, float(w) / 2))
     prior = LatticePriorBatch(centre, ~full, state.vp, state.spacing)
-    rows, status = _lattice(images, prior, params, flow)
+    # section 1 where the grid is searched: eagerly on frames with a full search (here) or a redo
+    # (again); in a graph on every frame (grid_sky)
+    sky = grid_sky(images, full, params, flow)
+    have_sky = flow != "sync" or not params.lattice_vp_sky_origin() or bool(full.any())
+    rows, status = _lattice(images, prior, params, flow, sky)
     redo = active & ~full & (status != _OK)
     n_rows = len(dataclasses.fields(LatticeRows))
 
-    def again(images, redo, centre, vp, spacing, *now):  # a tracked frame that fails is searched again in full
+    def again(images, redo, centre, vp, spacing, sky, *now):  # a tracked frame that fails is searched again in full
+        sky = sky if have_sky else fsky.sky_row(images, params)
         wide, wide_status = _lattice(images, LatticePriorBatch(centre, torch.zeros_like(redo), vp, spacing), params,
-                                     flow)
+                                     flow, sky)
         picked = _where(redo, wide, LatticeRows(*now[:n_rows]))
         return _fields(picked) + (torch.where(redo, wide_status, now[n_rows]),)
 
-    def unchanged(images, redo, centre, vp, spacing, *now):  # when no sequence needs it (a branch may not alias inputs)
+    def unchanged(images, redo, centre, vp, spacing, sky, *now):  # when no sequence needs it (a branch may not alias inputs)
         return tuple(t.clone() for t in now)
 
     out = branch(flow, redo.any(), again, unchanged,
-                 (images, redo, centre, state.vp, state.spacing) + _fields(rows) + (status,))
+                 (images, redo, centre, state.vp, state.spacing, sky) + _fields(rows) + (status,))
     rows, status = LatticeRows(*out[:n_rows]), out[n_rows]
     ok = status == _OK
     y_end, has_end = row_end(rows.lit, params)

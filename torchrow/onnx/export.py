@@ -189,7 +189,7 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
             from onnxscript import optimizer
 
             note("optimize")
-            if tracker and params.mode == "improved" and not control_flow:
+            if tracker and params.mode == "improved":
                 _distinct_value_names(prog.model)
             optimizer.fold_constants_ir(prog.model)
             optimizer.remove_unused_nodes(prog.model)
@@ -274,8 +274,9 @@ def _distinct_value_names(model) -> None:
     """Name every value of the (onnx_ir) model's main graph ``v<i>`` but its inputs and outputs,
     in place. The constant folder names its results after the values they replace and then
     renames duplicates ``x`` to ``x_1``, ``x_2``, ..., failing where an initializer already has
-    that name (seen in the lattice tracker step without control flow, whose unrolled refits
-    repeat every name); with these names no folded result can meet an existing one."""
+    that name (seen in the lattice tracker step: without control flow its unrolled refits
+    repeat every name; with section 1 in the graph an initializer ``full`` meets the output
+    ``full``); with these names no folded result can meet an existing one."""
     fixed = {v.name for v in list(model.graph.inputs) + list(model.graph.outputs)}
     values = list(model.graph.initializers.values()) + [o for node in model.graph for o in node.outputs]
     for i, v in enumerate(values):

@@ -147,21 +147,21 @@ class LatticeTracker:
             state = LatticeSequenceState(width=w, height=h)
         elif (h, w) != (state.height, state.width):
             raise ValueError(f"frame of working size {w}x{h} in a sequence of {state.width}x{state.height}")
-        p = self.params
+        p = self.params.tracking()  # section 11 with the tracker's bound on the refits
         top = horizon_row(0, p)
         tracked = state.centre is not None
         full = not tracked or state.age >= p.lattice_track_every
         centre = state.centre if state.centre is not None else np.float64(w) / 2
         wide = LatticePrior(float(centre))
-        # section 1's row only where the VP grid is searched (a full search) and counts from it
-        grid_sky = sky_row(rgb, p) if full and p.lattice_vp_sky_origin() else 0
+        # section 1 only where the grid is searched (a full search or a redo) and counts from it
+        grid_sky = sky_row(rgb, p) if p.lattice_vp_sky_origin() else 0
         imp = improved_rows(rgb, 0, None, p, wide if full else LatticePrior(float(centre), state.vp, state.spacing),
-                            grid_sky)
+                            grid_sky if full else 0)
         res = improved_result(imp, w, h, top, p, name)
         redo = False
         if not full and res.status != "ok":  # a tracked frame that fails is searched again in full
             redo = True
-            imp = improved_rows(rgb, 0, None, p, wide, sky_row(rgb, p) if p.lattice_vp_sky_origin() else 0)
+            imp = improved_rows(rgb, 0, None, p, wide, grid_sky)
             res = improved_result(imp, w, h, top, p, name)
         fit = imp.fit
         ok = res.status == "ok"
