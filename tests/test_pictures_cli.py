@@ -48,6 +48,14 @@ def test_picture_has_legend_strip_and_rows_start_below_vp():
     assert np.array_equal(draw_result(rgb, res, scale=2, with_legend=False).shape, (120, 160, 3))
     assert row_top(res, 60) == 20.0  # vanishing point inside, below the horizon
     assert row_top(_result(vp=(40.0, -50.0)), 60) == 10.0  # outside: the horizon
+    # improved mode (no section-6 VP): where the outermost rows come within 1 px; rows through
+    # (40, 24) with 15 px between neighbours at the bottom row 59 are 30 px apart there, 1 px
+    # apart 7/6 rows below the VP, so rows are drawn from row 26 on
+    fan = [Row(a=15.0 * k / 35.0, b=40.0 - 15.0 * k * 24.0 / 35.0, valid=True, reason="") for k in (-1, 0, 1)]
+    assert row_top(_result(vp=None, sky=0, rows=fan), 60) == 26.0
+    assert row_top(_result(vp=None, sky=0, rows=fan[:1]), 60) == 0.0  # one row: nothing to cross
+    parallel = [Row(a=0.0, b=20.0 * k + 40.0, valid=True, reason="") for k in (-1, 0, 1)]
+    assert row_top(_result(vp=None, sky=5, rows=parallel), 60) == 5.0  # never within 1 px: the horizon
     pic = draw_result(rgb, res, scale=2, with_legend=False)
     above = pic[: 2 * 20 - 2]  # nothing of either row above the vanishing point
     assert not np.any(np.all(above == VALID, axis=2)) and not np.any(np.all(above == INVALID, axis=2))
