@@ -8,8 +8,9 @@ field of view, 50 cm rows; along a row, a turn, over to the next row, on past th
    each frame's time: tracked frames, full searches, the worst after frame 0) and for a batch
    of 8 sequences in lock-step (8 shifted windows of the drive), and of the reference
    ``torchrow.reference.Tracker(mode="improved")`` on the first frames;
-2. the records' accuracy against the renderer's truth: ``lateral_m`` and ``heading_rad`` error
-   medians (frames more than 1.5 m before the rows' end), the row end error on ``row_end_ahead``
+2. the records' accuracy against the renderer's truth: ``lateral_m`` (from the tracked row: the
+   planted row nearest the camera on frame 0, moved by each reported row change) and
+   ``heading_rad`` error medians (frames more than 1.5 m before the rows' end), the row end error on ``row_end_ahead``
    frames, the states and the row changes.
 
 Frames are rendered before timing. Tensor and reference records are checked to agree.
@@ -89,7 +90,15 @@ def main() -> None:
     print(f"  {frame_ms}")
     print(f"  tensor = reference on the first {k} frames: {not diff}" + (f" ({diff[:3]})" if diff else ""))
 
-    lat = [abs(r.lateral_m - f.lateral_m) for r, f in zip(got, truth)
+    # the truth for the tracked row: the planted row nearest the camera on frame 0, then its
+    # neighbour on the right (+1) or left (-1) from each frame that reports a row change
+    sp = truth[0].spacing_m
+    k = round((truth[0].lateral_m - truth[0].pose.lateral_m) / sp)
+    tracked = []
+    for r, f in zip(got, truth):
+        k += r.row_change or 0
+        tracked.append(f.pose.lateral_m + k * sp)
+    lat = [abs(r.lateral_m - t) for r, f, t in zip(got, truth, tracked)
            if r.lateral_m is not None and f.row_end_m is not None and f.row_end_m > 1.5]
     head = [abs(r.heading_rad - f.heading_rad) for r, f in zip(got, truth)
             if r.heading_rad is not None and f.row_end_m is not None and f.row_end_m > 1.5]

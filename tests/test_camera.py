@@ -122,6 +122,15 @@ def test_steering_uses_the_tangent_at_the_bottom_row() -> None:
     px, straight = steering(bent, None, 320, 240), steering(rows, None, 320, 240)
     assert straight.lateral_px is not None and px.lateral_px == pytest.approx(straight.lateral_px, abs=1e-6)
     assert px.lateral_frac == pytest.approx(straight.lateral_frac, abs=1e-9)
+    # the lattice tracker's central row is a given slot (its tracked row), even where another
+    # row lies nearer the centre or the nadir; its neighbours are the slots beside it
+    shifted = [Row(a=0.0, b=160.0 + 100.0 * k - 60.0, valid=True) for k in (-1, 0, 1)]  # 0, 100, 200 px
+    near, slot = steering(shifted, None, 320, 240), steering(shifted, None, 320, 240, central=1)
+    assert (near.lateral_px, slot.lateral_px) == (40.0, -60.0) and slot.lateral_frac == pytest.approx(-0.6)
+    mid = metric_steering(rows, cam, 240, central=3)  # rows k = -2..2 lie at 0.1 + 0.6 k m: slot 3 is k = 1
+    assert (mid.lateral_m, mid.heading_rad, mid.spacing_m) == (
+        pytest.approx(0.7, abs=1e-6), pytest.approx(-0.06, abs=1e-6), pytest.approx(0.6, abs=1e-6))
+    assert metric_steering(rows, cam, 240, central=len(rows)) == MetricSteering()  # no such row
 
 
 def test_steering_central_row_signs_and_missing_rows() -> None:

@@ -220,3 +220,6 @@ def test_central_jumps_leave_out_row_change_frames():
     jumps = central_jumps(steady)
     assert jumps["tracked"] == [2.0, 1.0]  # the relabelled frame 2 is no jump of row 0
     assert central_jumps(steady[:3] + [rec(3, 60.0)])["tracked"] == [2.0, 40.0]
+    # a bent row (the improved mode's): its bottom x is the whole polynomial's, x(49) = 74.01
+    bent = {"a": 0.0, "b": 50.0, "c": 0.01, "e": 0.0, "valid": True}
+    assert central_jumps([rec(0, 50.0), {**rec(1, 0.0), "rows": [bent]}])["tracked"] == [pytest.approx(24.01)]

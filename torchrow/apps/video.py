@@ -17,6 +17,7 @@ from torchrow.core.frames import (
     display_name,
     open_source,  # noqa: F401  (the README's import path for frame sources)
 )
+from torchrow.core.results import Row
 
 __all__ = ["VideoWriter", "draw_frame", "draw_lattice_frame", "error_frame", "central_jumps", "plot_tracks",
            "STATE_COLORS"]
@@ -108,10 +109,17 @@ class VideoWriter:
 # summaries, pictures and plots of tracked sequences
 # ----------------------------------------------------------------------------------------
 
+def _bottom_x(row: dict, height: int) -> float:
+    """Bottom-row x of a record's row, ``x = e*y**3 + c*y**2 + a*y + b`` at ``y = H-1`` (the
+    improved mode's rows bend; ``c``, ``e`` null or 0 for straight rows)."""
+    return float(Row(a=row["a"], b=row["b"], valid=True, c=row.get("c") or 0.0, e=row.get("e") or 0.0).x_at(
+        float(height - 1)))
+
+
 def _bottoms(rec: dict) -> list[float | None]:
     """Bottom-row x of every row slot of a record (None for invalid rows)."""
     h = rec.get("height") or 0
-    return [r["a"] * (h - 1) + r["b"] if r["valid"] and r["a"] is not None else None for r in rec.get("rows", [])]
+    return [_bottom_x(r, h) if r["valid"] and r["a"] is not None else None for r in rec.get("rows", [])]
 
 
 def central_jumps(records: list[dict]) -> dict[str, list[float]]:
@@ -450,7 +458,7 @@ def plot_tracks(records_by_source: dict[str, list[dict]], path: str | Path) -> N
             for row in r.get("rows", []):
                 if row["valid"] and row["a"] is not None:
                     fx.append(r["frame"])
-                    bx.append(row["a"] * (h - 1) + row["b"])
+                    bx.append(_bottom_x(row, h))
         ax.scatter(fx, bx, s=6, c="tab:green", label="valid rows (x at bottom row)")
         cen = [(r["frame"], r["lateral_px"] + r["width"] / 2) for r in recs if r.get("lateral_px") is not None]
         if cen:

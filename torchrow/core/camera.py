@@ -267,7 +267,8 @@ def ground_line(camera: CameraModel, row: Row, y0: float) -> tuple[float, float]
     return math.atan2(-p, q), float(r / norm)
 
 
-def metric_steering(rows: Sequence[Row], camera: CameraModel, height: int) -> MetricSteering:
+def metric_steering(rows: Sequence[Row], camera: CameraModel, height: int,
+                    central: int | None = None) -> MetricSteering:
     """``lateral_m``, ``heading_rad``, ``spacing_m`` of one frame from its rows.
 
     Parameters
@@ -289,7 +290,22 @@ def metric_steering(rows: Sequence[Row], camera: CameraModel, height: int) -> Me
         ``heading_rad`` = the mean heading of the central row and its neighbours;
         ``spacing_m`` = the mean ``|l_n - l_c|`` over the neighbours (``None`` without one).
         All ``None`` without a valid row seen below the horizon.
+    central : int, optional
+        The central row's index in ``rows`` instead (the lattice tracker's tracked row; its
+        neighbours are the slots beside it): all ``None`` where that row is invalid or has no
+        ground line.
     """
+    if central is not None:
+        def line(i: int) -> tuple[float, float] | None:
+            return ground_line(camera, rows[i], height - 1.0) if 0 <= i < len(rows) and rows[i].valid else None
+
+        mid = line(central)
+        if mid is None:
+            return MetricSteering()
+        beside = [g for g in (line(central - 1), line(central + 1)) if g is not None]
+        heading = sum(g[0] for g in [mid, *beside]) / (1 + len(beside))
+        spacing = sum(abs(g[1] - mid[1]) for g in beside) / len(beside) if beside else None
+        return MetricSteering(mid[1], heading, spacing)
     lines = [g for g in (ground_line(camera, r, height - 1.0) for r in rows if r.valid) if g is not None]
     if not lines:
         return MetricSteering()

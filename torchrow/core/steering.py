@@ -26,7 +26,9 @@ signal             definition, unit, sign
                    minus the image centre. Image convention: positive = the central row
                    is **right** of the image centre (the robot must move right to sit on
                    it). The central row is the valid row whose bottom x is nearest
-                   ``W/2`` (first on ties). ``None`` without a valid row.
+                   ``W/2`` (first on ties); the lattice tracker's is its tracked row
+                   ``k = 0`` (ALGORITHM.md 11.7), also for ``lateral_m``. ``None`` without
+                   a valid row.
 ``lateral_frac``   ``lateral_px / d`` (dimensionless, same sign), ``d`` = the local row
                    spacing on the bottom image row: the mean distance from the central
                    row to its valid neighbour rows (one or two, in bottom-x order).
@@ -43,8 +45,10 @@ signal             definition, unit, sign
 
 A controller wanting "turn towards the rows and onto the central row" uses, e.g.,
 ``yaw_rate = k1 * heading_rad - k2 * lateral_frac`` and trusts it in proportion to
-``confidence``. The central row can switch to its neighbour when the robot is half a row
-spacing off, so ``lateral_frac`` lives in about ``[-0.5, 0.5]`` and jumps by 1 there.
+``confidence``. Section 8's central row can switch to its neighbour when the robot is half a
+row spacing off, so ``lateral_frac`` lives in about ``[-0.5, 0.5]`` and jumps by 1 there; the
+lattice tracker's moves to a neighbour only on a frame reporting ``row_change`` (within about
+``[-0.6, 0.6]`` otherwise).
 """
 
 from __future__ import annotations
@@ -90,7 +94,7 @@ def check_optics(hfov_deg: float | None, camera: CameraModel | None) -> None:
 
 
 def steering(rows: Sequence[Row], vp: tuple[float, float] | None, width: int, height: int,
-             hfov_deg: float | None = None) -> Steering:
+             hfov_deg: float | None = None, central: int | None = None) -> Steering:
     """Steering signals of one frame from its rows and vanishing point.
 
     Parameters
@@ -103,6 +107,9 @@ def steering(rows: Sequence[Row], vp: tuple[float, float] | None, width: int, he
         Working image size ``W``, ``H``.
     hfov_deg : float, optional
         Horizontal field of view (degrees) of the working image, for ``heading_rad``.
+    central : int, optional
+        The central row's index in ``rows`` (the lattice tracker's tracked row ``k = 0``, its
+        neighbours the slots beside it); ``None``: the valid row whose bottom x is nearest ``W/2``.
 
     Returns
     -------
@@ -117,6 +124,17 @@ def steering(rows: Sequence[Row], vp: tuple[float, float] | None, width: int, he
             heading_rad = math.atan2(-heading_px, focal_from_fov(width, hfov_deg))
     # the whole polynomial: the improved mode's rows bend (faithful rows have c = e = 0, and
     # x_at gives their a * (H-1) + b bit for bit)
+    if central is not None:
+        def bottom(i: int) -> float | None:
+            return float(rows[i].x_at(float(height - 1))) if 0 <= i < len(rows) and rows[i].valid else None
+
+        x, near = bottom(central), [bottom(central - 1), bottom(central + 1)]
+        if x is not None:
+            lateral_px = x - centre
+            gaps = [abs(n - x) for n in near if n is not None]
+            spacing = sum(gaps) / len(gaps) if gaps else 0.0
+            lateral_frac = lateral_px / spacing if spacing > 0 else None
+        return Steering(heading_px, heading_rad, lateral_px, lateral_frac)
     bottoms = sorted(float(r.x_at(float(height - 1))) for r in rows if r.valid)
     if bottoms:
         # min() keeps the first of equal distances, the order being bottom x
@@ -269,10 +287,13 @@ class FrameResult(ImageResult):
         """
         check_optics(hfov_deg, camera)
         rows_ok = base.status in ("ok", "invalid")
-        st = steering(base.rows, base.vp, base.width, base.height, hfov_deg) if rows_ok else Steering()
+        # the lattice tracker steers by its tracked row (k = 0), which moves to a neighbour only
+        # with a reported row change; section 8 by the row nearest the centre
+        central = len(base.rows) // 2 if lattice is not None else None
+        st = steering(base.rows, base.vp, base.width, base.height, hfov_deg, central) if rows_ok else Steering()
         metric = MetricSteering()
         if camera is not None and rows_ok:
-            metric = metric_steering(base.rows, camera.scaled(base.width, base.height), base.height)
+            metric = metric_steering(base.rows, camera.scaled(base.width, base.height), base.height, central)
         fields = {k: getattr(base, k) for k in ImageResult.__dataclass_fields__}
         extra: dict[str, Any] = {}
         if lattice is not None:
