@@ -31,6 +31,7 @@ from _common import append_results  # type: ignore[import-not-found]
 import torchrow
 from torchrow import Params
 from torchrow.core.camera import CameraModel
+from torchrow.core.params import FORWARD_CAMERA
 from torchrow.core.results import record_differences
 from torchrow.evaluation.synthetic import CameraPose, GroundField, camera_path, render_camera
 from torchrow.reference import Tracker as RefTracker
@@ -53,8 +54,7 @@ def main() -> None:
             CameraPose(-0.45, 0.0, 12.5)]
     truth = [render_camera(field, cam, p, frame=i) for i, p in enumerate(camera_path(keys, args.frames_per_leg))]
     frames = [f.image for f in truth]
-    p = Params(mode="improved", video_width=WIDTH, lattice_model="auto", lattice_min_spacing=16,
-               lattice_max_spacing=320, lattice_vp_origin="sky")  # the forward-camera setting (11.3.1)
+    p = Params(mode="improved", video_width=WIDTH, **FORWARD_CAMERA)  # the forward-camera setting (11.3.1)
     print(f"{len(frames)} rendered frames at {WIDTH}x{HEIGHT}, torch threads {torch.get_num_threads()}", flush=True)
 
     ten = torchrow.Tracker(p, camera=cam)

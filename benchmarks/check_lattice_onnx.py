@@ -32,14 +32,14 @@ from _common import data_root
 import torchrow
 from torchrow import Params
 from torchrow.core.io import load_image
+from torchrow.core.params import FORWARD_CAMERA
 from torchrow.core.results import record_differences
 from torchrow.onnx.checks import step_differences
 from torchrow.onnx.export import to_onnx
 from torchrow.onnx.metadata import model_info
 from torchrow.onnx.runtime import OnnxTracker
 
-PARAMS = Params(mode="improved", video_width=500, lattice_model="auto", lattice_min_spacing=16,
-                lattice_max_spacing=320, lattice_vp_origin="sky")
+PARAMS = Params(mode="improved", video_width=500, **FORWARD_CAMERA)
 
 
 def main() -> None:

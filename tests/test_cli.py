@@ -172,3 +172,23 @@ def test_eval_tensor_equals_reference_scores(crbd_dir: Path, tmp_path: Path) -> 
         rows[impl] = [{k: v for k, v in r.items() if k != "seconds"}
                       for r in csv.DictReader(open(out / "scores.csv"))]
     assert rows["reference"] == rows["tensor"]
+
+
+def test_forward_flag_applies_the_forward_camera_setting_under_param() -> None:
+    import argparse
+
+    from torchrow.apps.commands.shared import CLIError, parse_params, with_mode
+    from torchrow.core.params import FORWARD_CAMERA
+
+    def args(**kw):
+        base = {"mode": None, "forward": True, "param": None, "impl": "tensor", "command": "video"}
+        return argparse.Namespace(**{**base, **kw})
+
+    p = with_mode(parse_params(None), args())
+    assert p.mode == "improved" and all(getattr(p, k) == v for k, v in FORWARD_CAMERA.items())
+    items = ["lattice_vp_origin=top", "lattice_max_spacing=200"]
+    q = with_mode(parse_params(items), args(param=items))  # --param wins over --forward
+    assert (q.lattice_vp_origin, q.lattice_max_spacing, q.lattice_min_spacing) == ("top", 200, 16)
+    with pytest.raises(CLIError, match="leave out --mode faithful"):
+        with_mode(parse_params(None), args(mode="faithful"))
+    assert with_mode(parse_params(None), args(forward=False)).mode == "faithful"

@@ -15,7 +15,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["Params", "Rule", "check_fields"]
+__all__ = ["Params", "Rule", "check_fields", "FORWARD_CAMERA"]
 
 
 @dataclass(frozen=True)
@@ -440,6 +440,12 @@ _RULES: dict[str, Rule] = {
     "lattice_end_margin": _INT_PX,
     "lattice_headland_frac": Rule("float", 0, 1, why="a fraction of the image height"),
 }
+
+#: The improved mode's forward-camera setting (ALGORITHM.md 11.2, 11.3.1): a camera that sees
+#: the horizon, rows converging near the top edge or inside the image. ``--forward`` on the
+#: command line; ``Params(mode="improved", **FORWARD_CAMERA)`` in Python.
+FORWARD_CAMERA: dict[str, Any] = {"lattice_model": "auto", "lattice_min_spacing": 16, "lattice_max_spacing": 320,
+                                  "lattice_vp_origin": "sky"}
 
 #: Bytes section 11.2's tables may take for one working image (:meth:`Params.lattice_table_bytes`):
 #: with them an image of ``max_pixels`` pixels at ``image_width`` runs under 3 GiB in either path.

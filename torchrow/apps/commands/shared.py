@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 
 from torchrow import __version__
 from torchrow.core.io import IMAGE_EXTENSIONS
-from torchrow.core.params import Params
+from torchrow.core.params import FORWARD_CAMERA, Params
 
 if TYPE_CHECKING:
     from torchrow.apps.foxglove import Recorder
@@ -68,10 +68,14 @@ def add_common(p: argparse.ArgumentParser) -> None:
 
 
 def add_mode(p: argparse.ArgumentParser) -> None:
-    """``--mode`` (applied by :func:`with_mode`)."""
+    """``--mode`` and ``--forward`` (applied by :func:`with_mode`)."""
     p.add_argument("--mode", choices=("faithful", "improved"), default=None,
                    help="faithful: the thesis' algorithm (default); improved: curved rows on a spacing "
                         "lattice (ALGORITHM.md section 11, a torchrow extension)")
+    p.add_argument("--forward", action="store_true",
+                   help="the improved mode's forward-camera setting, for a camera that sees the horizon: "
+                        + ", ".join(f"{k}={v}" for k, v in FORWARD_CAMERA.items())
+                        + " (implies --mode improved; --param overrides it)")
 
 
 def add_impl(p: argparse.ArgumentParser, batch: int = 64, item: str = "image",
@@ -137,8 +141,18 @@ def replace_params(params: Params, option: str, **changes: object) -> Params:
 
 
 def with_mode(params: Params, args: argparse.Namespace) -> Params:
-    """Apply ``--mode`` (faithful | improved, ALGORITHM.md section 11) to the parameters."""
+    """Apply ``--mode`` (faithful | improved, ALGORITHM.md section 11) and ``--forward``
+    (:data:`~torchrow.core.params.FORWARD_CAMERA` where no ``--param`` names the field) to the
+    parameters."""
     mode = getattr(args, "mode", None)
+    if getattr(args, "forward", False):
+        if mode == "faithful":
+            raise CLIError("--forward is a setting of the improved mode; leave out --mode faithful")
+        if getattr(args, "impl", None) != "onnx":  # an exported model brings its own (check_model)
+            given = {item.partition("=")[0] for item in getattr(args, "param", None) or []}
+            params = replace_params(params, "--forward",
+                                    **{k: v for k, v in FORWARD_CAMERA.items() if k not in given})
+        mode = "improved"
     if mode is None:
         return params
     if mode == "improved" and getattr(args, "impl", None) == "onnx" and args.command != "video":
@@ -362,6 +376,9 @@ def check_model(args: argparse.Namespace, kind: str = "detector") -> str | None:
                        f"--mode {mode}{' --tracker' if kind == 'tracker' else ''}, or leave out --mode)")
     if args.param:
         raise CLIError("--param cannot change an exported model; export one with those --param values")
+    if getattr(args, "forward", False) and any(info["params"].__dict__[k] != v for k, v in FORWARD_CAMERA.items()):
+        raise CLIError(f"--forward: {model} was exported without the forward-camera setting (export one with "
+                       f"--mode improved --forward{' --tracker' if kind == 'tracker' else ''})")
     want = info["params"].image_width if kind == "detector" else info["params"].video_width
     if want != info["width"]:
         raise CLIError(f"model {model} takes {info['width']}x{info['height']} images but its working width is {want}")
