@@ -546,17 +546,18 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, 
     bsz, h, w = mask.shape
     params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
     dev = mask.device
+    counted = params.lattice_vp_origin == "sky"  # else every origin is 0: no gather of the mask
     if origin is None:
         origin = torch.zeros((bsz,), dtype=torch.int64, device=dev)
     if params.lattice_vp == "search" and prior is not None:
         def search(mask, restrict, vp, origin):
-            return (torch.where(restrict.view(-1, 1), vp, vp_search(mask, params, origin)),)
+            return (torch.where(restrict.view(-1, 1), vp, vp_search(mask, params, origin if counted else None)),)
 
         # the grid search, skipped when every image is tracked (11.7)
         v = branch(flow, (~prior.restrict).any(), search, lambda mask, restrict, vp, origin: (vp.clone(),),
                    (mask, prior.restrict, prior.vp, origin))[0]
     elif params.lattice_vp == "search":
-        v = vp_search(mask, params, origin)
+        v = vp_search(mask, params, origin if counted else None)
     elif vp is None or has_vp is None:
         raise ValueError(f"lattice_vp={params.lattice_vp!r} needs section 6's vp and has_vp, got None")
     else:
