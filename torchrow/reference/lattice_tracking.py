@@ -154,14 +154,16 @@ class LatticeTracker:
         centre = state.centre if state.centre is not None else np.float64(w) / 2
         wide = LatticePrior(float(centre))
         # section 1 only where the grid is searched (a full search or a redo) and counts from it
-        grid_sky = sky_row(rgb, p) if p.lattice_vp_sky_origin() else 0
+        def grid_sky() -> int:
+            return sky_row(rgb, p) if p.lattice_vp_sky_origin() else 0
+
         imp = improved_rows(rgb, 0, None, p, wide if full else LatticePrior(float(centre), state.vp, state.spacing),
-                            grid_sky if full else 0)
+                            grid_sky() if full else 0)
         res = improved_result(imp, w, h, top, p, name)
         redo = False
         if not full and res.status != "ok":  # a tracked frame that fails is searched again in full
             redo = True
-            imp = improved_rows(rgb, 0, None, p, wide, grid_sky)
+            imp = improved_rows(rgb, 0, None, p, wide, grid_sky())
             res = improved_result(imp, w, h, top, p, name)
         fit = imp.fit
         ok = res.status == "ok"
