@@ -1,6 +1,6 @@
 """The exported lattice tracker step (improved mode) against torch on every Caterra frame:
 ``python benchmarks/check_lattice_onnx.py [--data DIR] [--model M.onnx | --out M.onnx] [--top]
-[--frames N]``.
+[--frames N] [--rounds R] [--compare OTHER.onnx ...]``.
 
 Exports the step at the real working size (500x281, the forward-camera setting
 ``Params(mode="improved", video_width=500, lattice_model="auto", lattice_min_spacing=16,
@@ -11,8 +11,11 @@ tracked, with redos and scheduled full searches (section 1 inside a graph ``If``
 Tracks the frames with :class:`torchrow.Tracker` and with
 :class:`~torchrow.onnx.runtime.OnnxTracker`, and compares the records (discrete values equal,
 floats within 1e-4) and every field of every step and state (floats within 1e-9). Prints the
-export time, the model's size and op census, and onnxruntime's frames/s on one and on two
-intra-op threads (a rough figure: the host's frame loop included, frames read beforehand).
+export time, the model's size and op census, and frames/s of onnxruntime on one and on two
+intra-op threads and of torch eager on one thread (the host's frame loop included, frames
+read beforehand): each frame's time is its fastest over ``--rounds`` passes over the sequence,
+the passes of all runs interleaved, so that the VM's drift hits every run alike; ``--compare
+OTHER.onnx ...`` times other exports of the same step beside it (e.g. an earlier commit's).
 Run from the repository root.
 """
 
@@ -49,6 +52,8 @@ def main() -> None:
     ap.add_argument("--out", default=None, help="keep the exported model here")
     ap.add_argument("--top", action="store_true", help="the VP grid counted from row 0 (every frame weak)")
     ap.add_argument("--frames", type=int, default=None, help="the first N frames only")
+    ap.add_argument("--rounds", type=int, default=3, help="passes per run; each frame's fastest counts")
+    ap.add_argument("--compare", nargs="*", default=[], help="other exports of the step, timed beside it")
     args = ap.parse_args()
     params = PARAMS.replace(lattice_vp_origin="top") if args.top else PARAMS
     files = sorted((data_root(args.data) / "caterra_video").glob("*.jpg"))[:args.frames]
@@ -94,23 +99,28 @@ def main() -> None:
     for p in (record_problems + step_problems)[:10]:
         print("  ", p[:300])
 
+    def step_of(run):
+        return lambda xt, st: run(xt, st)[1]
+
+    runs = {}
     for threads in (1, 2):
-        ort = OnnxTracker(path, threads=threads)
-        st = None
-        ort(x[0], st)  # a first run allocates
-        t0 = time.perf_counter()
-        for xt in x:
-            _, st = ort(xt, st)
-        dt = time.perf_counter() - t0
-        print(f"onnxruntime, {threads} thread(s): {len(x) / dt:.1f} frames/s ({1000 * dt / len(x):.1f} ms/frame)",
-              flush=True)
-    st = None
-    torch.set_num_threads(1)
-    t0 = time.perf_counter()
-    for xt in x:
-        _, st = eager(xt, st)
-    dt = time.perf_counter() - t0
-    print(f"torch eager, 1 thread: {len(x) / dt:.1f} frames/s ({1000 * dt / len(x):.1f} ms/frame)", flush=True)
+        for m in [path] + [Path(c) for c in args.compare]:
+            name = "this export" if m == path else m.name
+            runs[f"onnxruntime, {name}, {threads} thread(s)"] = (step_of(OnnxTracker(m, threads=threads)), threads)
+    runs["torch eager, 1 thread"] = (step_of(eager), 1)
+    best = {name: [float("inf")] * len(x) for name in runs}
+    for _ in range(args.rounds):
+        for name, (step, threads) in runs.items():
+            torch.set_num_threads(threads)
+            st = step(x[0], None)  # a first run allocates
+            st = None
+            for t, xt in enumerate(x):
+                t0 = time.perf_counter()
+                st = step(xt, st)
+                best[name][t] = min(best[name][t], time.perf_counter() - t0)
+    for name, b in best.items():
+        print(f"{name}: {len(x) / sum(b):.1f} frames/s ({1000 * sum(b) / len(x):.1f} ms/frame), "
+              f"worst after frame 0 {1000 * max(b[1:], default=0.0):.1f} ms", flush=True)
 
 
 if __name__ == "__main__":

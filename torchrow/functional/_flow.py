@@ -21,6 +21,13 @@ import torch
 FLOWS = ("sync", "cond", "loop", "always")
 
 
+def int_max(a: int, b: int) -> int:
+    """``max(a, b)`` of two sizes, also where they are symbolic: traced inside a ``torch.cond``
+    branch by non-strict ``torch.export`` (torch 2.13), the built-in ``max`` of symbolic ints
+    returned their minimum (a chunk of 1 where 118 was meant: one scatter per VP)."""
+    return a if a >= b else b
+
+
 def check_flow(flow: str) -> str:
     if flow not in FLOWS:
         raise ValueError(f"flow must be one of {FLOWS}, got {flow!r}")

@@ -15,6 +15,7 @@ import torch.nn.functional as F
 
 from torchrow.core.params import Params
 from torchrow.functional._checks import as_u8, below_horizon, check_images, check_masks, check_params, check_rows, clamp_sky
+from torchrow.functional._flow import int_max
 
 __all__ = [
     "MEDIAN_CHUNK_PIXELS_CPU",
@@ -444,9 +445,9 @@ def median_blur(x: torch.Tensor, k: int = 5) -> torch.Tensor:
     row_px = w + 2 * r
     image_px = (h + 2 * r) * row_px
     if image_px <= budget:
-        nb, rows = max(1, budget // image_px), h
+        nb, rows = int_max(1, budget // image_px), h
     else:
-        nb, rows = 1, max(1, budget // row_px - 2 * r)
+        nb, rows = 1, int_max(1, budget // row_px - 2 * r)
     for b0 in range(0, b, nb):  # static bounds: they depend on the shape only
         b1 = min(b, b0 + nb)
         for y0 in range(0, h, rows):

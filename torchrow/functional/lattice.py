@@ -29,7 +29,7 @@ from torchrow.core.io import check_lattice_size, lattice_params
 from torchrow.core.params import VP_SLICE, Params
 from torchrow.core.results import STATUSES
 from torchrow.functional._checks import below_horizon
-from torchrow.functional._flow import branch, repeat
+from torchrow.functional._flow import branch, int_max, repeat
 
 __all__ = ["LatticeRows", "LatticePriorBatch", "improved_batch",
            "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_table",
@@ -253,7 +253,7 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     cnt = padded.view(bsz, hc, s, wc, s).sum(dim=(2, 4), dtype=torch.int32).view(bsz, ncell)
     nb = 3 * w
     flat = torch.zeros((bsz, nv * (nb + 1)), dtype=torch.int32, device=dev)
-    step = max(1, VP_SLICE // max(bsz * ncell, 1))  # VPs per scatter: (B, step C) int32 counts at a time
+    step = int_max(1, VP_SLICE // int_max(bsz * ncell, 1))  # VPs per scatter: (B, step C) int32 counts at a time
     for v0 in range(0, nv, step):
         k = min(step, nv - v0)
         flat.scatter_add_(1, idx[v0:v0 + k].reshape(1, k * ncell).expand(bsz, k * ncell), cnt.repeat(1, k))
@@ -396,34 +396,47 @@ def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params, prior: Lat
     return spacing, phase, found, contrast
 
 
-def solve_normal(m: torch.Tensor, r: torch.Tensor, params: Params) -> tuple[torch.Tensor, torch.Tensor]:
+def solve_normal(m: torch.Tensor, r: torch.Tensor, params: Params,
+                 pinned: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Batched :func:`torchrow.reference.lattice.solve_normal`: ``m (B, n, n)``, ``r (B, n)``.
 
     Returns ``(z (B, n), singular (B,) bool)``; ``z`` is meaningless where singular.
+    ``pinned (B, n)`` bool: unknowns whose rows and columns of ``m`` are the identity's and whose
+    ``r`` is 0 (a smaller basis embedded in this one); their pivots are never singular.
     """
     n = r.shape[1]
-    a = m.clone()
-    z = r.clone()
+    a, z = m, r
     scale = torch.clamp(torch.diagonal(m, dim1=1, dim2=2), min=1.0)
     singular = torch.zeros_like(scale[:, 0], dtype=torch.bool)
     one = torch.ones_like(scale[:, 0])
+    rows = torch.arange(n, device=m.device)
+    pivots = []
     for i in range(n):
         piv = a[:, i, i]
         bad = ~(piv > params.lattice_pivot_tol * scale[:, i])
+        if pinned is not None:
+            bad = bad & ~pinned[:, i]
         singular = singular | bad
         piv = torch.where(bad, one, piv)
-        a[:, i, i] = piv
-        # every row below at once: each entry is still the reference's f * a[i][k] subtracted
-        # from a[j][k] (a multiplication, then a subtraction, each rounded), so the same bits
-        f = a[:, i + 1:, i] / piv.unsqueeze(1)
-        a[:, i + 1:, i:] = a[:, i + 1:, i:] - f.unsqueeze(2) * a[:, i:i + 1, i:]
-        z[:, i + 1:] = z[:, i + 1:] - f * z[:, i:i + 1]
+        pivots.append(piv)
+        # whole-matrix steps, no slice assignment (an exported graph would scatter): rows below
+        # the pivot take the reference's f * a[i][k] subtracted from a[j][k] (a multiplication,
+        # then a subtraction, each rounded), so the same bits in every entry right of column i;
+        # the entries up to column i, never read again, take whatever the same formula gives
+        # (the replaced pivot is read from ``pivots``)
+        if i == n - 1:
+            break  # no row below
+        below = (rows > i).view(1, n)
+        f = a[:, :, i] / piv.unsqueeze(1)
+        a = torch.where(below.unsqueeze(2), a - f.unsqueeze(2) * a[:, i:i + 1, :], a)
+        z = torch.where(below, z - f * z[:, i:i + 1], z)
     out = [one] * n
+    flat = a.reshape(-1, n * n)  # one gather per entry read
     for i in range(n - 1, -1, -1):
         acc = z[:, i]
         for k in range(i + 1, n):
-            acc = acc - a[:, i, k] * out[k]
-        out[i] = acc / a[:, i, i]
+            acc = acc - flat[:, i * n + k] * out[k]
+        out[i] = acc / pivots[i]
     return torch.stack(out, dim=1), singular
 
 
@@ -450,30 +463,42 @@ def row_cells(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params
               ks: torch.Tensor | None = None):
     """Batched :func:`torchrow.reference.lattice.row_cells` from :func:`prefix_sums`: inlier count
     and x sum per image row and lattice row, ``(B, H, R)`` int64 each (rows ``k = -K .. K``;
-    ``ks``: these rows instead, ``(R,)`` float64).
+    ``ks``: these rows instead, ``(R,)`` float64). ``coef (B, L, 7)`` (``L`` lattices per
+    image): ``(B, L, H, R)`` each.
 
     Each lattice row's inliers on an image row are one interval of columns, so a refit step
-    reads ``2R`` prefix-sum entries per image row instead of every pixel: ``O(B H R)``.
+    reads ``2R`` prefix-sum entries per image row instead of every pixel: ``O(B H L R)``.
     """
     cum, cum_x = pre
     h, w = cum.shape[1], cum.shape[2] - 1
+    per_image = coef.dim() == 2
+    lat = coef.unsqueeze(1) if per_image else coef
+    bsz, nl = lat.shape[:2]
     t = (torch.arange(h, device=coef.device, dtype=torch.float64) - (h - 1)).view(1, h, 1)
-    cc, dd = centre_spacing(t, coef)
+    cc, dd = centre_spacing(t, lat.reshape(bsz * nl, N_COEF))  # (B L, H, 1)
+    # lattice-major within an image row, so that one gather per prefix sum serves every lattice
+    cc = cc.view(bsz, nl, h).transpose(1, 2).unsqueeze(3)
+    dd = dd.view(bsz, nl, h).transpose(1, 2).unsqueeze(3)  # (B, H, L, 1)
     ok = dd > params.lattice_min_spacing_px
     half = params.lattice_tolerance * dd
     if ks is None:
         ks = torch.arange(-params.lattice_half, params.lattice_half + 1, device=coef.device, dtype=torch.float64)
-    k = ks.view(1, 1, -1)
-    centre = cc + k * dd  # (B, H, R)
+    k = ks.view(1, 1, 1, -1)
+    centre = cc + k * dd  # (B, H, L, R)
     lo, hi = centre - half, centre + half
     good = ok & torch.isfinite(lo) & torch.isfinite(hi)
     zero = torch.zeros_like(lo)
     x0 = torch.clamp(torch.floor(torch.where(good, lo, zero)) + 1, 0, w).to(torch.int64)
     x1 = torch.clamp(torch.ceil(torch.where(good, hi, zero)), 0, w).to(torch.int64)
     x1 = torch.where(good, torch.maximum(x1, x0), x0)
+    nr = x0.shape[3]
+    x0, x1 = x0.reshape(bsz, h, nl * nr), x1.reshape(bsz, h, nl * nr)
     cnt = torch.gather(cum, 2, x1) - torch.gather(cum, 2, x0)
     sx = torch.gather(cum_x, 2, x1) - torch.gather(cum_x, 2, x0)
-    return cnt, sx
+    if per_image:
+        return cnt, sx
+    return (cnt.view(bsz, h, nl, nr).transpose(1, 2).contiguous(),
+            sx.view(bsz, h, nl, nr).transpose(1, 2).contiguous())
 
 
 def normal_equations(cnt: torch.Tensor, sx: torch.Tensor, params: Params,
@@ -481,7 +506,10 @@ def normal_equations(cnt: torch.Tensor, sx: torch.Tensor, params: Params,
     """Batched :func:`torchrow.reference.lattice.normal_equations` from ``(B, H, R)`` int64 cells.
 
     Returns ``m (B, n, n)`` and ``r (B, n)`` float64 (int64 sums, then converted), ``n`` = the
-    size of :meth:`Params.lattice_basis` (``straight``: the straight basis of 11.3.1).
+    size of :meth:`Params.lattice_basis` (``straight``: the straight basis of 11.3.1). An entry
+    of ``m`` is the sum of one monomial ``t^a k^b`` over the occupied cells, and many entries
+    share one, so each distinct monomial is summed once (18 for the cubic basis instead of 49
+    entries: integer sums, the same values). Memory: ``(B, 18, H R)`` int64.
     """
     _, h, r = cnt.shape
     dev = cnt.device
@@ -491,43 +519,74 @@ def normal_equations(cnt: torch.Tensor, sx: torch.Tensor, params: Params,
     q = torch.where(occ, q.to(torch.int64), torch.zeros_like(cnt))
     t = (torch.arange(h, device=dev, dtype=torch.int64) - (h - 1)).view(1, h, 1)
     k = (torch.arange(r, device=dev, dtype=torch.int64) - params.lattice_half).view(1, 1, r)
-    phi = torch.stack([((t**p) * (k**e)).view(h * r) for p, e in params.lattice_basis(straight)])  # (n, H R)
-    n = phi.shape[0]
+    basis = params.lattice_basis(straight)
+    n = len(basis)
+    monos = sorted({(p1 + p2, e1 + e2) for p1, e1 in basis for p2, e2 in basis})
+    where = [monos.index((p1 + p2, e1 + e2)) for p1, e1 in basis for p2, e2 in basis]
+    mono = torch.stack([((t**p) * (k**e)).view(h * r) for p, e in monos])  # (M, H R)
+    phi = torch.stack([((t**p) * (k**e)).view(h * r) for p, e in basis])  # (n, H R)
     o = occ.to(torch.int64).view(-1, 1, h * r)
-    # every entry at once: integer sums, so the same values in any order ((B, n*n, H R) int64)
-    m = (o * (phi.unsqueeze(0) * phi.unsqueeze(1)).view(1, n * n, h * r)).sum(dim=2).view(-1, n, n)
+    sums = (o * mono.unsqueeze(0)).sum(dim=2)  # (B, M)
+    m = sums[:, torch.tensor(where, device=dev)].view(-1, n, n)
     rr = (q.view(-1, 1, h * r) * phi.unsqueeze(0)).sum(dim=2)
     return m.to(torch.float64), rr.to(torch.float64) / float(grid)
 
 
 def refine(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: Params,
-           straight: bool, flow: str = "sync") -> torch.Tensor:
-    """Batched :func:`torchrow.reference.lattice.refine`: ``coef (B, 7)`` float64 after up to
-    ``lattice_iterations`` refits. An image stops when it has too few inliers, a singular
-    system, or cells equal to its previous step's (a fixed point); the loop ends once every
-    image has stopped. ``flow`` (:mod:`torchrow.functional._flow`): how that end is found
-    (eager ``"sync"``; ``"loop"``: one ONNX ``Loop`` in an exported graph; ``"always"``: every
-    refit, masked); results never depend on it."""
-    where = params.lattice_coef_index(straight)
+           straight: tuple[bool, ...], flow: str = "sync") -> tuple[torch.Tensor, torch.Tensor]:
+    """Batched :func:`torchrow.reference.lattice.refine` of ``L`` lattices per image at once:
+    ``coef (B, L, 7)`` float64, lattice ``l`` refitted in the straight basis where
+    ``straight[l]``, after up to ``lattice_iterations`` refits each. A lattice stops when it
+    has too few inliers, a singular system, or cells equal to its previous step's (a fixed
+    point); the loop ends once every lattice has stopped. Returns the refined ``coef (B, L, 7)``
+    and its inlier counts ``(B, L, H, R)`` int64 (:func:`row_cells`).
 
-    # the carry holds a lattice with its cells, so that the stop test precedes the solve
+    Lattices of both bases share one loop: a straight lattice solves the curved system with its
+    extra unknowns pinned to 0 (identity rows and columns), which performs the straight
+    system's eliminations on the same values in the same order (the pinned rows contribute
+    exact zeros), so the same bits as a separate straight refit; one loop instead of one per
+    basis runs the larger of the lattices' step counts, not their sum (eager steps, and the
+    nodes an exported ``Loop`` executes).
+    ``flow`` (:mod:`torchrow.functional._flow`): how the end is found (eager ``"sync"``;
+    ``"loop"``: one ONNX ``Loop`` in an exported graph; ``"always"``: every refit, masked);
+    results never depend on it."""
+    bsz, nl = coef.shape[:2]
+    all_straight = all(straight)
+    basis = params.lattice_basis(all_straight)
+    where = params.lattice_coef_index(all_straight)
+    small = [set(params.lattice_basis(True)) if s else set(basis) for s in straight]
+    pin = [[f not in sm for f in basis] for sm in small]  # (L, n)
+    pins = torch.tensor(pin, device=coef.device).unsqueeze(0).expand(bsz, nl, len(basis)).reshape(bsz * nl, len(basis))
+    pinned = pins if any(map(any, pin)) else None
+    eye = torch.eye(len(basis), dtype=torch.float64, device=coef.device)
+    pin2 = pins.unsqueeze(2) | pins.unsqueeze(1)
+
     def stopped(coef, cnt, sx, active):
         return ~active.any()
 
+    # the carry holds lattices with their cells, so that the stop test precedes the solve
     def refit(coef, cnt, sx, active):
-        sol, singular = solve_normal(*normal_equations(cnt, sx, params, straight), params)
-        active = active & ~singular
-        cols = [torch.zeros_like(coef[:, 0])] * N_COEF
+        h, r = cnt.shape[2:]
+        m, rhs = normal_equations(cnt.view(bsz * nl, h, r), sx.view(bsz * nl, h, r), params, all_straight)
+        if pinned is not None:
+            m = torch.where(pin2, eye, m)
+            rhs = torch.where(pinned, torch.zeros_like(rhs), rhs)
+        sol, singular = solve_normal(m, rhs, params, pinned)
+        if pinned is not None:
+            sol = torch.where(pinned, torch.zeros_like(sol), sol)
+        active = active & ~singular.view(bsz, nl)
+        cols = [torch.zeros_like(sol[:, 0])] * N_COEF
         for j, i in enumerate(where):
             cols[i] = sol[:, j]
-        coef = torch.where(active.unsqueeze(1), torch.stack(cols, dim=1), coef)
+        coef = torch.where(active.unsqueeze(2), torch.stack(cols, dim=1).view(bsz, nl, N_COEF), coef)
         cnt2, sx2 = row_cells(pre, coef, params)
-        same = (cnt2 == cnt).flatten(1).all(dim=1) & (sx2 == sx).flatten(1).all(dim=1)
-        return coef, cnt2, sx2, active & (cnt2.sum(dim=(1, 2)) >= params.lattice_min_points) & ~same
+        same = (cnt2 == cnt).flatten(2).all(dim=2) & (sx2 == sx).flatten(2).all(dim=2)
+        return coef, cnt2, sx2, active & (cnt2.sum(dim=(2, 3)) >= params.lattice_min_points) & ~same
 
     cnt, sx = row_cells(pre, coef, params)
-    active = cnt.sum(dim=(1, 2)) >= params.lattice_min_points
-    return repeat(flow, params.lattice_iterations, stopped, refit, (coef, cnt, sx, active))[0]
+    active = cnt.sum(dim=(2, 3)) >= params.lattice_min_points
+    out = repeat(flow, params.lattice_iterations, stopped, refit, (coef, cnt, sx, active))
+    return out[0], out[1]
 
 
 def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Tensor | None,
@@ -538,7 +597,8 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, 
     The cells (count and x sum of the inliers per image row and lattice row) are integer sums,
     so the normal equations equal the reference's bit for bit. Memory: two ``(B, H, W+1)``
     int64 prefix sums (about 40 MB each for 64 images of 320x240) besides the mask; a step's
-    own temporaries are ``(B, H, 2K+1)``. ``prior``: section 11.7's (the lattice tracker);
+    own temporaries are ``(B, L, H, 2K+1)`` and the normal equations' ``(B L, 18, H (2K+1))``
+    int64 (``L`` = 2 lattices with ``"auto"``, else 1). ``prior``: section 11.7's (the lattice tracker);
     ``flow``: how the grid search (which tracked images skip) and :func:`refine` skip work
     (:mod:`torchrow.functional._flow`; results never depend on it). ``origin (B,)``: the VP
     grid's (:func:`vp_origin`; ``None``: zeros).
@@ -570,16 +630,18 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, 
     coef = torch.stack([ph, (ph - v[:, 0].to(torch.float64)) / den, zero, zero, sp, sp / den, zero], dim=1)
     pre = prefix_sums(mask & below_horizon(sky.to(torch.int64), h, as_bool=True))
     is_curved = params.lattice_model == "curved"
-    start = coef
-    coef = refine(pre, start, params, straight=not is_curved, flow=flow)
-    curved = torch.full((bsz,), is_curved, dtype=torch.bool, device=dev)
     if params.lattice_model == "auto":
-        bent = refine(pre, start, params, straight=False, flow=flow)
-        n_straight = row_cells(pre, coef, params)[0].sum(dim=(1, 2)).to(torch.float64)
-        n_bent = row_cells(pre, bent, params)[0].sum(dim=(1, 2)).to(torch.float64)
+        # straight and curved from the comb's start, refined together (one loop)
+        both, cells = refine(pre, torch.stack([coef, coef], dim=1), params, straight=(True, False), flow=flow)
+        n_straight = cells[:, 0].sum(dim=(1, 2)).to(torch.float64)
+        n_bent = cells[:, 1].sum(dim=(1, 2)).to(torch.float64)
         curved = n_bent > (1.0 + params.lattice_curve_gain) * n_straight
-        coef = torch.where(curved.unsqueeze(1), bent, coef)
-    cnt, _ = row_cells(pre, coef, params)
+        coef = torch.where(curved.unsqueeze(1), both[:, 1], both[:, 0])
+        cnt = torch.where(curved.view(-1, 1, 1), cells[:, 1], cells[:, 0])
+    else:
+        one, cells = refine(pre, coef.unsqueeze(1), params, straight=(not is_curved,), flow=flow)
+        coef, cnt = one[:, 0], cells[:, 0]
+        curved = torch.full((bsz,), is_curved, dtype=torch.bool, device=dev)
     return LatticeFitBatch(coef, spacing, phase, found, v, cnt, contrast, curved)
 
 

@@ -35,6 +35,7 @@ from torch import nn
 
 from torchrow.core.params import Params
 from torchrow.functional._checks import check_images
+from torchrow.functional._flow import int_max
 from torchrow.functional.kernels import box_blur, column_median, erode_rect, gray, laplacian, median_blur
 
 # the kernels stay importable from here (F.sky.gray); they are listed in .kernels' __all__
@@ -80,7 +81,7 @@ SKY_CHUNK_PIXELS = 1 << 24
 def _chunk_images(images: torch.Tensor) -> int:
     """Images per chunk of the composed stages (depends on the shape and device type only)."""
     budget = SKY_CHUNK_PIXELS_CPU if images.device.type == "cpu" else SKY_CHUNK_PIXELS
-    return max(1, budget // (images.shape[2] * images.shape[3]))
+    return int_max(1, budget // (images.shape[2] * images.shape[3]))
 
 
 def _horizon_mask(images: torch.Tensor, params: Params) -> torch.Tensor:
