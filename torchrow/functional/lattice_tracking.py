@@ -155,15 +155,12 @@ def lattice_vp(coef: torch.Tensor, height: int, fallback: torch.Tensor) -> torch
 
 def grid_sky(images: torch.Tensor, search: torch.Tensor, params: Params, flow: str) -> torch.Tensor:
     """Section 1's row where the VP grid counts from it (:meth:`Params.lattice_vp_sky_origin`),
-    ``(B,)`` int64 (zeros elsewhere; only the images of ``search``, bool ``(B,)``, use it).
-    Eagerly it runs only when some image searches the grid; in an exported graph on every frame
-    (tracing section 1 inside a ``torch.cond`` took the exporter over ten minutes). Results
+    ``(B,)`` int64 (zeros elsewhere; only the images of ``search``, bool ``(B,)``, use it). It
+    runs only when some image searches the grid (an ONNX ``If`` in an exported graph). Results
     never depend on it."""
     zeros = torch.zeros(images.shape[0], dtype=torch.int64, device=images.device)
     if not params.lattice_vp_sky_origin():
         return zeros
-    if flow != "sync":
-        return fsky.sky_row(images, params)
     return branch(flow, search.any(), lambda images, zeros: (fsky.sky_row(images, params),),
                   lambda images, zeros: (zeros.clone(),), (images, zeros))[0]
 
@@ -196,10 +193,10 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
     full = ~tracked | (state.age >= params.lattice_track_every)
     centre = torch.where(tracked, state.centre, torch.full_like(state.centre, float(w) / 2))
     prior = LatticePriorBatch(centre, ~full, state.vp, state.spacing)
-    # section 1 where the grid is searched: eagerly on frames with a full search (here) or a redo
-    # (again); in a graph on every frame (grid_sky)
+    # section 1 where the grid is searched: on frames with a full search (here) or a redo (again;
+    # computed there unless it is known here to have run: eagerly, or in the unbranched graph)
     sky = grid_sky(images, full, params, flow)
-    have_sky = flow != "sync" or not params.lattice_vp_sky_origin() or bool(full.any())
+    have_sky = not params.lattice_vp_sky_origin() or flow == "always" or (flow == "sync" and bool(full.any()))
     rows, status = _lattice(images, prior, params, flow, sky)
     redo = active & ~full & (status != _OK)
     n_rows = len(dataclasses.fields(LatticeRows))
