@@ -108,11 +108,13 @@ def main() -> None:
             name = "this export" if m == path else m.name
             runs[f"onnxruntime, {name}, {threads} thread(s)"] = (step_of(OnnxTracker(m, threads=threads)), threads)
     runs["torch eager, 1 thread"] = (step_of(eager), 1)
+    for step, threads in runs.values():
+        torch.set_num_threads(threads)
+        step(x[0], None)  # a first run allocates
     best = {name: [float("inf")] * len(x) for name in runs}
     for _ in range(args.rounds):
         for name, (step, threads) in runs.items():
             torch.set_num_threads(threads)
-            st = step(x[0], None)  # a first run allocates
             st = None
             for t, xt in enumerate(x):
                 t0 = time.perf_counter()

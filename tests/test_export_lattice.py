@@ -71,8 +71,8 @@ def _tensor(frames: list[np.ndarray]) -> torch.Tensor:
 
 def test_graph_interface_and_op_list(model_path: Path) -> None:
     """Inputs/outputs as documented; the refits are ONNX ``Loop`` nodes (straight and curved
-    together, one in the first pass and one in the redo), the redo and the first pass's VP grid search (which
-    tracked frames skip) ``If`` nodes; no op with a data-dependent shape; the metadata names
+    together, one in the first pass and one in the redo), the redo and the first pass's VP grid
+    search (which tracked frames skip) ``If`` nodes; no op with a data-dependent shape; the metadata names
     the mode."""
     import onnx
 

@@ -556,10 +556,11 @@ def refine(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: P
     where = params.lattice_coef_index(all_straight)
     small = [set(params.lattice_basis(True)) if s else set(basis) for s in straight]
     pin = [[f not in sm for f in basis] for sm in small]  # (L, n)
-    pins = torch.tensor(pin, device=coef.device).unsqueeze(0).expand(bsz, nl, len(basis)).reshape(bsz * nl, len(basis))
-    pinned = pins if any(map(any, pin)) else None
-    eye = torch.eye(len(basis), dtype=torch.float64, device=coef.device)
-    pin2 = pins.unsqueeze(2) | pins.unsqueeze(1)
+    pinned = None
+    if any(map(any, pin)):
+        pinned = torch.tensor(pin, device=coef.device).unsqueeze(0).expand(bsz, nl, len(basis)).reshape(bsz * nl, -1)
+        pin2 = pinned.unsqueeze(2) | pinned.unsqueeze(1)
+        eye = torch.eye(len(basis), dtype=torch.float64, device=coef.device)
 
     def stopped(coef, cnt, sx, active):
         return ~active.any()
