@@ -48,10 +48,15 @@ def same(a: torch.Tensor, b: torch.Tensor) -> bool:
     return torch.equal(a, b)
 
 
+def _is_input(a: Any) -> bool:
+    """Whether ``a`` is a ``(tensor, batched)`` pair of the spec."""
+    return isinstance(a, tuple) and len(a) == 2 and isinstance(a[0], torch.Tensor) and isinstance(a[1], bool)
+
+
 def _args(spec: Sequence[Any], pick: Callable[[torch.Tensor], torch.Tensor]) -> list[Any]:
     out = []
     for a in spec:
-        if isinstance(a, tuple) and len(a) == 2 and isinstance(a[0], torch.Tensor) and isinstance(a[1], bool):
+        if _is_input(a):
             out.append(pick(a[0]) if a[1] else a[0])
         else:
             out.append(a)
@@ -59,8 +64,7 @@ def _args(spec: Sequence[Any], pick: Callable[[torch.Tensor], torch.Tensor]) -> 
 
 
 def _batch_size(spec: Sequence[Any]) -> int:
-    sizes = {a[0].shape[0] for a in spec if isinstance(a, tuple) and len(a) == 2 and isinstance(a[0], torch.Tensor)
-             and a[1]}
+    sizes = {a[0].shape[0] for a in spec if _is_input(a) and a[1]}
     assert len(sizes) == 1, f"batched inputs disagree on the batch size: {sizes}"
     return sizes.pop()
 
@@ -75,7 +79,7 @@ def check_batched_stage(fn: Callable[..., Any], *spec: Any, name: str = "stage",
     batch_dims = batch_dims or {}
     b = _batch_size(spec)
     assert b >= 2, "use a batch of at least 2 items"
-    tensors = [a[0] for a in spec if isinstance(a, tuple) and len(a) == 2 and isinstance(a[0], torch.Tensor)]
+    tensors = [a[0] for a in spec if _is_input(a)]
     saved = [t.clone() for t in tensors]
     full = fn(*_args(spec, lambda t: t))
     got = leaves(full)
@@ -113,8 +117,8 @@ def check_batched_stage(fn: Callable[..., Any], *spec: Any, name: str = "stage",
     for dev in DEVICES:
         if dev == "cpu":
             continue
-        moved = leaves(fn(*[(a[0].to(dev), a[1]) if isinstance(a, tuple) and len(a) == 2
-                             and isinstance(a[0], torch.Tensor) else a for a in spec]))
+        # every tensor input moves, per-call tables too: a stage takes its device from them
+        moved = leaves(fn(*[a[0].to(dev) if _is_input(a) else a for a in spec]))
         for (lname, tg), (_, tc) in zip(moved, got):
             assert tg.device.type == dev, f"{name}: {lname} left the {dev} device"
             assert same(tg.cpu(), tc), f"{name}: {lname} differs on {dev} and cpu"

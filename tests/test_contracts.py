@@ -85,7 +85,12 @@ def test_line_search(scene):
 
 
 def test_detector(scene):
-    det = CropRowDetector(P)
+    # an engine computes on its own device (a constructor argument): one detector per device
+    dets: dict[str, CropRowDetector] = {}
+
+    def det(x, c=None):
+        d = dets.setdefault(x.device.type, CropRowDetector(P, device=x.device.type))
+        return d(x) if c is None else d(x, veg_color=c)
+
     check_batched_stage(det, (scene["x"], B), name="CropRowDetector")
-    check_batched_stage(lambda x, c: det(x, veg_color=c), (scene["x"], B), (scene["color"], B),
-                        name="CropRowDetector(veg_color)")
+    check_batched_stage(det, (scene["x"], B), (scene["color"], B), name="CropRowDetector(veg_color)")
