@@ -13,7 +13,8 @@ Tracks the frames with :class:`torchrow.Tracker` and with
 floats within 1e-4) and every field of every step and state (floats within 1e-9). Prints the
 export time, the model's size and op census, and frames/s of onnxruntime on one and on two
 intra-op threads and of torch eager on one thread (the host's frame loop included, frames
-read beforehand): each frame's time is its fastest over ``--rounds`` passes over the sequence,
+read beforehand), and per kind of frame (tracked, a scheduled full search, a tracked frame
+redone in full) the median and the slowest: each frame's time is its fastest over ``--rounds`` passes over the sequence,
 the passes of all runs interleaved, so that the VM's drift hits every run alike; ``--compare
 OTHER.onnx ...`` times other exports of the same step beside it (e.g. an earlier commit's).
 Run from the repository root.
@@ -81,6 +82,7 @@ def main() -> None:
     st_e = st_o = None
     step_problems, record_problems, tracked, redo = [], [], 0, 0
     states: dict = {}
+    kinds: list[str] = []  # per frame: tracked, full (a scheduled full search) or redone
     for t, xt in enumerate(x):
         step_e, st_e = eager(xt, st_e)
         step_o, st_o = ort(xt, st_o)
@@ -92,6 +94,7 @@ def main() -> None:
         record_problems += [f"frame {t}: {d}" for d in record_differences(rec_e.to_record(), rec_o.to_record(), 1e-4)]
         tracked += int(not bool(step_e.full[0]))
         redo += int(bool(step_e.redo[0]))
+        kinds.append("redone" if bool(step_e.redo[0]) else "full" if bool(step_e.full[0]) else "tracked")
         states[rec_e.state] = states.get(rec_e.state, 0) + 1
     print(f"parity: {len(x)} frames ({tracked} tracked, {redo} redone in full; states {states}); records differing: "
           f"{len({p.split(':')[0] for p in record_problems})}; steps/states differing: "
@@ -121,8 +124,14 @@ def main() -> None:
                 st = step(xt, st)
                 best[name][t] = min(best[name][t], time.perf_counter() - t0)
     for name, b in best.items():
+        by_kind = []
+        for kind in ("tracked", "full", "redone"):
+            ms = sorted(1000 * b[t] for t in range(1, len(x)) if kinds[t] == kind)
+            if ms:
+                by_kind.append(f"{kind} {len(ms)}: median {ms[len(ms) // 2]:.1f}, max {ms[-1]:.1f}")
         print(f"{name}: {len(x) / sum(b):.1f} frames/s ({1000 * sum(b) / len(x):.1f} ms/frame), "
-              f"worst after frame 0 {1000 * max(b[1:], default=0.0):.1f} ms", flush=True)
+              f"worst after frame 0 {1000 * max(b[1:], default=0.0):.1f} ms; ms per frame after frame 0: "
+              + "; ".join(by_kind), flush=True)
 
 
 if __name__ == "__main__":

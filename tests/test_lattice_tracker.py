@@ -179,6 +179,36 @@ def test_prior_arguments_keep_the_default_search() -> None:
     assert all(torch.equal(x, y) for x, y in zip(a, b))
 
 
+def test_a_tracked_comb_too_weak_for_ok_skips_its_refits() -> None:
+    # 11.7: a restricted comb below lattice_min_contrast makes the frame weak whatever the refits
+    # give, so it is redone in full; its refits are skipped (the rows stay the comb's start), in
+    # both paths. At the tracked spacing the comb is strong and the refits run; restricted to
+    # twice that spacing, its anti-teeth lie on the rows it skips.
+    from torchrow.functional import lattice as flattice
+    from torchrow.reference import lattice as rlattice
+
+    img = drive([CameraPose(0.12, 0.02, 0.0)], 1)[0].image
+    mask = rlattice.green_mask(img, 0, P)
+    full = rlattice.fit_lattice(mask, 0, None, P)
+    assert full.contrast >= P.lattice_min_contrast
+    m = torch.from_numpy(mask).unsqueeze(0)
+    zero = torch.zeros(1, dtype=torch.int64)
+    centre = full.coef[0]
+    for spacing, refits in ((full.spacing, True), (2 * full.spacing, False)):
+        ref = rlattice.fit_lattice(mask, 0, None, P, rlattice.LatticePrior(centre, full.vp, spacing))
+        prior = flattice.LatticePriorBatch(torch.tensor([centre], dtype=torch.float64), torch.ones(1, dtype=torch.bool),
+                                           torch.tensor([full.vp]), torch.tensor([spacing]))
+        got = flattice.fit_lattice(m, zero, None, None, P, prior)
+        assert (ref.contrast >= P.lattice_min_contrast) == refits
+        assert float(got.contrast[0]) == ref.contrast
+        xv, yv = ref.vp
+        den = np.float64(mask.shape[0] - 1 - yv)
+        start = (np.float64(ref.phase), (np.float64(ref.phase) - xv) / den, 0.0, 0.0,
+                 np.float64(ref.spacing), np.float64(ref.spacing) / den, 0.0)
+        assert (ref.coef != start) == refits
+        assert got.coef[0].tolist() == list(ref.coef) and bool(got.curved[0]) == ref.curved
+
+
 def test_lattice_vp_both_paths_on_adversarial_coefficients() -> None:
     # converging, parallel, diverging, clamped near the bottom, non-finite: one rule in both paths
     from torchrow.functional.lattice_tracking import lattice_vp as tvp

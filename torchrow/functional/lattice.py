@@ -533,7 +533,8 @@ def normal_equations(cnt: torch.Tensor, sx: torch.Tensor, params: Params,
 
 
 def refine(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: Params,
-           straight: tuple[bool, ...], flow: str = "sync") -> tuple[torch.Tensor, torch.Tensor]:
+           straight: tuple[bool, ...], flow: str = "sync",
+           start: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Batched :func:`torchrow.reference.lattice.refine` of ``L`` lattices per image at once:
     ``coef (B, L, 7)`` float64, lattice ``l`` refitted in the straight basis where
     ``straight[l]``, after up to ``lattice_iterations`` refits each. A lattice stops when it
@@ -549,7 +550,8 @@ def refine(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: P
     nodes an exported ``Loop`` executes).
     ``flow`` (:mod:`torchrow.functional._flow`): how the end is found (eager ``"sync"``;
     ``"loop"``: one ONNX ``Loop`` in an exported graph; ``"always"``: every refit, masked);
-    results never depend on it."""
+    results never depend on it. ``start`` ``(B,)`` bool: the images whose lattices refit at all
+    (``None``: every image); the others keep ``coef``."""
     bsz, nl = coef.shape[:2]
     all_straight = all(straight)
     basis = params.lattice_basis(all_straight)
@@ -586,6 +588,8 @@ def refine(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: P
 
     cnt, sx = row_cells(pre, coef, params)
     active = cnt.sum(dim=(2, 3)) >= params.lattice_min_points
+    if start is not None:
+        active = active & start.unsqueeze(1)
     out = repeat(flow, params.lattice_iterations, stopped, refit, (coef, cnt, sx, active))
     return out[0], out[1]
 
@@ -630,17 +634,21 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, 
     zero = torch.zeros_like(ph)
     coef = torch.stack([ph, (ph - v[:, 0].to(torch.float64)) / den, zero, zero, sp, sp / den, zero], dim=1)
     pre = prefix_sums(mask & below_horizon(sky.to(torch.int64), h, as_bool=True))
+    # a tracked frame whose comb is too weak for `ok` is redone in full whatever its refits
+    # give (11.4, 11.7): its refits are skipped (the redo's worst case is the tracker's)
+    start = None if prior is None else ~(prior.restrict & (contrast < params.lattice_min_contrast))
     is_curved = params.lattice_model == "curved"
     if params.lattice_model == "auto":
         # straight and curved from the comb's start, refined together (one loop)
-        both, cells = refine(pre, torch.stack([coef, coef], dim=1), params, straight=(True, False), flow=flow)
+        both, cells = refine(pre, torch.stack([coef, coef], dim=1), params, straight=(True, False), flow=flow,
+                             start=start)
         n_straight = cells[:, 0].sum(dim=(1, 2)).to(torch.float64)
         n_bent = cells[:, 1].sum(dim=(1, 2)).to(torch.float64)
         curved = n_bent > (1.0 + params.lattice_curve_gain) * n_straight
         coef = torch.where(curved.unsqueeze(1), both[:, 1], both[:, 0])
         cnt = torch.where(curved.view(-1, 1, 1), cells[:, 1], cells[:, 0])
     else:
-        one, cells = refine(pre, coef.unsqueeze(1), params, straight=(not is_curved,), flow=flow)
+        one, cells = refine(pre, coef.unsqueeze(1), params, straight=(not is_curved,), flow=flow, start=start)
         coef, cnt = one[:, 0], cells[:, 0]
         curved = torch.full((bsz,), is_curved, dtype=torch.bool, device=dev)
     return LatticeFitBatch(coef, spacing, phase, found, v, cnt, contrast, curved)

@@ -501,7 +501,8 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
     a straight and a curved refine, both from the start, the curved one kept only where its inlier
     pixels exceed ``(1 + lattice_curve_gain)`` times the straight lattice's (float64), so
     straight rows stay straight unless the pixels demand a bend. ``prior``: section 11.7's
-    tracked frame (its VP instead of the search, the comb restricted). ``origin``: the VP grid's
+    tracked frame (its VP instead of the search, the comb restricted; no refits where the comb's
+    contrast is below ``lattice_min_contrast``: the frame is redone). ``origin``: the VP grid's
     (:func:`vp_origin`).
     """
     h, w = mask.shape
@@ -520,11 +521,14 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
     pre = prefix_sums(mask)
     curved = params.lattice_model == "curved"
     start = coef
-    coef = refine(pre, start, h, params, straight=not curved)
+    # a tracked frame (11.7) whose comb is too weak for `ok` (11.4) is redone in full whatever
+    # its refits give: they are skipped
+    skip = prior is not None and prior.spacing is not None and contrast < params.lattice_min_contrast
+    coef = start if skip else refine(pre, start, h, params, straight=not curved)
     if params.lattice_model == "auto":
         # from the comb's start too: started from the straight fit, the curved refit keeps the
         # straight fit's cells where a bend has already lost the far pixels
-        bent = refine(pre, start, h, params, straight=False)
+        bent = start if skip else refine(pre, start, h, params, straight=False)
         n_straight = int(row_cells(pre, coef, params)[0].sum())
         n_bent = int(row_cells(pre, bent, params)[0].sum())
         if np.float64(n_bent) > (np.float64(1.0) + np.float64(params.lattice_curve_gain)) * np.float64(n_straight):
