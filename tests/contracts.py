@@ -39,12 +39,14 @@ def leaves(out: Any, prefix: str = "out") -> list[tuple[str, torch.Tensor]]:
     return []  # ints, strings, None: not batched data
 
 
-def same(a: torch.Tensor, b: torch.Tensor) -> bool:
-    """Equal shapes, dtypes and values; NaN equals NaN (rows without support are NaN)."""
+def same(a: torch.Tensor, b: torch.Tensor, tol: float = 0.0) -> bool:
+    """Equal shapes, dtypes and values; NaN equals NaN (rows without support are NaN). Floats
+    within ``tol * max(1, |b|)`` where ``tol > 0``."""
     if a.shape != b.shape or a.dtype != b.dtype:
         return False
     if a.is_floating_point():
-        return bool(((a == b) | (a.isnan() & b.isnan())).all())
+        close = (a == b) if tol == 0 else ((a - b).abs() <= tol * b.abs().clamp(min=1.0))
+        return bool((close | (a.isnan() & b.isnan())).all())
     return torch.equal(a, b)
 
 
@@ -70,11 +72,13 @@ def _batch_size(spec: Sequence[Any]) -> int:
 
 
 def check_batched_stage(fn: Callable[..., Any], *spec: Any, name: str = "stage", empty: bool = True,
-                        batch_dims: dict[str, int] | None = None) -> Any:
+                        batch_dims: dict[str, int] | None = None, device_tol: float = 0.0) -> Any:
     """Run the contract checks (module docstring) on ``fn(*spec)``; returns the CPU result.
 
     ``batch_dims`` names outputs whose batch axis is not 0 (rare); an output whose first axis is
-    not the batch (a per-call table) is compared whole.
+    not the batch (a per-call table) is compared whole. ``device_tol``: float outputs on another
+    device agree with the CPU's within this relative tolerance (0: exactly; ALGORITHM.md,
+    "Identical results", allows 1e-6 px for continuous outputs on a GPU).
     """
     batch_dims = batch_dims or {}
     b = _batch_size(spec)
@@ -121,7 +125,10 @@ def check_batched_stage(fn: Callable[..., Any], *spec: Any, name: str = "stage",
         moved = leaves(fn(*[a[0].to(dev) if _is_input(a) else a for a in spec]))
         for (lname, tg), (_, tc) in zip(moved, got):
             assert tg.device.type == dev, f"{name}: {lname} left the {dev} device"
-            assert same(tg.cpu(), tc), f"{name}: {lname} differs on {dev} and cpu"
+            assert same(tg.cpu(), tc, device_tol), (
+                f"{name}: {lname} differs on {dev} and cpu" + (
+                    f" (largest difference {float((tg.cpu() - tc).abs().nan_to_num().max()):.3g})"
+                    if tc.is_floating_point() and tg.shape == tc.shape else ""))
     for lname, t in got:
         assert t.device.type == "cpu", f"{name}: {lname} left the inputs' device"
     return full

@@ -92,5 +92,6 @@ def test_detector(scene):
         d = dets.setdefault(x.device.type, CropRowDetector(P, device=x.device.type))
         return d(x) if c is None else d(x, veg_color=c)
 
-    check_batched_stage(det, (scene["x"], B), name="CropRowDetector")
-    check_batched_stage(det, (scene["x"], B), (scene["color"], B), name="CropRowDetector(veg_color)")
+    # continuous outputs (VP, rows) agree within 1e-6 px on a GPU ("Identical results")
+    check_batched_stage(det, (scene["x"], B), name="CropRowDetector", device_tol=1e-6)
+    check_batched_stage(det, (scene["x"], B), (scene["color"], B), name="CropRowDetector(veg_color)", device_tol=1e-6)
