@@ -9,14 +9,13 @@
    device, after a warm-up, with a device synchronisation; plus one per-stage profile.
 3. Latency: ``--latency`` single-image calls (batch 1, CRBD images in turn), median and
    worst, as a robot calls the detector on each frame.
-
 4. Video (issue 27): the first ``--video`` Caterra frames tracked by ``torchrow.Tracker`` in
    the improved mode's forward-camera setting at 500 px (as ``check_lattice_onnx.py``), one
    sequence (batch 1), on the CPU and on the device: records compared (discrete values
    equal, floats within 1e-4), and the device's time per frame (host loop included).
 
 Each of ``--modes`` (default: the faithful and the improved mode, default parameters) runs
-all three.
+1-3; 4 runs once.
 
 Without a GPU, ``--device cpu`` runs the same script as a dry run (parity of the threaded
 CPU path against the single-threaded one).
@@ -192,13 +191,15 @@ def main() -> None:
     batch = torch.from_numpy(np.stack(imgs)).permute(0, 3, 1, 2).contiguous()
     name = torch.cuda.get_device_name() if args.device.startswith("cuda") else "CPU (dry run)"
     lines = [f"Device: {name}."]
-    for mode in args.modes:
-        lines += [""] + check_mode(mode, batch, names, args)
-        print("\n".join(lines), flush=True)
+    print(lines[0], flush=True)
+    parts = [lambda mode=mode: check_mode(mode, batch, names, args) for mode in args.modes]
     if args.video:
-        lines += [""] + check_video(root, args)
+        parts.append(lambda: check_video(root, args))
+    for part in parts:  # each printed as it ends: a run cut short keeps what it measured
+        new = [""] + part()
+        print("\n".join(new), flush=True)
+        lines += new
     body = "\n".join(lines)
-    print(body, flush=True)
     if not args.no_write:
         append_results(f"GPU check ({name})", "python benchmarks/" + " ".join([Path(__file__).name] + sys.argv[1:]), body)
 

@@ -64,8 +64,8 @@ class CropRowDetector(nn.Module):
         # Hough/VP/RANSAC keep per-image accumulators of ~0.6 MB: on a CPU, groups of 8 images
         # stay in cache (measured 1.5x faster per image than 64 at once); a GPU takes all. The
         # improved mode's refits run until the last image of a chunk stops, and its per-op
-        # overhead is larger: groups of 16 (measured 6-10% faster per image than 8 at batch 64,
-        # 24 and 32 slower again).
+        # overhead is larger: groups of 16 (measured 5-17% faster per image than 8 at batch 64,
+        # 24 and 32 slower again; benchmarks/RESULTS.md).
         cpu_chunk = 16 if self.params.mode == "improved" else 8
         self.chunk = chunk if chunk is not None else (cpu_chunk if self.device.type == "cpu" else None)
         # Most of the work is many small ops (sorts, cumsums, scatters, argmax over one

@@ -635,7 +635,7 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, 
     coef = torch.stack([ph, (ph - v[:, 0].to(torch.float64)) / den, zero, zero, sp, sp / den, zero], dim=1)
     pre = prefix_sums(mask & below_horizon(sky.to(torch.int64), h, as_bool=True))
     # a tracked frame whose comb is too weak for `ok` is redone in full whatever its refits
-    # give (11.4, 11.7): its refits are skipped (the redo's worst case is the tracker's)
+    # give (11.4, 11.7): its refits are skipped, since a redone frame is the tracker's slowest
     start = None if prior is None else ~(prior.restrict & (contrast < params.lattice_min_contrast))
     is_curved = params.lattice_model == "curved"
     if params.lattice_model == "auto":
