@@ -27,7 +27,6 @@ Usage: ``python benchmarks/gpu_check.py [--device cuda] [--batch 1024] [--reps 3
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from pathlib import Path
@@ -44,38 +43,17 @@ from torchrow.core.results import record_differences
 from torchrow.engines.detector import CropRowDetector
 from torchrow.evaluation.datasets import CRBD
 
-TOL = 1e-6
-
-
-def _close(a, b) -> bool:
-    if a is None or b is None:
-        return a is None and b is None
-    if isinstance(a, (list, tuple)):
-        return len(a) == len(b) and all(_close(x, y) for x, y in zip(a, b))
-    if isinstance(a, float) or isinstance(b, float):
-        if a is None or b is None:
-            return a is b
-        if math.isnan(a) or math.isnan(b):
-            return math.isnan(a) and math.isnan(b)
-        if math.isinf(a) or math.isinf(b):
-            return a == b
-        return abs(a - b) <= TOL * max(1.0, abs(b))
-    return a == b
-
 
 def compare(cpu: list, dev: list) -> dict[str, list[str]]:
-    """Field -> names of images whose record differs (rows compared row by row)."""
+    """Field -> names of images whose record differs, by ALGORITHM.md's "Identical results"
+    (:func:`~torchrow.core.results.record_differences`: discrete values equal, floats within
+    1e-6 px)."""
     diffs: dict[str, list[str]] = {}
     for c, d in zip(cpu, dev):
-        rc, rd = c.to_record(), d.to_record()
-        for key in rc:
-            if key == "rows":
-                same = len(rc[key]) == len(rd[key]) and all(
-                    all(_close(x.get(f), y.get(f)) for f in x) for x, y in zip(rc[key], rd[key]))
-            else:
-                same = _close(rc[key], rd[key])
-            if not same:
-                diffs.setdefault(key, []).append(c.name)
+        fields = {line.split(":")[0].lstrip(".").split(".")[0].split("[")[0]
+                  for line in record_differences(c.to_record(), d.to_record())}
+        for key in sorted(fields):
+            diffs.setdefault(key or "record", []).append(c.name)
     return diffs
 
 

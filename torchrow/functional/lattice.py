@@ -524,7 +524,7 @@ def normal_equations(cnt: torch.Tensor, sx: torch.Tensor, params: Params,
     monos = sorted({(p1 + p2, e1 + e2) for p1, e1 in basis for p2, e2 in basis})
     where = [monos.index((p1 + p2, e1 + e2)) for p1, e1 in basis for p2, e2 in basis]
     mono = torch.stack([((t**p) * (k**e)).view(h * r) for p, e in monos])  # (M, H R)
-    phi = torch.stack([((t**p) * (k**e)).view(h * r) for p, e in basis])  # (n, H R)
+    phi = mono[[monos.index(f) for f in basis]]  # (n, H R): the basis is among them (times t^0 k^0)
     o = occ.to(torch.int64).view(-1, 1, h * r)
     sums = (o * mono.unsqueeze(0)).sum(dim=2)  # (B, M)
     m = sums[:, torch.tensor(where, device=dev)].view(-1, n, n)
