@@ -209,6 +209,48 @@ def test_a_tracked_comb_too_weak_for_ok_skips_its_refits() -> None:
         assert got.coef[0].tolist() == list(ref.coef) and bool(got.curved[0]) == ref.curved
 
 
+def test_a_too_weak_tracked_comb_switches_to_the_full_search_on_its_own_mask(monkeypatch) -> None:
+    # 11.7: the tensor path switches such a frame to the full search before its refits instead of
+    # redoing it: the same step as a full search from the same tracked row (reported as a redo),
+    # with one green mask, one refit and one row pass for the frame
+    from torchrow.functional import lattice as flattice
+    from torchrow.functional.lattice_tracking import LatticeTrackerState, lattice_advance
+    from torchrow.onnx.checks import step_differences
+    from torchrow.reference import lattice as rlattice
+
+    img = drive([CameraPose(0.12, 0.02, 0.0)], 1)[0].image
+    full = rlattice.fit_lattice(rlattice.green_mask(img, 0, P), 0, None, P)
+    x = torch.from_numpy(img).permute(2, 0, 1)[None].contiguous()
+    one = torch.ones(1, dtype=torch.bool)
+
+    def state(spacing: int, age: int) -> LatticeTrackerState:
+        st = LatticeTrackerState.empty(1)
+        st.ready, st.has_centre, st.age, st.last = one, one.clone(), torch.tensor([age]), torch.tensor([0])
+        st.vp, st.spacing = torch.tensor([full.vp]), torch.tensor([spacing])
+        st.centre = torch.tensor([full.coef[0]], dtype=torch.float64)
+        return st
+
+    calls = {"green_mask": 0, "refit_lattice": 0, "lattice_rows": 0}
+
+    def counting(name: str):
+        fn = getattr(flattice, name)
+
+        def counted(*a, **k):
+            calls[name] += 1
+            return fn(*a, **k)
+        return counted
+    for name in calls:
+        monkeypatch.setattr(flattice, name, counting(name))
+    wide, _ = lattice_advance(x, one, state(full.spacing, P.lattice_track_every), P)  # a scheduled full search
+    assert bool(wide.full[0]) and not bool(wide.redo[0]) and wide.status.tolist() == [0]
+    calls.update(dict.fromkeys(calls, 0))
+    # restricted to twice the spacing the comb's anti-teeth lie on the rows it skips: too weak
+    step, _ = lattice_advance(x, one, state(2 * full.spacing, 1), P)
+    assert calls == {"green_mask": 1, "refit_lattice": 1, "lattice_rows": 1}
+    assert bool(step.redo[0]) and bool(step.full[0])
+    assert step_differences(wide, step, tol=0.0) == ["LatticeStep.redo: [False] != [True]"]
+
+
 def test_lattice_vp_both_paths_on_adversarial_coefficients() -> None:
     # converging, parallel, diverging, clamped near the bottom, non-finite: one rule in both paths
     from torchrow.functional.lattice_tracking import lattice_vp as tvp

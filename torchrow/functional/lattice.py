@@ -34,7 +34,8 @@ from torchrow.functional._flow import branch, int_max, repeat
 __all__ = ["LatticeRows", "LatticePriorBatch", "improved_batch",
            "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_table",
            "vp_origin", "vp_search", "comb_table", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
-           "normal_equations", "refine", "fit_lattice", "row_polynomials", "visible_rows", "VisibleRows", "improved_rows",
+           "normal_equations", "refine", "LatticeStartBatch", "lattice_start", "comb_start", "refit_lattice", "fit_lattice",
+           "lattice_rows", "row_polynomials", "visible_rows", "VisibleRows", "improved_rows",
            "improved_status", "LatticeFitBatch"]
 
 N_COEF = 7
@@ -165,10 +166,10 @@ _VP_TABLES: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
 
 def vp_table(height: int, width: int, params: Params, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
     """The search's grid ``(V, 2)`` int64 (:func:`torchrow.reference.lattice.vp_grid`'s order) and
-    the bin of every cell under every grid VP, ``(V, C)`` int64, as a flat index into ``V``
-    histograms of ``3W + 1`` bins laid end to end (``v (3W + 1) + bin``; bin ``3W`` where a cell
-    is not binned, a spill bin). It depends on the sizes and the grid only, so it is built once
-    (float64, the reference's expression, ``VP_SLICE`` (VP, cell) pairs at a time) and cached:
+    the bin of every cell under every grid VP in that VP's own histogram of ``3W + 1`` bins,
+    ``(V, C)`` int64 (bin ``3W`` where a cell is not binned, a spill bin). It depends on the
+    sizes and the grid only, so it is built once (float64, the reference's expression,
+    ``VP_SLICE`` (VP, cell) pairs at a time) and cached:
     ``8 V C`` bytes, 18 MB at 320x240; sizes whose tables exceed the bound of
     :meth:`Params.lattice_table_bytes` raise :class:`~torchrow.core.io.ImageError` first."""
     key = (height, width, params.lattice_vp_step, params.lattice_vp_heights, params.lattice_vp_cell,
@@ -190,8 +191,7 @@ def vp_table(height: int, width: int, params: Params, device: torch.device) -> t
             yv = grid[v0:v0 + step, 1:].to(torch.float64)
             b = torch.floor(xv + ((xc - xv) * (float(height - 1) - yv)) / (yc - yv))
             keep = ((yc - yv) > params.lattice_vp_margin) & (b >= -width) & (b < 2 * width)
-            row = torch.arange(v0, v0 + b.shape[0], dtype=torch.int64, device=device).view(-1, 1) * (3 * width + 1)
-            idx[v0:v0 + step] = torch.where(keep, b + width, torch.full_like(b, 3 * width)).to(torch.int64) + row
+            idx[v0:v0 + step] = torch.where(keep, b + width, torch.full_like(b, 3 * width)).to(torch.int64)
         table = (grid, idx)
         if not torch.compiler.is_exporting():  # never cache a tensor traced by torch.export
             _VP_TABLES[key] = table
@@ -230,12 +230,14 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     ``origin (B,)`` int64 (:func:`vp_origin`; ``None``: zeros): each image's rows ``origin .. H-1``
     are searched moved up to row 0 (one gather of the mask) and ``origin`` is added to the VP's row.
 
-    The cell counts are scattered into ``(B, V, 3W)`` int32 histograms (``VP_SLICE`` (image, VP,
-    cell) triples per scatter, through :func:`vp_table`'s flat index), then folded spacing by spacing (a static loop; a spacing
-    whose double is searched too is folded from that fold, ``2d`` values instead of ``3W``);
-    every sum is an integer below ``2**31``, so the scores are the reference's. Peak memory: the
-    histograms, ``4 V (3W + d_max)`` bytes per image (0.5 MB at 320x240), the repeated counts of
-    one scatter, ``4 VP_SLICE`` bytes (16 MB), plus the table.
+    The cell counts are scattered into ``(B, V, 3W + 1)`` int32 histograms along the bins
+    (``VP_SLICE`` (image, VP, cell) triples per scatter, through :func:`vp_table`'s bins; the
+    table and the counts broadcast with stride 0, nothing repeated), then folded spacing by
+    spacing (a static loop; a spacing whose double is searched too is folded from that fold,
+    ``2d`` values instead of ``3W``); every sum is an integer below ``2**31``, so the scores are
+    the reference's. Peak memory: the histograms twice, ``8 V (3W + d_max)`` bytes per image
+    (1 MB at 320x240), plus the table. (Repeating the counts for a flat scatter cost 9-10 % of
+    the search eagerly, best of interleaved runs at batch 1, 16 and 64.)
     """
     bsz, h, w = mask.shape
     dev = mask.device
@@ -252,14 +254,16 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     padded[:, :h, :w] = mask
     cnt = padded.view(bsz, hc, s, wc, s).sum(dim=(2, 4), dtype=torch.int32).view(bsz, ncell)
     nb = 3 * w
-    flat = torch.zeros((bsz, nv * (nb + 1)), dtype=torch.int32, device=dev)
-    step = int_max(1, VP_SLICE // int_max(bsz * ncell, 1))  # VPs per scatter: (B, step C) int32 counts at a time
+    step = int_max(1, VP_SLICE // int_max(bsz * ncell, 1))  # VPs per scatter: (B, step, C) pairs at a time
+    parts = []
     for v0 in range(0, nv, step):
         k = min(step, nv - v0)
-        flat.scatter_add_(1, idx[v0:v0 + k].reshape(1, k * ncell).expand(bsz, k * ncell), cnt.repeat(1, k))
+        # index and counts broadcast (stride 0 over the images and the VPs): eagerly nothing is repeated
+        parts.append(torch.zeros((bsz, k, nb + 1), dtype=torch.int32, device=dev).scatter_add_(
+            2, idx[v0:v0 + k].unsqueeze(0).expand(bsz, k, ncell), cnt.unsqueeze(1).expand(bsz, k, ncell)))
     # the spill bin dropped, zeros appended: a fold's last tooth may reach past 3W
     tail = torch.zeros((bsz, nv, 1 + params.lattice_max_spacing), dtype=torch.int32, device=dev)
-    hist = torch.cat([flat.view(bsz, nv, nb + 1)[:, :, :nb], tail], dim=2)
+    hist = torch.cat([torch.cat(parts, dim=1)[:, :, :nb] if len(parts) > 1 else parts[0][:, :, :nb], tail], dim=2)
     total = hist.sum(dim=2, dtype=torch.int64)
     best = torch.full((bsz, nv), -(2**31) + 1, dtype=torch.int32, device=dev)
     spacings = range(params.lattice_min_spacing, params.lattice_max_spacing + 1, params.lattice_vp_spacing_step)
@@ -594,22 +598,27 @@ def refine(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: P
     return out[0], out[1]
 
 
-def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Tensor | None,
-                params: Params, prior: LatticePriorBatch | None = None, flow: str = "sync",
-                origin: torch.Tensor | None = None) -> LatticeFitBatch:
-    """Sections 11.2-11.3.1 per image (:func:`torchrow.reference.lattice.fit_lattice`).
+class LatticeStartBatch(NamedTuple):
+    """:func:`lattice_start`'s result per image: the straight start ``coef (B, 7)`` float64 through
+    the VP ``vp (B, 2)`` int64 the comb used, and the comb's ``spacing``, ``phase`` ``(B,)``
+    int64, ``found`` ``(B,)`` bool and ``contrast`` ``(B,)`` float64 (11.2)."""
 
-    The cells (count and x sum of the inliers per image row and lattice row) are integer sums,
-    so the normal equations equal the reference's bit for bit. Memory: two ``(B, H, W+1)``
-    int64 prefix sums (about 40 MB each for 64 images of 320x240) besides the mask; a step's
-    own temporaries are ``(B, L, H, 2K+1)`` and the normal equations' ``(B L, 18, H (2K+1))``
-    int64 (``L`` = 2 lattices with ``"auto"``, else 1). ``prior``: section 11.7's (the lattice tracker);
-    ``flow``: how the grid search (which tracked images skip) and :func:`refine` skip work
-    (:mod:`torchrow.functional._flow`; results never depend on it). ``origin (B,)``: the VP
-    grid's (:func:`vp_origin`; ``None``: zeros).
-    """
-    bsz, h, w = mask.shape
-    params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
+    coef: torch.Tensor
+    spacing: torch.Tensor
+    phase: torch.Tensor
+    found: torch.Tensor
+    vp: torch.Tensor
+    contrast: torch.Tensor
+
+
+def lattice_start(mask: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Tensor | None, params: Params,
+                  prior: LatticePriorBatch | None = None, flow: str = "sync",
+                  origin: torch.Tensor | None = None) -> LatticeStartBatch:
+    """Section 11.2 per image: the VP (the grid search, section 6's, or ``prior.vp`` where
+    ``prior.restrict``), the comb through it and the straight start of 11.3. ``params`` as
+    :func:`lattice_params` gives them for the mask's size; ``flow``, ``origin`` as
+    :func:`fit_lattice`."""
+    bsz, _, w = mask.shape
     dev = mask.device
     counted = params.lattice_vp_origin == "sky"  # else every origin is 0: no gather of the mask
     if origin is None:
@@ -627,31 +636,70 @@ def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, 
         raise ValueError(f"lattice_vp={params.lattice_vp!r} needs section 6's vp and has_vp, got None")
     else:
         v = init_vp(vp, has_vp, w, params)
-    spacing, phase, found, contrast = comb_search(mask, v, params, prior)
-    den = ((h - 1) - v[:, 1]).to(torch.float64)
+    return comb_start(mask, v, params, prior)
+
+
+def comb_start(mask: torch.Tensor, vp: torch.Tensor, params: Params,
+               prior: LatticePriorBatch | None = None) -> LatticeStartBatch:
+    """Section 11.2's comb through ``vp (B, 2)`` int64 (:func:`comb_search`) and 11.3's straight
+    start from it."""
+    h = mask.shape[1]
+    spacing, phase, found, contrast = comb_search(mask, vp, params, prior)
+    den = ((h - 1) - vp[:, 1]).to(torch.float64)
     ph = phase.to(torch.float64)
     sp = spacing.to(torch.float64)
     zero = torch.zeros_like(ph)
-    coef = torch.stack([ph, (ph - v[:, 0].to(torch.float64)) / den, zero, zero, sp, sp / den, zero], dim=1)
+    coef = torch.stack([ph, (ph - vp[:, 0].to(torch.float64)) / den, zero, zero, sp, sp / den, zero], dim=1)
+    return LatticeStartBatch(coef, spacing, phase, found, vp, contrast)
+
+
+def refit_lattice(mask: torch.Tensor, sky: torch.Tensor, start: LatticeStartBatch, params: Params,
+                  prior: LatticePriorBatch | None = None, flow: str = "sync") -> LatticeFitBatch:
+    """Sections 11.3-11.3.1 per image from :func:`lattice_start`'s ``start``: the refits of the
+    green pixels of rows ``y >= sky`` (``sky (B,)``, the lattice's first row). ``params``,
+    ``prior`` and ``flow`` as :func:`fit_lattice`."""
+    bsz = mask.shape[0]
+    h = mask.shape[1]
+    coef = start.coef
     pre = prefix_sums(mask & below_horizon(sky.to(torch.int64), h, as_bool=True))
     # a tracked frame whose comb is too weak for `ok` is redone in full whatever its refits
     # give (11.4, 11.7): its refits are skipped, since a redone frame is the tracker's slowest
-    start = None if prior is None else ~(prior.restrict & (contrast < params.lattice_min_contrast))
+    go = None if prior is None else ~(prior.restrict & (start.contrast < params.lattice_min_contrast))
     is_curved = params.lattice_model == "curved"
     if params.lattice_model == "auto":
         # straight and curved from the comb's start, refined together (one loop)
         both, cells = refine(pre, torch.stack([coef, coef], dim=1), params, straight=(True, False), flow=flow,
-                             start=start)
+                             start=go)
         n_straight = cells[:, 0].sum(dim=(1, 2)).to(torch.float64)
         n_bent = cells[:, 1].sum(dim=(1, 2)).to(torch.float64)
         curved = n_bent > (1.0 + params.lattice_curve_gain) * n_straight
         coef = torch.where(curved.unsqueeze(1), both[:, 1], both[:, 0])
         cnt = torch.where(curved.view(-1, 1, 1), cells[:, 1], cells[:, 0])
     else:
-        one, cells = refine(pre, coef.unsqueeze(1), params, straight=(not is_curved,), flow=flow, start=start)
+        one, cells = refine(pre, coef.unsqueeze(1), params, straight=(not is_curved,), flow=flow, start=go)
         coef, cnt = one[:, 0], cells[:, 0]
-        curved = torch.full((bsz,), is_curved, dtype=torch.bool, device=dev)
-    return LatticeFitBatch(coef, spacing, phase, found, v, cnt, contrast, curved)
+        curved = torch.full((bsz,), is_curved, dtype=torch.bool, device=mask.device)
+    return LatticeFitBatch(coef, start.spacing, start.phase, start.found, start.vp, cnt, start.contrast, curved)
+
+
+def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Tensor | None,
+                params: Params, prior: LatticePriorBatch | None = None, flow: str = "sync",
+                origin: torch.Tensor | None = None) -> LatticeFitBatch:
+    """Sections 11.2-11.3.1 per image (:func:`torchrow.reference.lattice.fit_lattice`):
+    :func:`lattice_start`, then :func:`refit_lattice`.
+
+    The cells (count and x sum of the inliers per image row and lattice row) are integer sums,
+    so the normal equations equal the reference's bit for bit. Memory: two ``(B, H, W+1)``
+    int64 prefix sums (about 40 MB each for 64 images of 320x240) besides the mask; a step's
+    own temporaries are ``(B, L, H, 2K+1)`` and the normal equations' ``(B L, 18, H (2K+1))``
+    int64 (``L`` = 2 lattices with ``"auto"``, else 1). ``prior``: section 11.7's (the lattice tracker);
+    ``flow``: how the grid search (which tracked images skip) and :func:`refine` skip work
+    (:mod:`torchrow.functional._flow`; results never depend on it). ``origin (B,)``: the VP
+    grid's (:func:`vp_origin`; ``None``: zeros).
+    """
+    _, h, w = mask.shape
+    params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
+    return refit_lattice(mask, sky, lattice_start(mask, vp, has_vp, params, prior, flow, origin), params, prior, flow)
 
 
 def _span(top: torch.Tensor, height: int) -> torch.Tensor:
@@ -727,11 +775,18 @@ def improved_rows(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | No
     top = horizon_row(sky, params)
     mask = green_mask(images, top, params)
     origin = vp_origin(sky if grid_sky is None else grid_sky, h, params)
-    coef, spacing, phase, found, v, cnt, contrast, curved = fit_lattice(mask, top, vp, has_vp, params, prior, flow,
-                                                                        origin)
+    return lattice_rows(mask, top, fit_lattice(mask, top, vp, has_vp, params, prior, flow, origin), params)
+
+
+def lattice_rows(mask: torch.Tensor, top: torch.Tensor, fit: LatticeFitBatch, params: Params) -> LatticeRows:
+    """Section 11.4 per image: the rows ``-K .. K`` of the fitted lattice ``fit``
+    (:func:`fit_lattice`), their confidences and every visible row, from the green ``mask (B, H,
+    W)`` bool of rows ``y >= top`` (``top (B,)``)."""
+    h = mask.shape[1]
+    coef, spacing, phase, found, v, cnt, contrast, curved = fit
     support = (cnt > 0).sum(dim=1).to(torch.float64)  # (B, R)
     conf = support / _span(top, h).unsqueeze(1)
-    ks = torch.arange(-params.lattice_half, params.lattice_half + 1, device=images.device, dtype=torch.float64)
+    ks = torch.arange(-params.lattice_half, params.lattice_half + 1, device=mask.device, dtype=torch.float64)
     a, b, c, e = row_polynomials(coef, ks, h)
     valid = found.unsqueeze(1) & (conf >= params.lattice_min_confidence)
     img_conf = conf[:, 0]

@@ -165,13 +165,45 @@ def grid_sky(images: torch.Tensor, search: torch.Tensor, params: Params, flow: s
                   lambda images, zeros: (zeros.clone(),), (images, zeros))[0]
 
 
-def _lattice(images: torch.Tensor, prior: LatticePriorBatch, params: Params, flow: str,
-             sky: torch.Tensor) -> tuple[LatticeRows, torch.Tensor]:
-    """Section 11 with the prior and the VP grid's ``sky`` rows: rows and status codes (as the
-    detector's improved mode)."""
-    top = torch.zeros(images.shape[0], dtype=torch.int64, device=images.device)
-    rows = flattice.improved_rows(images, top, None, None, params, prior, flow, sky)
-    return rows, flattice.improved_status(rows, image_status(flattice.as_row_fits(rows)), params)
+def _lattice(images: torch.Tensor, active: torch.Tensor, prior: LatticePriorBatch, params: Params, flow: str,
+             sky: torch.Tensor, have_sky: bool, switch: bool = True) -> tuple[LatticeRows, torch.Tensor, torch.Tensor]:
+    """Section 11 with the prior and the VP grid's ``sky`` rows (computed here where needed
+    unless ``have_sky``): rows, status codes (as the detector's improved mode) and ``switched``
+    ``(B,)`` bool.
+
+    A tracked image of an ``active`` sequence whose restricted comb is too weak for ``ok`` (``contrast <
+    lattice_min_contrast``) would be redone in full whatever its refits give (11.7); it is
+    switched to the full search here, before its refits, on the same green mask: the same
+    lattice as the redo (the VP search, then the comb with the prior's centre and nothing
+    restricted), without a second mask, refit or row pass. The switch runs only when some
+    image needs it (an ONNX ``If`` in an exported graph; not built without ``switch``: a pass
+    with nothing restricted)."""
+    bsz, _, h, w = images.shape
+    fparams = flattice.lattice_params(w, h, params)
+    top = torch.zeros(bsz, dtype=torch.int64, device=images.device)
+    mask = flattice.green_mask(images, top, params)
+    counted = params.lattice_vp_sky_origin()
+    start = flattice.lattice_start(mask, None, None, fparams, prior, flow, flattice.vp_origin(sky, h, params))
+    weak = active & prior.restrict & (start.contrast < params.lattice_min_contrast)
+    if switch:
+        def search(images, mask, weak, centre, restrict, vp, spacing, sky, *now):
+            if counted and not have_sky:
+                sky = fsky.sky_row(images, params)
+            wide = LatticePriorBatch(centre, restrict & ~weak, vp, spacing)
+            grid = flattice.vp_search(mask, fparams, flattice.vp_origin(sky, h, params) if counted else None)
+            got = flattice.comb_start(mask, torch.where(weak.view(-1, 1), grid, now[4]), fparams, wide)
+            return tuple(torch.where(weak.view(-1, *([1] * (x.dim() - 1))), x, y) for x, y in zip(got, now))
+
+        def keep(images, mask, weak, centre, restrict, vp, spacing, sky, *now):
+            return tuple(t.clone() for t in now)
+
+        start = flattice.LatticeStartBatch(*branch(flow, weak.any(), search, keep,
+                                                   (images, mask, weak) + tuple(prior) + (sky,) + tuple(start)))
+        prior = LatticePriorBatch(prior.centre, prior.restrict & ~weak, prior.vp, prior.spacing)
+    else:
+        weak = torch.zeros_like(weak)
+    rows = flattice.lattice_rows(mask, top, flattice.refit_lattice(mask, top, start, fparams, prior, flow), params)
+    return rows, flattice.improved_status(rows, image_status(flattice.as_row_fits(rows)), params), weak
 
 
 def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTrackerState,
@@ -197,14 +229,15 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
     # computed there unless it is known here to have run: eagerly, or in the unbranched graph)
     sky = grid_sky(images, full, params, flow)
     have_sky = not params.lattice_vp_sky_origin() or flow == "always" or (flow == "sync" and bool(full.any()))
-    rows, status = _lattice(images, prior, params, flow, sky)
-    redo = active & ~full & (status != _OK)
+    rows, status, switched = _lattice(images, active, prior, params, flow, sky, have_sky)
+    # a tracked frame that still fails is redone in full (switched frames were searched in full)
+    redo = active & ~full & ~switched & (status != _OK)
     n_rows = len(dataclasses.fields(LatticeRows))
 
     def again(images, redo, centre, vp, spacing, sky, *now):  # a tracked frame that fails is searched again in full
         sky = sky if have_sky else fsky.sky_row(images, params)
-        wide, wide_status = _lattice(images, LatticePriorBatch(centre, torch.zeros_like(redo), vp, spacing), params,
-                                     flow, sky)
+        wide, wide_status, _ = _lattice(images, redo, LatticePriorBatch(centre, torch.zeros_like(redo), vp, spacing),
+                                        params, flow, sky, True, switch=False)
         picked = _where(redo, wide, LatticeRows(*now[:n_rows]))
         return _fields(picked) + (torch.where(redo, wide_status, now[n_rows]),)
 
@@ -226,6 +259,7 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
     one = torch.ones_like(change)
     pend = torch.where(off > lim, -one, torch.where(off < -lim, one, torch.zeros_like(one)))
     keep = code <= _CODE["row_end_ahead"]
+    redo = redo | (active & switched)
     searched_full = full | redo
     new = LatticeTrackerState(
         ready=torch.ones_like(state.ready), frames=state.frames + 1,
