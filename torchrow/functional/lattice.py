@@ -34,8 +34,8 @@ from torchrow.functional._flow import branch, int_max, repeat
 __all__ = ["LatticeRows", "LatticePriorBatch", "improved_batch",
            "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_table",
            "vp_origin", "vp_search", "comb_table", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
-           "normal_equations", "refine", "LatticeStartBatch", "lattice_start", "comb_start", "refit_lattice", "fit_lattice",
-           "lattice_rows", "row_polynomials", "visible_rows", "VisibleRows", "improved_rows",
+           "monomial_tables", "normal_equations", "refine", "LatticeStartBatch", "lattice_start", "comb_start",
+           "refit_lattice", "fit_lattice", "lattice_rows", "row_polynomials", "visible_rows", "VisibleRows", "improved_rows",
            "improved_status", "LatticeFitBatch"]
 
 N_COEF = 7
@@ -505,33 +505,44 @@ def row_cells(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params
             sx.view(bsz, h, nl, nr).transpose(1, 2).contiguous())
 
 
-def normal_equations(cnt: torch.Tensor, sx: torch.Tensor, params: Params,
-                     straight: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+def monomial_tables(height: int, rows: int, params: Params, straight: bool,
+                    device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The cells' monomials for :func:`normal_equations` on ``height`` image rows and ``rows``
+    lattice rows: every distinct ``t^a k^b`` of the basis' products ``(M, H R)`` int64, the
+    basis itself ``(n, H R)`` (times ``t^0 k^0``, so among them) and the entry of ``m`` each
+    product fills, ``(n n,)`` int64. They depend on the sizes only: a refit computes them once,
+    not per step."""
+    t = (torch.arange(height, device=device, dtype=torch.int64) - (height - 1)).view(height, 1)
+    k = (torch.arange(rows, device=device, dtype=torch.int64) - params.lattice_half).view(1, rows)
+    basis = params.lattice_basis(straight)
+    monos = sorted({(p1 + p2, e1 + e2) for p1, e1 in basis for p2, e2 in basis})
+    where = [monos.index((p1 + p2, e1 + e2)) for p1, e1 in basis for p2, e2 in basis]
+    mono = torch.stack([((t**p) * (k**e)).view(height * rows) for p, e in monos])
+    return mono, mono[[monos.index(f) for f in basis]], torch.tensor(where, device=device)
+
+
+def normal_equations(cnt: torch.Tensor, sx: torch.Tensor, params: Params, straight: bool = False,
+                     tables: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
     """Batched :func:`torchrow.reference.lattice.normal_equations` from ``(B, H, R)`` int64 cells.
 
     Returns ``m (B, n, n)`` and ``r (B, n)`` float64 (int64 sums, then converted), ``n`` = the
     size of :meth:`Params.lattice_basis` (``straight``: the straight basis of 11.3.1). An entry
     of ``m`` is the sum of one monomial ``t^a k^b`` over the occupied cells, and many entries
     share one, so each distinct monomial is summed once (18 for the cubic basis instead of 49
-    entries: integer sums, the same values). Memory: ``(B, 18, H R)`` int64.
+    entries: integer sums, the same values). ``tables``: :func:`monomial_tables` for these
+    sizes (``None``: computed here). Memory: ``(B, 18, H R)`` int64.
     """
     _, h, r = cnt.shape
-    dev = cnt.device
     occ = cnt > 0
     grid = params.lattice_cell_grid
     q = torch.round((float(grid) * sx.to(torch.float64)) / torch.where(occ, cnt, torch.ones_like(cnt)).to(torch.float64))
     q = torch.where(occ, q.to(torch.int64), torch.zeros_like(cnt))
-    t = (torch.arange(h, device=dev, dtype=torch.int64) - (h - 1)).view(1, h, 1)
-    k = (torch.arange(r, device=dev, dtype=torch.int64) - params.lattice_half).view(1, 1, r)
-    basis = params.lattice_basis(straight)
-    n = len(basis)
-    monos = sorted({(p1 + p2, e1 + e2) for p1, e1 in basis for p2, e2 in basis})
-    where = [monos.index((p1 + p2, e1 + e2)) for p1, e1 in basis for p2, e2 in basis]
-    mono = torch.stack([((t**p) * (k**e)).view(h * r) for p, e in monos])  # (M, H R)
-    phi = mono[[monos.index(f) for f in basis]]  # (n, H R): the basis is among them (times t^0 k^0)
+    mono, phi, where = tables if tables is not None else monomial_tables(h, r, params, straight, cnt.device)
+    n = phi.shape[0]
     o = occ.to(torch.int64).view(-1, 1, h * r)
     sums = (o * mono.unsqueeze(0)).sum(dim=2)  # (B, M)
-    m = sums[:, torch.tensor(where, device=dev)].view(-1, n, n)
+    m = sums[:, where].view(-1, n, n)
     rr = (q.view(-1, 1, h * r) * phi.unsqueeze(0)).sum(dim=2)
     return m.to(torch.float64), rr.to(torch.float64) / float(grid)
 
@@ -574,7 +585,7 @@ def refine(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: P
     # the carry holds lattices with their cells, so that the stop test precedes the solve
     def refit(coef, cnt, sx, active):
         h, r = cnt.shape[2:]
-        m, rhs = normal_equations(cnt.view(bsz * nl, h, r), sx.view(bsz * nl, h, r), params, all_straight)
+        m, rhs = normal_equations(cnt.view(bsz * nl, h, r), sx.view(bsz * nl, h, r), params, all_straight, tables)
         if pinned is not None:
             m = torch.where(pin2, eye, m)
             rhs = torch.where(pinned, torch.zeros_like(rhs), rhs)
@@ -591,6 +602,7 @@ def refine(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: P
         return coef, cnt2, sx2, active & (cnt2.sum(dim=(2, 3)) >= params.lattice_min_points) & ~same
 
     cnt, sx = row_cells(pre, coef, params)
+    tables = monomial_tables(cnt.shape[2], cnt.shape[3], params, all_straight, coef.device)
     active = cnt.sum(dim=(2, 3)) >= params.lattice_min_points
     if start is not None:
         active = active & start.unsqueeze(1)
