@@ -111,6 +111,7 @@ def main() -> None:
             name = "this export" if m == path else m.name
             runs[f"onnxruntime, {name}, {threads} thread(s)"] = (step_of(OnnxTracker(m, threads=threads)), threads)
     runs["torch eager, 1 thread"] = (step_of(eager), 1)
+    runs["torch eager, 2 threads"] = (step_of(eager), 2)  # the CLI's setting on a 2-core CPU
     for step, threads in runs.values():
         torch.set_num_threads(threads)
         step(x[0], None)  # a first run allocates

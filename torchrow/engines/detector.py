@@ -63,11 +63,9 @@ class CropRowDetector(nn.Module):
             raise ValueError(f"workers must be None or >= 1, got {workers}")
         # Hough/VP/RANSAC keep per-image accumulators of ~0.6 MB: on a CPU, groups of 8 images
         # stay in cache (measured 1.5x faster per image than 64 at once); a GPU takes all. The
-        # improved mode's refits run until the last image of a chunk stops, and its per-op
-        # overhead is larger: groups of 16 (measured 5-17% faster per image than 8 at batch 64,
-        # 24 and 32 slower again; benchmarks/RESULTS.md).
-        cpu_chunk = 16 if self.params.mode == "improved" else 8
-        self.chunk = chunk if chunk is not None else (cpu_chunk if self.device.type == "cpu" else None)
+        # improved mode likewise: 8 was 0-11% faster per image than 12 or 16 at batch 64 once its
+        # refits stopped rebuilding their tables per step (benchmarks/RESULTS.md).
+        self.chunk = chunk if chunk is not None else (8 if self.device.type == "cpu" else None)
         # Most of the work is many small ops (sorts, cumsums, scatters, argmax over one
         # chunk) that torch runs on one thread, so on a CPU whole chunks run concurrently on
         # single-threaded workers instead (measured 1.5x the images/s of 2 intra-op threads
@@ -92,7 +90,7 @@ class CropRowDetector(nn.Module):
         in a thread pool with one torch thread each (the global intra-op thread count is
         restored afterwards). Peak memory: about 90 MB per chunk of 8 images at 320x240 in
         flight, plus the LAB table pages touched (a shared read-only memory map); in the
-        improved mode (chunks of 16) a batch of 64 CRBD images peaks at 0.64 GiB RSS in all.
+        improved mode a batch of 64 CRBD images peaks at about 0.6 GiB RSS in all.
         """
         check_images(images)
         check_working_size(images.shape[3], images.shape[2], self.params.max_pixels)
