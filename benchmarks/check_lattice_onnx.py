@@ -14,7 +14,9 @@ floats within 1e-4) and every field of every step and state (floats within 1e-9)
 export time, the model's size and op census, and frames/s of onnxruntime on one and on two
 intra-op threads and of torch eager on one thread (the host's frame loop included, frames
 read beforehand), and per kind of frame (tracked, a scheduled full search, a tracked frame
-redone in full) the median and the slowest: each frame's time is its fastest over ``--rounds`` passes over the sequence,
+redone in full; the tracked sequence's full searches take the grid's window of ALGORITHM.md 11.7,
+frame 0 the whole grid, as a frame after a loss) the median and the slowest: each frame's time
+is its fastest over ``--rounds`` passes over the sequence,
 the passes of all runs interleaved, so that the VM's drift hits every run alike; ``--compare
 OTHER.onnx ...`` times other exports of the same step beside it (e.g. an earlier commit's).
 Run from the repository root.
@@ -131,6 +133,7 @@ def main() -> None:
             if ms:
                 by_kind.append(f"{kind} {len(ms)}: median {ms[len(ms) // 2]:.1f}, max {ms[-1]:.1f}")
         print(f"{name}: {len(x) / sum(b):.1f} frames/s ({1000 * sum(b) / len(x):.1f} ms/frame), "
+              f"frame 0 (the whole grid) {1000 * b[0]:.1f} ms, "
               f"worst after frame 0 {1000 * max(b[1:], default=0.0):.1f} ms; ms per frame after frame 0: "
               + "; ".join(by_kind), flush=True)
 

@@ -72,8 +72,9 @@ def _tensor(frames: list[np.ndarray]) -> torch.Tensor:
 def test_graph_interface_and_op_list(model_path: Path) -> None:
     """Inputs/outputs as documented; the refits are ONNX ``Loop`` nodes (straight and curved
     together, one in the first pass and one in the redo), the redo, the first pass's VP grid
-    search (which tracked frames skip) and its switch of a too weak tracked comb to the full
-    search ``If`` nodes; no op with a data-dependent shape; the metadata names the mode."""
+    search (which tracked frames skip), inside it the whole grid's and the window's searches
+    (11.7), and the switch of a too weak tracked comb to the full search ``If`` nodes; no op with
+    a data-dependent shape; the metadata names the mode."""
     import onnx
 
     model = onnx.load(str(model_path))
@@ -81,11 +82,21 @@ def test_graph_interface_and_op_list(model_path: Path) -> None:
     assert [o.name for o in model.graph.output] == list(LATTICE_OUTPUTS)
     ops = op_counts(model)
     assert not {"NonZero", "Unique", "Scan", "Compress"} & set(ops), ops  # onnxruntime only: no TensorRT op list
-    assert ops["Loop"] == 2 and ops["If"] == 3, ops
+    assert ops["Loop"] == 2 and ops["If"] == 5, ops
     info = model_info(model_path)
     assert (info["kind"], info["mode"], info["batch"], info["height"], info["width"]) == (
         "tracker", "improved", BATCH, HEIGHT, WIDTH)
     assert info["params"] == TINY and info["control_flow"]
+
+
+def test_a_model_with_another_state_is_refused_by_name(model_path: Path, monkeypatch) -> None:
+    # a model exported before the state gained a field would fail inside onnxruntime on its
+    # first frame; the tracker refuses it when it opens, naming the difference
+    import torchrow.onnx.graphs as graphs
+
+    monkeypatch.setattr(graphs, "LATTICE_INPUTS", graphs.LATTICE_INPUTS + ("state_extra",))
+    with pytest.raises(ValueError, match=r"another torchrow version .*state_extra.*export it again"):
+        OnnxTracker(model_path, cache=False)
 
 
 def test_steps_equal_the_eager_tracker(onnx_tracker: OnnxTracker, drive: list[np.ndarray]) -> None:
@@ -212,22 +223,33 @@ def test_graph_without_control_flow_equals_the_eager_tracker(drive: list[np.ndar
 
 
 def test_vp_search_traced_in_a_branch_keeps_its_chunks() -> None:
-    """Inside a ``torch.cond`` branch (the grid search of an exported step) the VP search's
-    histogram takes as few scatters as eagerly (one here, all VPs within ``VP_SLICE``), not one
-    per VP: non-strict ``torch.export`` gave ``max()`` of symbolic sizes as their minimum there."""
+    """Inside a ``torch.cond`` branch (the grid searches of an exported step) the windowed VP
+    search's histogram takes as few scatters as eagerly (one here, all VPs within ``VP_SLICE``),
+    not one per VP: non-strict ``torch.export`` gave ``max()`` of symbolic sizes as their minimum
+    there. The whole grid's search gathers instead (11.5), from a table built before tracing."""
     from torchrow.functional import lattice as flat
 
     params = flat.lattice_params(WIDTH, HEIGHT, TINY)
     mask = torch.from_numpy(np.random.default_rng(0).random((1, HEIGHT, WIDTH)) < 0.2)
     grid, _ = flat.vp_table(HEIGHT, WIDTH, params, mask.device)
-    assert grid.shape[0] > 1
+    assert grid.shape[0] > 1 and flat.vp_window(torch.tensor([[WIDTH // 2, -40]]), None, WIDTH, params).shape[1] > 1
+    near = torch.tensor([[WIDTH // 2, -40]])
 
     class Search(torch.nn.Module):
-        def forward(self, mask: torch.Tensor, go: torch.Tensor) -> torch.Tensor:
-            return torch.cond(go.any(), lambda m: flat.vp_search(m, params), lambda m: torch.zeros(
-                (1, 2), dtype=torch.int64), (mask,))
+        def forward(self, mask: torch.Tensor, go: torch.Tensor, near: torch.Tensor) -> tuple[torch.Tensor, ...]:
+            def none(m: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, ...]:
+                return torch.zeros((1, 2), dtype=torch.int64), torch.zeros((1, 2), dtype=torch.int64)
 
-    program = torch.export.export(Search(), (mask, torch.ones(1, dtype=torch.bool)), strict=False)
-    scatters = [n for sub in program.graph_module.modules() if isinstance(sub, torch.fx.GraphModule)
-                for n in sub.graph.nodes if n.op == "call_function" and "scatter_add" in str(n.target)]
-    assert len(scatters) == 1
+            return torch.cond(go.any(), lambda m, v: (flat.vp_search(m, params), flat.vp_search(m, params, None, v)),
+                              none, (mask, near))
+
+    args = (mask, torch.ones(1, dtype=torch.bool), near)
+    flat._VP_GATHER_TABLES.clear()
+    with pytest.raises(RuntimeError, match="built eagerly"):
+        torch.export.export(Search(), args, strict=False)
+    flat.vp_gather_table(HEIGHT, WIDTH, params, mask.device)
+    program = torch.export.export(Search(), args, strict=False)
+    calls = [str(n.target) for sub in program.graph_module.modules() if isinstance(sub, torch.fx.GraphModule)
+             for n in sub.graph.nodes if n.op == "call_function"]
+    assert sum("scatter_add" in c for c in calls) == 1 and sum("cumsum" in c for c in calls) >= 1
+    assert [t.tolist() for t in program.module()(*args)] == [t.tolist() for t in Search()(*args)]

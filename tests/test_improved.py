@@ -122,6 +122,24 @@ def test_params_lattice_bound_admits_the_wide_comb_and_its_formula_holds() -> No
             call()
 
 
+def test_vp_search_gather_form_equals_the_scatter(monkeypatch) -> None:
+    # the exported graph bins the cells with gathers and one cumulative sum (onnxruntime scatters
+    # slowly); the histograms and so the VPs are the scatter's, with and without a moved origin
+    masks = torch.from_numpy(np.stack(_search_masks()[:3]))
+    origin = torch.tensor([0, 5, 30])
+    want = [flat.vp_search(masks, IMPROVED), flat.vp_search(masks, IMPROVED, origin),
+            flat.vp_search(masks[1:2], IMPROVED, origin[1:2])]
+    flat.vp_gather_table(masks.shape[1], masks.shape[2], IMPROVED, masks.device)  # as to_onnx, before tracing
+    monkeypatch.setattr(torch.compiler, "is_exporting", lambda: True)  # the form the exporter traces
+    got = [flat.vp_search(masks, IMPROVED), flat.vp_search(masks, IMPROVED, origin),
+           flat.vp_search(masks[1:2], IMPROVED, origin[1:2])]
+    assert all(torch.equal(a, b) for a, b in zip(got, want))
+    h, w = masks.shape[1:]
+    cnt = torch.randint(0, 5, (2, flat.vp_table(h, w, IMPROVED, torch.device("cpu"))[1].shape[1]), dtype=torch.int32)
+    idx = flat.vp_table(h, w, IMPROVED, torch.device("cpu"))[1]
+    assert torch.equal(flat._gathered_histograms(cnt, h, w, IMPROVED), flat._scattered_histograms(cnt, idx, w))
+
+
 def test_vp_search_in_slices_equals_one_slice(monkeypatch) -> None:
     # the VP search projects a few VPs at a time (bounded memory); the slicing changes nothing
     masks = _search_masks()[:3]
@@ -471,6 +489,41 @@ def test_vp_search_tensor_equals_reference_batched_and_alone(change: dict) -> No
         assert torch.equal(flat.vp_search(torch.from_numpy(m)[None], params)[0], got[i])
     empty = flat.vp_search(torch.zeros((0, 240, 320), dtype=torch.bool), params)
     assert empty.shape == (0, 2)
+
+
+def test_vp_window_both_paths_and_its_bounds() -> None:
+    # 11.7: a tracked sequence's full search takes the grid VPs around its last grid VP; the
+    # window always holds min(2c+1, columns) x min(2r+1, heights) grid VPs, shifted inside the grid
+    rng = np.random.default_rng(3)
+    ncol, heights = 320 // IMPROVED.lattice_vp_step + 1, np.array(IMPROVED.lattice_vp_heights)
+    for _ in range(200):
+        cols, rows = int(rng.integers(0, 12)), int(rng.integers(0, 5))
+        params = IMPROVED.replace(lattice_track_vp_cols=cols, lattice_track_vp_rows=rows)
+        near, origin = (int(rng.integers(-400, 800)), int(rng.integers(-500, 300))), int(rng.integers(0, 200))
+        want = rlat.vp_window(320, params, near, origin)
+        got = flat.vp_window(torch.tensor([near]), torch.tensor([origin]), 320, params)
+        assert got.dtype == torch.int64 and got[0].tolist() == want.tolist()
+        nx, ny = min(2 * cols + 1, ncol), min(2 * rows + 1, heights.size)
+        grid = rlat.vp_grid(320, params)[want]
+        assert want.size == nx * ny and (np.diff(want) > 0).all() and len(set(grid[:, 0])) == nx
+        # the nearest grid column and height are inside
+        col = min(max(int(np.floor(near[0] / IMPROVED.lattice_vp_step + 0.5)), 0), ncol - 1) * IMPROVED.lattice_vp_step
+        assert col in grid[:, 0] and heights[np.argmin(np.abs(heights - (near[1] - origin)))] in grid[:, 1]
+
+
+def test_windowed_vp_search_both_paths_batched_and_alone() -> None:
+    masks = _search_masks()
+    near = torch.tensor([[40 * i, -20 - 30 * i] for i in range(len(masks))])
+    origin = torch.arange(len(masks)) * 7
+    batch = torch.from_numpy(np.stack(masks))
+    got = flat.vp_search(batch, IMPROVED, origin, near)
+    for i, m in enumerate(masks):
+        want = rlat.vp_search(m, IMPROVED, int(origin[i]), tuple(near[i].tolist()))
+        assert tuple(got[i].tolist()) == want
+        assert torch.equal(flat.vp_search(batch[i:i + 1], IMPROVED, origin[i:i + 1], near[i:i + 1])[0], got[i])
+    # a window beyond the grid is the whole grid, the same VP and tie-break
+    whole = IMPROVED.replace(lattice_track_vp_cols=99, lattice_track_vp_rows=99)
+    assert torch.equal(flat.vp_search(batch, whole, origin, near), flat.vp_search(batch, IMPROVED, origin))
 
 
 def test_vp_origin_both_paths_on_every_case() -> None:

@@ -226,7 +226,7 @@ def test_a_too_weak_tracked_comb_switches_to_the_full_search_on_its_own_mask(mon
     def state(spacing: int, age: int) -> LatticeTrackerState:
         st = LatticeTrackerState.empty(1)
         st.ready, st.has_centre, st.age, st.last = one, one.clone(), torch.tensor([age]), torch.tensor([0])
-        st.vp, st.spacing = torch.tensor([full.vp]), torch.tensor([spacing])
+        st.vp, st.spacing, st.grid_vp = torch.tensor([full.vp]), torch.tensor([spacing]), torch.tensor([full.vp])
         st.centre = torch.tensor([full.coef[0]], dtype=torch.float64)
         return st
 
@@ -249,6 +249,34 @@ def test_a_too_weak_tracked_comb_switches_to_the_full_search_on_its_own_mask(mon
     assert calls == {"green_mask": 1, "refit_lattice": 1, "lattice_rows": 1}
     assert bool(step.redo[0]) and bool(step.full[0])
     assert step_differences(wide, step, tol=0.0) == ["LatticeStep.redo: [False] != [True]"]
+
+
+def test_a_tracked_full_search_takes_the_window_around_its_grid_vp() -> None:
+    # 11.7: a tracked sequence's scheduled full search takes only the grid VPs near its last grid
+    # VP (both paths); the next state carries the VP it chose
+    from torchrow.functional.lattice_tracking import LatticeTrackerState, lattice_advance
+    from torchrow.reference import lattice as rlattice
+
+    img = drive([CameraPose(0.12, 0.02, 0.0)], 1)[0].image
+    mask = rlattice.green_mask(img, 0, P)
+    full = rlattice.fit_lattice(mask, 0, None, P)
+    x = torch.from_numpy(img).permute(2, 0, 1)[None].contiguous()
+    one = torch.ones(1, dtype=torch.bool)
+    grid = rlattice.vp_grid(img.shape[1], P)
+    for around in [full.vp, (0, -250)]:
+        st = LatticeTrackerState.empty(1)
+        st.ready, st.has_centre, st.last = one, one.clone(), torch.tensor([0])
+        st.age, st.spacing = torch.tensor([P.lattice_track_every]), torch.tensor([full.spacing])
+        st.vp, st.grid_vp = torch.tensor([full.vp]), torch.tensor([around])
+        st.centre = torch.tensor([full.coef[0]], dtype=torch.float64)
+        step, new = lattice_advance(x, one, st, P)
+        chosen = tuple(step.rows.vp[0].tolist())
+        assert bool(step.full[0]) and new.grid_vp[0].tolist() == list(chosen)
+        assert chosen in {tuple(v) for v in grid[rlattice.vp_window(img.shape[1], P, around)].tolist()}
+        prior = rlattice.LatticePrior(float(full.coef[0]), near=around)
+        assert rlattice.fit_lattice(mask, 0, None, P.tracking(), prior).vp == chosen
+        # around the whole grid's choice the window finds it again; far from it, a VP of its own
+        assert (chosen == full.vp) == (around == full.vp)
 
 
 def test_lattice_vp_both_paths_on_adversarial_coefficients() -> None:

@@ -130,6 +130,8 @@ class Params:
     lattice_min_image_confidence: float = 0.0  # status ok needs the image confidence at least this
     # --- section 11.7 (torchrow extension): the lattice tracker ------------------------------
     lattice_track_every: int = 10  # video: a full (unrestricted) search at least every this many frames
+    lattice_track_vp_cols: int = 2  # video: a tracked sequence's full search: grid columns within this many of its last
+    lattice_track_vp_rows: int = 1  # ... grid VP's, and heights within this many (a window beyond the grid: all of it)
     lattice_track_iterations: int = 8  # video: a frame's refits stop after this many steps (images: lattice_iterations)
     lattice_track_spacing_tol: float = 0.15  # prior: comb spacings within this fraction of the last spacing
     lattice_track_phase_tol: float = 0.25  # prior: a tooth within this fraction of the spacing of the tracked row
@@ -435,6 +437,8 @@ _RULES: dict[str, Rule] = {
     "lattice_min_confidence": Rule("float", 0, 1),
     "lattice_track_every": Rule("int", 1, 2**31 - 1),
     "lattice_track_iterations": Rule("int", 0, 1000, why=_COST),
+    "lattice_track_vp_cols": Rule("int", 0, 2**16, why="grid steps; a window beyond the grid is the whole grid"),
+    "lattice_track_vp_rows": Rule("int", 0, 2**16, why="grid heights; a window beyond the grid is the whole grid"),
     "lattice_track_spacing_tol": Rule("float", 0, 1, why="a fraction of the spacing"),
     "lattice_track_phase_tol": Rule("float", 0, 0.5, why="a fraction of the spacing (0.5: any phase)"),
     "lattice_track_hysteresis": Rule("float", 0, 0.5, why="a fraction of the spacing"),

@@ -31,12 +31,12 @@ from torchrow.core.results import STATUSES
 from torchrow.functional._checks import below_horizon
 from torchrow.functional._flow import branch, int_max, repeat
 
-__all__ = ["LatticeRows", "LatticePriorBatch", "improved_batch",
-           "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_table",
-           "vp_origin", "vp_search", "comb_table", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
-           "monomial_tables", "normal_equations", "refine", "LatticeStartBatch", "lattice_start", "comb_start",
-           "refit_lattice", "fit_lattice", "lattice_rows", "row_polynomials", "visible_rows", "VisibleRows", "improved_rows",
-           "improved_status", "LatticeFitBatch"]
+__all__ = ["LatticeRows", "LatticePriorBatch", "improved_batch", "horizon_row", "excess_green", "ImprovedStart",
+           "improved_start", "improved_finish", "vp_gather_table", "vp_window", "otsu_threshold", "green_mask", "init_vp",
+           "vp_table", "vp_origin", "vp_search", "comb_table", "comb_search", "solve_normal", "prefix_sums",
+           "centre_spacing", "row_cells", "monomial_tables", "normal_equations", "refine", "LatticeStartBatch",
+           "lattice_start", "comb_start", "refit_lattice", "fit_lattice", "lattice_rows", "row_polynomials",
+           "visible_rows", "VisibleRows", "improved_rows", "improved_status", "LatticeFitBatch"]
 
 N_COEF = 7
 EXG_OFFSET = 510
@@ -82,12 +82,16 @@ class LatticePriorBatch(NamedTuple):
     ``(B,)`` float64, the bottom-row x the central row is chosen nearest to; ``restrict`` ``(B,)``
     bool, a tracked frame (else a full search); ``vp`` ``(B, 2)`` int64, the VP the comb uses
     there (the previous frame's lattice VP, not searched), and ``spacing`` ``(B,)`` int64, the
-    previous comb spacing (both read where ``restrict``)."""
+    previous comb spacing (both read where ``restrict``); ``near`` ``(B,)`` bool or ``None``
+    (all false): a full search of a tracked sequence, which takes :func:`vp_window` of the grid
+    around ``around`` ``(B, 2)`` int64, its last grid VP (read where ``near`` and not ``restrict``)."""
 
     centre: torch.Tensor
     restrict: torch.Tensor
     vp: torch.Tensor
     spacing: torch.Tensor
+    near: torch.Tensor | None = None
+    around: torch.Tensor | None = None
 
 
 class LatticeFitBatch(NamedTuple):
@@ -198,6 +202,74 @@ def vp_table(height: int, width: int, params: Params, device: torch.device) -> t
     return table
 
 
+def _scattered_histograms(cnt: torch.Tensor, idx: torch.Tensor, width: int) -> torch.Tensor:
+    """The VP search's histograms ``(B, V, 3W)`` int32 from the cell counts ``cnt (B, C)`` int32:
+    scattered along :func:`vp_table`'s bins ``idx``, ``(V, C)`` for every image or ``(B, V, C)``
+    per image (a window of the grid), ``VP_SLICE`` (image, VP, cell) triples per scatter, the
+    index (``(V, C)``) and the counts broadcast (stride 0), so nothing is repeated."""
+    bsz, ncell = cnt.shape
+    nv, nb = idx.shape[-2], 3 * width
+    step = int_max(1, VP_SLICE // int_max(bsz * ncell, 1))
+    parts = []
+    for v0 in range(0, nv, step):
+        k = min(step, nv - v0)
+        at = idx[v0:v0 + k].unsqueeze(0).expand(bsz, k, ncell) if idx.dim() == 2 else idx[:, v0:v0 + k]
+        parts.append(torch.zeros((bsz, k, nb + 1), dtype=torch.int32, device=cnt.device).scatter_add_(
+            2, at, cnt.unsqueeze(1).expand(bsz, k, ncell)))
+    return torch.cat(parts, dim=1)[:, :, :nb] if len(parts) > 1 else parts[0][:, :, :nb]
+
+
+_VP_GATHER_TABLES: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
+
+
+def vp_gather_table(height: int, width: int, params: Params, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`vp_table`'s bins as a gather: ``order (1 + N,)`` int64, the cell index ``C`` (a zero
+    count appended to the cells) and then, VP by VP, the ``N`` (VP, cell) pairs it bins, each VP's
+    cells sorted by bin; ``ends (V (3W + 1),)`` int64, per VP and bin ``b = 0 .. 3W`` the position
+    in ``order`` of the last pair binned below ``b`` (the leading zero where none). So VP ``v``'s
+    bin ``b`` holds ``S[ends[v, b + 1]] - S[ends[v, b]]`` of the cumulative sum ``S`` of the counts
+    taken in that order. Built once per size from :func:`vp_table` and cached (``8 N`` bytes, about
+    ``8 V C``: 48 MB at 500x281); only the exported step uses it (:func:`vp_search`)."""
+    key = (height, width, params.lattice_vp_step, params.lattice_vp_heights, params.lattice_vp_cell,
+           params.lattice_vp_margin, str(device))
+    table = _VP_GATHER_TABLES.get(key)
+    if table is None and torch.compiler.is_exporting():
+        # its sizes depend on the table's values: traced, they would be data-dependent
+        raise RuntimeError(f"vp_gather_table({height}, {width}, ...) must be built eagerly before an export traces "
+                           "the VP search (torchrow.onnx.to_onnx does)")
+    if table is None:
+        idx = vp_table(height, width, params, device)[1]
+        nv, ncell = idx.shape
+        nb = 3 * width
+        order = torch.argsort(idx, dim=1, stable=True)
+        bins = torch.gather(idx, 1, order)
+        binned = bins < nb  # the spill bin sorts last
+        count = binned.sum(dim=1)
+        start = torch.cumsum(count, 0) - count + 1  # after the leading zero
+        below = torch.searchsorted(bins, torch.arange(nb + 1, device=device).expand(nv, nb + 1).contiguous())
+        ends = (start.unsqueeze(1) + torch.minimum(below, count.unsqueeze(1)) - 1).reshape(-1)
+        table = (torch.cat([torch.full((1,), ncell, dtype=torch.int64, device=device), order[binned]]), ends)
+        _VP_GATHER_TABLES[key] = table
+    return table
+
+
+def _gathered_histograms(cnt: torch.Tensor, height: int, width: int, params: Params) -> torch.Tensor:
+    """:func:`_scattered_histograms` as gathers and one cumulative sum (:func:`vp_gather_table`),
+    the same integers. onnxruntime's ``ScatterElements`` spent about 7 ns per (VP, cell) pair
+    (45 ms at 500x281, single thread), ``GatherElements`` and ``CumSum`` about 1 ns each."""
+    order, ends = vp_gather_table(height, width, params, cnt.device)
+    bsz = cnt.shape[0]
+    nv, nb = ends.shape[0] // (3 * width + 1), 3 * width
+    s = params.lattice_vp_cell
+    # every pair's count is at most s*s: the running sum stays below 2**31 in int32 where it can
+    wide = (order.shape[0] - 1) * s * s >= 2**31
+    cells = torch.cat([cnt, torch.zeros((bsz, 1), dtype=cnt.dtype, device=cnt.device)], dim=1)
+    taken = torch.gather(cells, 1, order.unsqueeze(0) if bsz == 1 else order.unsqueeze(0).expand(bsz, -1))
+    run = torch.cumsum(taken, dim=1, dtype=torch.int64 if wide else torch.int32)
+    at = torch.gather(run, 1, ends.unsqueeze(0) if bsz == 1 else ends.unsqueeze(0).expand(bsz, -1)).view(bsz, nv, nb + 1)
+    return (at[:, :, 1:] - at[:, :, :-1]).to(torch.int32)
+
+
 def _fold_peak(fold: torch.Tensor, d: int, params: Params) -> torch.Tensor:
     """The best tooth minus anti-tooth of ``(B, V, d)`` int32 folds over the phases, ``(B, V)``.
 
@@ -224,11 +296,36 @@ def vp_origin(sky: torch.Tensor, height: int, params: Params) -> torch.Tensor:
     return torch.where(seen, torch.clamp(sky + params.lattice_vp_sky, min=0, max=height), torch.zeros_like(sky))
 
 
-def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = None) -> torch.Tensor:
+def vp_window(near: torch.Tensor, origin: torch.Tensor | None, width: int, params: Params) -> torch.Tensor:
+    """Section 11.7: per image the indices into :func:`vp_table`'s grid (ascending) that a full
+    search of a tracked sequence takes around its VP ``near (B, 2)`` int64, ``(B, n)`` int64 with
+    ``n = min(2 lattice_track_vp_cols + 1, W // lattice_vp_step + 1) min(2 lattice_track_vp_rows
+    + 1, len(lattice_vp_heights))``; ``origin (B,)`` int64 as :func:`vp_search`'s (``None``:
+    zeros). :func:`torchrow.reference.lattice.vp_window`'s integers."""
+    bsz, dev = near.shape[0], near.device
+    step, rx, ry = params.lattice_vp_step, params.lattice_track_vp_cols, params.lattice_track_vp_rows
+    ncol = width // step + 1
+    heights = torch.tensor(params.lattice_vp_heights, dtype=torch.int64, device=dev)
+    nx, ny = min(2 * rx + 1, ncol), min(2 * ry + 1, heights.numel())
+    c = torch.clamp(torch.div(2 * near[:, 0] + step, 2 * step, rounding_mode="floor"), min=0, max=ncol - 1)
+    rel = near[:, 1] if origin is None else near[:, 1] - origin
+    i = torch.argmin((heights.view(1, -1) - rel.view(-1, 1)).abs(), dim=1)  # the first on ties, as numpy's
+    x0 = torch.clamp(c - rx, min=0, max=ncol - nx)
+    y0 = torch.clamp(i - ry, min=0, max=heights.numel() - ny)
+    rows = y0.view(-1, 1, 1) + torch.arange(ny, dtype=torch.int64, device=dev).view(1, -1, 1)
+    return (rows * ncol + x0.view(-1, 1, 1) + torch.arange(nx, dtype=torch.int64, device=dev).view(1, 1, -1)).view(
+        bsz, ny * nx)
+
+
+def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = None,
+              near: torch.Tensor | None = None) -> torch.Tensor:
     """Section 11.2 (``lattice_vp == "search"``): per image the grid VP whose folded contrast
     comb is strongest, ``(B, 2)`` int64; see :func:`torchrow.reference.lattice.vp_search`.
     ``origin (B,)`` int64 (:func:`vp_origin`; ``None``: zeros): each image's rows ``origin .. H-1``
     are searched moved up to row 0 (one gather of the mask) and ``origin`` is added to the VP's row.
+    ``near (B, 2)`` int64 (section 11.7, tracked sequences' VPs; ``None``: the whole grid): each
+    image searches its own :func:`vp_window` of the grid, ``n`` VPs in place of ``V`` (the
+    window's bins ``8 n C`` bytes per image: 4 MB at 500x281 with the default window).
 
     The cell counts are scattered into ``(B, V, 3W + 1)`` int32 histograms along the bins
     (``VP_SLICE`` (image, VP, cell) triples per scatter, through :func:`vp_table`'s bins; the
@@ -237,33 +334,37 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     ``2d`` values instead of ``3W``); every sum is an integer below ``2**31``, so the scores are
     the reference's. Peak memory: the histograms twice, ``8 V (3W + d_max)`` bytes per image
     (1 MB at 320x240), plus the table. (Repeating the counts for a flat scatter cost 9-10 % of
-    the search eagerly, best of interleaved runs at batch 1, 16 and 64.)
+    the search eagerly, best of interleaved runs at batch 1, 16 and 64.) While exporting
+    (``torch.compiler.is_exporting()``) the histograms come from :func:`_gathered_histograms`
+    instead, the same integers without a scatter (ALGORITHM.md 11.5); it adds ``8 N`` bytes per
+    image for the counts in the gather order and their running sum (``N`` the (VP, cell) pairs
+    binned: 48 MB at 500x281, batch 1) and the cached gather table, ``8 N`` bytes once.
     """
     bsz, h, w = mask.shape
     dev = mask.device
     grid, idx = vp_table(h, w, params, dev)
+    if near is not None:
+        sel = vp_window(near, origin, w, params)
+        grid, idx = grid[sel], idx[sel]  # (B, n, 2), (B, n, C)
     if origin is not None:
         rows = torch.arange(h, device=dev).view(1, h) + origin.view(-1, 1)  # (B, H): the source row
         inside = (rows < h).view(bsz, h, 1)
         src = torch.clamp(rows, max=h - 1).view(bsz, h, 1).expand(bsz, h, w)
         mask = torch.gather(mask, 1, src) & inside
-    nv, ncell = idx.shape
+    nv, ncell = idx.shape[-2:]
     s = params.lattice_vp_cell
     hc, wc = -(-h // s), -(-w // s)
     padded = torch.zeros((bsz, hc * s, wc * s), dtype=torch.int32, device=dev)
     padded[:, :h, :w] = mask
     cnt = padded.view(bsz, hc, s, wc, s).sum(dim=(2, 4), dtype=torch.int32).view(bsz, ncell)
     nb = 3 * w
-    step = int_max(1, VP_SLICE // int_max(bsz * ncell, 1))  # VPs per scatter: (B, step, C) pairs at a time
-    parts = []
-    for v0 in range(0, nv, step):
-        k = min(step, nv - v0)
-        # index and counts broadcast (stride 0 over the images and the VPs): eagerly nothing is repeated
-        parts.append(torch.zeros((bsz, k, nb + 1), dtype=torch.int32, device=dev).scatter_add_(
-            2, idx[v0:v0 + k].unsqueeze(0).expand(bsz, k, ncell), cnt.unsqueeze(1).expand(bsz, k, ncell)))
+    if torch.compiler.is_exporting() and near is None:
+        hist = _gathered_histograms(cnt, h, w, params)
+    else:
+        hist = _scattered_histograms(cnt, idx, w)
     # the spill bin dropped, zeros appended: a fold's last tooth may reach past 3W
     tail = torch.zeros((bsz, nv, 1 + params.lattice_max_spacing), dtype=torch.int32, device=dev)
-    hist = torch.cat([torch.cat(parts, dim=1)[:, :, :nb] if len(parts) > 1 else parts[0][:, :, :nb], tail], dim=2)
+    hist = torch.cat([hist, tail], dim=2)
     total = hist.sum(dim=2, dtype=torch.int64)
     best = torch.full((bsz, nv), -(2**31) + 1, dtype=torch.int32, device=dev)
     spacings = range(params.lattice_min_spacing, params.lattice_max_spacing + 1, params.lattice_vp_spacing_step)
@@ -282,7 +383,8 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     seen = total > 0
     value = torch.where(seen, best.to(torch.float64) / torch.clamp(total, min=1).to(torch.float64),
                         torch.full_like(total, -math.inf, dtype=torch.float64))
-    pick = grid[torch.argmax(value, dim=1)]  # first maximum: the grid's order
+    first = torch.argmax(value, dim=1)  # first maximum: the grid's order
+    pick = grid[first] if near is None else torch.gather(grid, 1, first.view(-1, 1, 1).expand(-1, 1, 2)).squeeze(1)
     if origin is not None:
         pick = pick + torch.stack([torch.zeros_like(origin), origin], dim=1)
     fallback = torch.tensor([w // 2, params.lattice_vp_fallback_y], dtype=torch.int64, device=dev)
@@ -636,12 +738,27 @@ def lattice_start(mask: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Ten
     if origin is None:
         origin = torch.zeros((bsz,), dtype=torch.int64, device=dev)
     if params.lattice_vp == "search" and prior is not None:
-        def search(mask, restrict, vp, origin):
-            return (torch.where(restrict.view(-1, 1), vp, vp_search(mask, params, origin if counted else None)),)
+        near = torch.zeros_like(prior.restrict) if prior.near is None else prior.near
+        around = prior.vp if prior.around is None else prior.around
+
+        def whole(mask, vp, around, origin):
+            return (vp_search(mask, params, origin if counted else None),)
+
+        def window(mask, vp, around, origin):
+            return (vp_search(mask, params, origin if counted else None, around),)
+
+        def keep(mask, vp, around, origin):
+            return (vp.clone(),)
+
+        def search(mask, restrict, near, vp, around, origin):
+            # untracked sequences search the whole grid, tracked ones their window (11.7): each when some image needs it
+            full = branch(flow, (~restrict & ~near).any(), whole, keep, (mask, vp, around, origin))[0]
+            part = branch(flow, (~restrict & near).any(), window, keep, (mask, vp, around, origin))[0]
+            return (torch.where(restrict.view(-1, 1), vp, torch.where(near.view(-1, 1), part, full)),)
 
         # the grid search, skipped when every image is tracked (11.7)
-        v = branch(flow, (~prior.restrict).any(), search, lambda mask, restrict, vp, origin: (vp.clone(),),
-                   (mask, prior.restrict, prior.vp, origin))[0]
+        v = branch(flow, (~prior.restrict).any(), search, lambda mask, restrict, near, vp, around, origin: (vp.clone(),),
+                   (mask, prior.restrict, near, prior.vp, around, origin))[0]
     elif params.lattice_vp == "search":
         v = vp_search(mask, params, origin if counted else None)
     elif vp is None or has_vp is None:
@@ -772,6 +889,38 @@ def visible_rows(mask: torch.Tensor, top: torch.Tensor, coef: torch.Tensor, foun
     return VisibleRows(*row_polynomials(coef, ks, h), conf, present)
 
 
+class ImprovedStart(NamedTuple):
+    """:func:`improved_start`: the green ``mask (B, H, W)`` bool of rows ``y >= top``, the
+    lattice's first row ``top (B,)`` int64, the parameters the fit runs with
+    (:func:`~torchrow.core.io.lattice_params` of the working size) and the comb's ``start``."""
+
+    mask: torch.Tensor
+    top: torch.Tensor
+    fit_params: Params
+    start: LatticeStartBatch
+
+
+def improved_start(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Tensor | None,
+                   params: Params, prior: LatticePriorBatch | None = None, flow: str = "sync",
+                   grid_sky: torch.Tensor | None = None) -> ImprovedStart:
+    """The first half of :func:`improved_rows` (sections 11.1-11.2): the green mask and
+    :func:`lattice_start`. Arguments as :func:`improved_rows`."""
+    h, w = images.shape[2], images.shape[3]
+    top = horizon_row(sky, params)
+    mask = green_mask(images, top, params)
+    fparams = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
+    origin = vp_origin(sky if grid_sky is None else grid_sky, h, params)
+    return ImprovedStart(mask, top, fparams, lattice_start(mask, vp, has_vp, fparams, prior, flow, origin))
+
+
+def improved_finish(begun: ImprovedStart, params: Params, prior: LatticePriorBatch | None = None,
+                    flow: str = "sync") -> LatticeRows:
+    """The second half of :func:`improved_rows` (sections 11.3-11.4): :func:`refit_lattice` from
+    ``begun.start`` and :func:`lattice_rows`."""
+    fit = refit_lattice(begun.mask, begun.top, begun.start, begun.fit_params, prior, flow)
+    return lattice_rows(begun.mask, begun.top, fit, params)
+
+
 def improved_rows(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Tensor | None,
                   params: Params, prior: LatticePriorBatch | None = None, flow: str = "sync",
                   grid_sky: torch.Tensor | None = None) -> LatticeRows:
@@ -782,12 +931,9 @@ def improved_rows(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | No
     the lattice starts at :func:`horizon_row` and the VP grid at :func:`vp_origin` of
     ``grid_sky`` (``None``: ``sky``; the lattice tracker passes zero ``sky`` and its full
     searches' rows). ``prior``: section 11.7's (the lattice tracker); ``flow``: :func:`fit_lattice`'s.
+    :func:`improved_start`, then :func:`improved_finish` (the lattice tracker acts between them).
     """
-    h = images.shape[2]
-    top = horizon_row(sky, params)
-    mask = green_mask(images, top, params)
-    origin = vp_origin(sky if grid_sky is None else grid_sky, h, params)
-    return lattice_rows(mask, top, fit_lattice(mask, top, vp, has_vp, params, prior, flow, origin), params)
+    return improved_finish(improved_start(images, sky, vp, has_vp, params, prior, flow, grid_sky), params, prior, flow)
 
 
 def lattice_rows(mask: torch.Tensor, top: torch.Tensor, fit: LatticeFitBatch, params: Params) -> LatticeRows:

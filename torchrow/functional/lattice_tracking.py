@@ -43,7 +43,8 @@ class LatticeTrackerState:
     (:data:`~torchrow.core.steering.LATTICE_STATES`, -1 before frame 0); ``vp`` ``(B, 2)`` int64:
     its lattice VP (:func:`lattice_vp`); ``spacing`` int64: its comb spacing; ``centre`` float64 with ``has_centre`` bool:
     the tracked row's bottom-row x for the next frame; ``pending`` int64: the row change the next
-    frame reports.
+    frame reports; ``grid_vp`` ``(B, 2)`` int64: the VP the last full search chose on the grid,
+    whose window the next full search takes (11.7).
     """
 
     ready: torch.Tensor
@@ -55,6 +56,7 @@ class LatticeTrackerState:
     centre: torch.Tensor
     has_centre: torch.Tensor
     pending: torch.Tensor
+    grid_vp: torch.Tensor
 
     @classmethod
     def empty(cls, batch: int, device: torch.device | str = "cpu") -> LatticeTrackerState:
@@ -65,7 +67,7 @@ class LatticeTrackerState:
         return cls(ready=no, frames=torch.zeros(batch, **i64), age=torch.zeros(batch, **i64),
                    last=torch.full((batch,), -1, **i64), vp=torch.zeros((batch, 2), **i64),
                    spacing=torch.ones(batch, **i64), centre=torch.zeros(batch, dtype=torch.float64, device=dev),
-                   has_centre=no.clone(), pending=torch.zeros(batch, **i64))
+                   has_centre=no.clone(), pending=torch.zeros(batch, **i64), grid_vp=torch.zeros((batch, 2), **i64))
 
     def __len__(self) -> int:
         return int(self.ready.shape[0])
@@ -178,31 +180,32 @@ def _lattice(images: torch.Tensor, active: torch.Tensor, prior: LatticePriorBatc
     restricted), without a second mask, refit or row pass. The switch runs only when some
     image needs it (an ONNX ``If`` in an exported graph; not built without ``switch``: a pass
     with nothing restricted)."""
-    bsz, _, h, w = images.shape
-    fparams = flattice.lattice_params(w, h, params)
-    top = torch.zeros(bsz, dtype=torch.int64, device=images.device)
-    mask = flattice.green_mask(images, top, params)
+    bsz, _, h = images.shape[:3]
+    begun = flattice.improved_start(images, torch.zeros(bsz, dtype=torch.int64, device=images.device), None, None,
+                                    params, prior, flow, grid_sky=sky)
+    mask, start, fparams = begun.mask, begun.start, begun.fit_params
     counted = params.lattice_vp_sky_origin()
-    start = flattice.lattice_start(mask, None, None, fparams, prior, flow, flattice.vp_origin(sky, h, params))
     weak = active & prior.restrict & (start.contrast < params.lattice_min_contrast)
     if switch:
-        def search(images, mask, weak, centre, restrict, vp, spacing, sky, *now):
+        def search(images, mask, weak, centre, restrict, vp, spacing, around, sky, *now):
             if counted and not have_sky:
                 sky = fsky.sky_row(images, params)
             wide = LatticePriorBatch(centre, restrict & ~weak, vp, spacing)
-            grid = flattice.vp_search(mask, fparams, flattice.vp_origin(sky, h, params) if counted else None)
+            # a weak frame is tracked: the grid near its last grid VP (11.7)
+            grid = flattice.vp_search(mask, fparams, flattice.vp_origin(sky, h, params) if counted else None, around)
             got = flattice.comb_start(mask, torch.where(weak.view(-1, 1), grid, now[4]), fparams, wide)
             return tuple(torch.where(weak.view(-1, *([1] * (x.dim() - 1))), x, y) for x, y in zip(got, now))
 
-        def keep(images, mask, weak, centre, restrict, vp, spacing, sky, *now):
+        def keep(images, mask, weak, centre, restrict, vp, spacing, around, sky, *now):
             return tuple(t.clone() for t in now)
 
         start = flattice.LatticeStartBatch(*branch(flow, weak.any(), search, keep,
-                                                   (images, mask, weak) + tuple(prior) + (sky,) + tuple(start)))
-        prior = LatticePriorBatch(prior.centre, prior.restrict & ~weak, prior.vp, prior.spacing)
+                                                   (images, mask, weak, prior.centre, prior.restrict, prior.vp,
+                                                    prior.spacing, prior.around, sky) + tuple(start)))
+        prior = prior._replace(restrict=prior.restrict & ~weak)
     else:
         weak = torch.zeros_like(weak)
-    rows = flattice.lattice_rows(mask, top, flattice.refit_lattice(mask, top, start, fparams, prior, flow), params)
+    rows = flattice.improved_finish(begun._replace(start=start), params, prior, flow)
     return rows, flattice.improved_status(rows, image_status(flattice.as_row_fits(rows)), params), weak
 
 
@@ -224,7 +227,9 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
     tracked = state.ready & state.has_centre
     full = ~tracked | (state.age >= params.lattice_track_every)
     centre = torch.where(tracked, state.centre, torch.full_like(state.centre, float(w) / 2))
-    prior = LatticePriorBatch(centre, ~full, state.vp, state.spacing)
+    # a tracked sequence's full search takes the grid near its last grid VP, not near the lattice's
+    # own VP, which lies far off where a bent refit extrapolates (11.7)
+    prior = LatticePriorBatch(centre, ~full, state.vp, state.spacing, tracked, state.grid_vp)
     # section 1 where the grid is searched: on frames with a full search (here) or a redo (again;
     # computed there unless it is known here to have run: eagerly, or in the unbranched graph)
     sky = grid_sky(images, full, params, flow)
@@ -234,18 +239,20 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
     redo = active & ~full & ~switched & (status != _OK)
     n_rows = len(dataclasses.fields(LatticeRows))
 
-    def again(images, redo, centre, vp, spacing, sky, *now):  # a tracked frame that fails is searched again in full
+    def again(images, redo, centre, vp, spacing, around, sky, *now):  # a tracked frame that fails is searched again in full
         sky = sky if have_sky else fsky.sky_row(images, params)
-        wide, wide_status, _ = _lattice(images, redo, LatticePriorBatch(centre, torch.zeros_like(redo), vp, spacing),
+        # redone frames are tracked: the grid near their last grid VP (the others' results are not kept)
+        wide, wide_status, _ = _lattice(images, redo, LatticePriorBatch(centre, torch.zeros_like(redo), vp, spacing,
+                                                                        torch.ones_like(redo), around),
                                         params, flow, sky, True, switch=False)
         picked = _where(redo, wide, LatticeRows(*now[:n_rows]))
         return _fields(picked) + (torch.where(redo, wide_status, now[n_rows]),)
 
-    def unchanged(images, redo, centre, vp, spacing, sky, *now):  # when no sequence needs it (a branch may not alias inputs)
+    def unchanged(images, redo, centre, vp, spacing, around, sky, *now):  # no sequence needs it (a branch may not alias inputs)
         return tuple(t.clone() for t in now)
 
     out = branch(flow, redo.any(), again, unchanged,
-                 (images, redo, centre, state.vp, state.spacing, sky) + _fields(rows) + (status,))
+                 (images, redo, centre, state.vp, state.spacing, state.grid_vp, sky) + _fields(rows) + (status,))
     rows, status = LatticeRows(*out[:n_rows]), out[n_rows]
     ok = status == _OK
     y_end, has_end = row_end(rows.lit, params)
@@ -265,7 +272,8 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
         ready=torch.ones_like(state.ready), frames=state.frames + 1,
         age=torch.where(searched_full, one, state.age + 1), last=code, vp=lattice_vp(rows.coef, h, rows.vp),
         spacing=rows.spacing,
-        centre=x0 + pend.to(torch.float64) * d0, has_centre=keep, pending=torch.where(keep, pend, torch.zeros_like(pend)))
+        centre=x0 + pend.to(torch.float64) * d0, has_centre=keep, pending=torch.where(keep, pend, torch.zeros_like(pend)),
+        grid_vp=torch.where(searched_full.view(-1, 1), rows.vp, state.grid_vp))
     new = _where(active, new, state)
     end = torch.where(code == _CODE["row_end_ahead"], y_end, torch.full_like(y_end, -1))
     return LatticeStep(rows, status, code, change, end, searched_full, redo, active), new

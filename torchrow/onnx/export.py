@@ -128,6 +128,7 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         raise ValueError(f"the detector exports in faithful mode only; got Params.mode={params.mode!r} "
                          "(the improved mode exports its tracker step: tracker=True)")
     if tracker and params.mode == "improved":
+        from torchrow.functional import lattice as flattice
         from torchrow.functional.lattice_tracking import LatticeTrackerState
 
         if scatter_free:
@@ -138,6 +139,8 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         args = (images, torch.ones(batch, dtype=torch.bool)) + tuple(getattr(start, f) for f in static.LATTICE_STATE)
         with torch.no_grad():  # builds section 11.2's cached tables, which the graph then holds as constants
             module(*args)
+            # the VP search's gather form, which only the exported graph uses (eagerly it scatters)
+            flattice.vp_gather_table(height, width, params, images.device)
         names, outputs = list(static.LATTICE_INPUTS), list(static.LATTICE_OUTPUTS)
     elif tracker:
         from torchrow.functional.tracking import TrackerState

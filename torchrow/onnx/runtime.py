@@ -249,6 +249,14 @@ class OnnxTracker(OnnxRunner):
         #: the model is the lattice tracker step (improved mode)
         self.improved = self.params.mode == "improved"
         if self.improved:
+            from torchrow.onnx.graphs import LATTICE_INPUTS
+
+            names = tuple(i.name for i in self.session.get_inputs())
+            if names != LATTICE_INPUTS:
+                missing = sorted(set(LATTICE_INPUTS) - set(names)) or sorted(set(names) - set(LATTICE_INPUTS))
+                raise ValueError(f"{self.path.name} is a lattice tracker model of another torchrow version (its "
+                                 f"inputs differ: {', '.join(missing) or 'their order'}); export it again with "
+                                 "`torchrow export onnx --tracker --mode improved`")
             return
         if self.session.get_inputs()[1].name != "k_table":
             raise ValueError(f"{self.path.name} is a tracker model of an older torchrow (it takes veg_lab, not "

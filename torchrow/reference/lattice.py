@@ -30,7 +30,8 @@ from torchrow.core.results import ImageResult, LatticeRow, Row
 
 __all__ = ["LatticeFit", "LatticePrior", "comb_near",
            "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_grid",
-           "vp_cells", "vp_origin", "vp_search", "comb_search", "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
+           "vp_cells", "vp_origin", "vp_window", "vp_search", "comb_search",
+           "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
            "normal_equations", "refine", "fit_lattice", "improved_status", "lattice_rows", "row_polynomial",
            "visible_rows", "improved_rows", "ImprovedRows", "N_COEF", "improved_result"]
 
@@ -49,11 +50,13 @@ class LatticePrior:
     ``centre``: bottom-row x (px) the central row is chosen nearest to (``W/2`` without a tracked
     row). ``vp``/``spacing``: on a tracked frame the VP the comb uses (the previous frame's
     lattice VP, not searched) and the previous comb spacing; ``None`` = a full search (the VP
-    grid searched, the comb unrestricted)."""
+    grid searched, the comb unrestricted). ``near``: on a full search of a tracked sequence its
+    VP, whose :func:`vp_window` of the grid is searched (``None``: the whole grid)."""
 
     centre: float
     vp: tuple[int, int] | None = None
     spacing: int | None = None
+    near: tuple[int, int] | None = None
 
 
 def comb_near(d: np.ndarray, p: np.ndarray, width: int, prior: LatticePrior, params: Params) -> np.ndarray:
@@ -197,12 +200,34 @@ def vp_origin(sky: int, height: int, params: Params) -> int:
     return min(max(sky + params.lattice_vp_sky, 0), height)
 
 
-def vp_search(mask: np.ndarray, params: Params, origin: int = 0) -> tuple[int, int]:
+def vp_window(width: int, params: Params, near: tuple[int, int], origin: int = 0) -> np.ndarray:
+    """Section 11.7: the indices into :func:`vp_grid` (ascending: the grid's order) that a full
+    search of a tracked sequence takes, ``(n,)`` int64, around its VP ``near`` (image pixels).
+
+    With ``step = lattice_vp_step``, ``ncol = W // step + 1`` columns and ``nh`` heights: the
+    nearest column ``c = clip((2 x + step) // (2 step), 0, ncol - 1)`` (integers) and the first
+    height ``i`` of ``lattice_vp_heights`` nearest to ``y - origin``; the window takes
+    ``nx = min(2 lattice_track_vp_cols + 1, ncol)`` columns from ``clip(c - lattice_track_vp_cols,
+    0, ncol - nx)`` and ``ny = min(2 lattice_track_vp_rows + 1, nh)`` heights (in their listed
+    order) from ``clip(i - lattice_track_vp_rows, 0, nh - ny)``: always ``nx ny`` grid VPs.
+    """
+    step = params.lattice_vp_step
+    ncol, heights = width // step + 1, np.array(params.lattice_vp_heights, dtype=np.int64)
+    nx, ny = min(2 * params.lattice_track_vp_cols + 1, ncol), min(2 * params.lattice_track_vp_rows + 1, heights.size)
+    c = min(max((2 * int(near[0]) + step) // (2 * step), 0), ncol - 1)
+    i = int(np.argmin(np.abs(heights - (int(near[1]) - origin))))
+    x0 = min(max(c - params.lattice_track_vp_cols, 0), ncol - nx)
+    y0 = min(max(i - params.lattice_track_vp_rows, 0), heights.size - ny)
+    return ((y0 + np.arange(ny, dtype=np.int64))[:, None] * ncol + x0 + np.arange(nx, dtype=np.int64)).ravel()
+
+
+def vp_search(mask: np.ndarray, params: Params, origin: int = 0, near: tuple[int, int] | None = None) -> tuple[int, int]:
     """Section 11.2: the grid VP whose folded contrast comb is strongest (``lattice_vp == "search"``).
 
     ``origin`` (:func:`vp_origin`): the search runs on the mask's rows ``origin .. H-1`` moved
     up to rows ``0 .. H-1-origin`` (the rows below are empty) and adds ``origin`` to the VP's
-    row, so the grid's heights count from row ``origin``.
+    row, so the grid's heights count from row ``origin``. ``near`` (section 11.7, a tracked
+    sequence's VP): only the grid VPs of :func:`vp_window` are candidates, in the grid's order.
 
     The green pixels are counted in cells (:func:`vp_cells`). For each VP of :func:`vp_grid`,
     every cell with ``yc - yv > lattice_vp_margin`` projects its count through the VP onto the
@@ -226,6 +251,8 @@ def vp_search(mask: np.ndarray, params: Params, origin: int = 0) -> tuple[int, i
     occupied = cnt > 0  # only counted cells are binned
     yc, xc, cnt = yc[occupied], xc[occupied], cnt[occupied]
     grid = vp_grid(w, params)
+    if near is not None:
+        grid = grid[vp_window(w, params, near, origin)]
     nb = 3 * w
     hist = np.zeros((grid.shape[0], nb), np.int64)
     step = max(1, VP_SLICE // max(cnt.size, 1))  # VPs per slice: the projections stay ~VP_SLICE entries
@@ -508,7 +535,8 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
     h, w = mask.shape
     params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
     if params.lattice_vp == "search":
-        v = vp_search(mask, params, origin) if prior is None or prior.vp is None else prior.vp
+        v = prior.vp if prior is not None and prior.vp is not None else vp_search(
+            mask, params, origin, None if prior is None else prior.near)
     else:
         v = init_vp(vp, w, params)
     d, phase, found, contrast = comb_search(mask, v, params, prior)

@@ -98,7 +98,8 @@ class LatticeSequenceState:
     ``spacing``: its comb spacing;
     ``centre``: the tracked row's bottom-row x for the next frame (``None``: no identity, the next
     frame starts from ``W/2`` with a full search); ``pending``: the row change the next frame
-    reports (its central row is the previous frame's row ``k = pending``).
+    reports (its central row is the previous frame's row ``k = pending``); ``grid_vp``: the VP
+    the last full search chose on the grid, whose window the next full search takes.
     """
 
     width: int
@@ -110,6 +111,7 @@ class LatticeSequenceState:
     spacing: int | None = None
     centre: float | None = None
     pending: int = 0
+    grid_vp: tuple[int, int] | None = None
 
 
 class LatticeTracker:
@@ -152,7 +154,8 @@ class LatticeTracker:
         tracked = state.centre is not None
         full = not tracked or state.age >= p.lattice_track_every
         centre = state.centre if state.centre is not None else np.float64(w) / 2
-        wide = LatticePrior(float(centre))
+        # a tracked sequence's full search (scheduled or redone) takes the grid near its last grid VP (11.7)
+        wide = LatticePrior(float(centre), near=state.grid_vp if tracked else None)
         # section 1 only where the grid is searched (a full search or a redo) and counts from it
         def grid_sky() -> int:
             return sky_row(rgb, p) if p.lattice_vp_sky_origin() else 0
@@ -180,7 +183,8 @@ class LatticeTracker:
         new = LatticeSequenceState(width=w, height=h, frames=state.frames + 1,
                                    age=1 if (full or redo) else state.age + 1, last=st,
                                    vp=lattice_vp(fit.coef, h, fit.vp),
-                                   spacing=fit.spacing, centre=new_centre, pending=pending)
+                                   spacing=fit.spacing, centre=new_centre, pending=pending,
+                                   grid_vp=fit.vp if (full or redo) else state.grid_vp)
         track = LatticeTrack(st, change, y_end if st == "row_end_ahead" else None, full or redo, redo)
         out = FrameResult.build(res, source=source, frame=state.frames if index is None else index,
                                 hough_ran=full or redo, hough_redo=redo, confidence=imp.image_confidence,
