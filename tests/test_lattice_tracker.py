@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import math
@@ -277,6 +278,12 @@ def test_a_tracked_full_search_takes_the_window_around_its_grid_vp() -> None:
         assert rlattice.fit_lattice(mask, 0, None, P.tracking(), prior).vp == chosen
         # around the whole grid's choice the window finds it again; far from it, a VP of its own
         assert (chosen == full.vp) == (around == full.vp)
+        # in lock-step beside a sequence that searches the whole grid (frame 0): each as alone
+        both, _ = lattice_advance(torch.cat([x, x]), torch.ones(2, dtype=torch.bool),
+                                  LatticeTrackerState(*(torch.cat([a, b]) for a, b in zip(
+                                      dataclasses.astuple(st), dataclasses.astuple(LatticeTrackerState.empty(1))))), P)
+        alone, _ = lattice_advance(x, one, LatticeTrackerState.empty(1), P)
+        assert both.rows.vp.tolist() == [list(chosen), list(full.vp)] == [list(chosen), alone.rows.vp[0].tolist()]
 
 
 def test_lattice_vp_both_paths_on_adversarial_coefficients() -> None:
