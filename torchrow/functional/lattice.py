@@ -168,6 +168,28 @@ def init_vp(vp: torch.Tensor, has_vp: torch.Tensor, width: int, params: Params) 
 _VP_TABLES: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
 
 
+def _cell_centres(height: int, width: int, params: Params, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """The VP search's cell centres ``(yc, xc)``, ``(C,)`` float64 each, row-major
+    (:func:`torchrow.reference.lattice.vp_cells`)."""
+    s = params.lattice_vp_cell
+    hc, wc = -(-height // s), -(-width // s)
+    yc = (torch.arange(hc, dtype=torch.float64, device=device) * s + (s - 1) / 2).repeat_interleave(wc)
+    xc = (torch.arange(wc, dtype=torch.float64, device=device) * s + (s - 1) / 2).repeat(hc)
+    return yc, xc
+
+
+def _bins(vps: torch.Tensor, yc: torch.Tensor, xc: torch.Tensor, height: int, width: int,
+          params: Params) -> torch.Tensor:
+    """Every cell's bin under each VP of ``vps (..., 2)`` int64 in that VP's histogram,
+    ``(..., C)`` int64 (``3W``: not binned): the reference's expression in float64, elementwise,
+    so the same bits for any batch of VPs."""
+    xv = vps[..., :1].to(torch.float64)
+    yv = vps[..., 1:].to(torch.float64)
+    b = torch.floor(xv + ((xc - xv) * (float(height - 1) - yv)) / (yc - yv))
+    keep = ((yc - yv) > params.lattice_vp_margin) & (b >= -width) & (b < 2 * width)
+    return torch.where(keep, b + width, torch.full_like(b, 3 * width)).to(torch.int64)
+
+
 def vp_table(height: int, width: int, params: Params, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
     """The search's grid ``(V, 2)`` int64 (:func:`torchrow.reference.lattice.vp_grid`'s order) and
     the bin of every cell under every grid VP in that VP's own histogram of ``3W + 1`` bins,
@@ -181,21 +203,14 @@ def vp_table(height: int, width: int, params: Params, device: torch.device) -> t
     table = _VP_TABLES.get(key)
     if table is None:
         check_lattice_size(width, height, params)
-        s = params.lattice_vp_cell
-        hc, wc = -(-height // s), -(-width // s)
-        yc = (torch.arange(hc, dtype=torch.float64, device=device) * s + (s - 1) / 2).repeat_interleave(wc)
-        xc = (torch.arange(wc, dtype=torch.float64, device=device) * s + (s - 1) / 2).repeat(hc)
+        yc, xc = _cell_centres(height, width, params, device)
         xs = torch.arange(0, width + 1, params.lattice_vp_step, dtype=torch.int64, device=device)
         hs = torch.tensor(params.lattice_vp_heights, dtype=torch.int64, device=device)
         grid = torch.stack([xs.repeat(hs.numel()), hs.repeat_interleave(xs.numel())], dim=1)
         idx = torch.empty((grid.shape[0], yc.numel()), dtype=torch.int64, device=device)
         step = max(1, VP_SLICE // max(yc.numel(), 1))  # VPs per slice: bounded float64 temporaries
         for v0 in range(0, grid.shape[0], step):
-            xv = grid[v0:v0 + step, :1].to(torch.float64)
-            yv = grid[v0:v0 + step, 1:].to(torch.float64)
-            b = torch.floor(xv + ((xc - xv) * (float(height - 1) - yv)) / (yc - yv))
-            keep = ((yc - yv) > params.lattice_vp_margin) & (b >= -width) & (b < 2 * width)
-            idx[v0:v0 + step] = torch.where(keep, b + width, torch.full_like(b, 3 * width)).to(torch.int64)
+            idx[v0:v0 + step] = _bins(grid[v0:v0 + step], yc, xc, height, width, params)
         table = (grid, idx)
         if not torch.compiler.is_exporting():  # never cache a tensor traced by torch.export
             _VP_TABLES[key] = table
@@ -204,19 +219,34 @@ def vp_table(height: int, width: int, params: Params, device: torch.device) -> t
 
 def _scattered_histograms(cnt: torch.Tensor, idx: torch.Tensor, width: int) -> torch.Tensor:
     """The VP search's histograms ``(B, V, 3W)`` int32 from the cell counts ``cnt (B, C)`` int32:
-    scattered along :func:`vp_table`'s bins ``idx``, ``(V, C)`` for every image or ``(B, V, C)``
-    per image (a window of the grid), ``VP_SLICE`` (image, VP, cell) triples per scatter, the
-    index (``(V, C)``) and the counts broadcast (stride 0), so nothing is repeated."""
+    scattered along :func:`vp_table`'s bins ``idx (V, C)``, ``VP_SLICE`` (image, VP, cell) triples
+    per scatter, the index and the counts broadcast (stride 0), so nothing is repeated."""
     bsz, ncell = cnt.shape
-    nv, nb = idx.shape[-2], 3 * width
+    nv, nb = idx.shape[0], 3 * width
     step = int_max(1, VP_SLICE // int_max(bsz * ncell, 1))
     parts = []
     for v0 in range(0, nv, step):
         k = min(step, nv - v0)
-        at = idx[v0:v0 + k].unsqueeze(0).expand(bsz, k, ncell) if idx.dim() == 2 else idx[:, v0:v0 + k]
         parts.append(torch.zeros((bsz, k, nb + 1), dtype=torch.int32, device=cnt.device).scatter_add_(
-            2, at, cnt.unsqueeze(1).expand(bsz, k, ncell)))
+            2, idx[v0:v0 + k].unsqueeze(0).expand(bsz, k, ncell), cnt.unsqueeze(1).expand(bsz, k, ncell)))
     return torch.cat(parts, dim=1)[:, :, :nb] if len(parts) > 1 else parts[0][:, :, :nb]
+
+
+def _window_histograms(cnt: torch.Tensor, vps: torch.Tensor, height: int, width: int, params: Params) -> torch.Tensor:
+    """:func:`_scattered_histograms` for each image's own VPs ``vps (B, n, 2)`` int64 (a window of
+    the grid, :func:`vp_window`): their bins computed here (:func:`_bins`, :func:`vp_table`'s
+    bits), not taken from the table, so an exported graph holds no ``(V, C)`` table for them;
+    ``VP_SLICE`` (image, VP, cell) triples at a time (float64 temporaries ``8 n C`` bytes per image)."""
+    bsz, ncell = cnt.shape
+    n, nb = vps.shape[1], 3 * width
+    yc, xc = _cell_centres(height, width, params, cnt.device)
+    step = int_max(1, VP_SLICE // int_max(n * ncell, 1))  # images per scatter
+    parts = []
+    for b0 in range(0, bsz, step):
+        k = min(step, bsz - b0)
+        parts.append(torch.zeros((k, n, nb + 1), dtype=torch.int32, device=cnt.device).scatter_add_(
+            2, _bins(vps[b0:b0 + k], yc, xc, height, width, params), cnt[b0:b0 + k].unsqueeze(1).expand(k, n, ncell)))
+    return torch.cat(parts, dim=0)[:, :, :nb] if len(parts) > 1 else parts[0][:, :, :nb]
 
 
 _VP_GATHER_TABLES: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
@@ -324,8 +354,9 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     ``origin (B,)`` int64 (:func:`vp_origin`; ``None``: zeros): each image's rows ``origin .. H-1``
     are searched moved up to row 0 (one gather of the mask) and ``origin`` is added to the VP's row.
     ``near (B, 2)`` int64 (section 11.7, tracked sequences' VPs; ``None``: the whole grid): each
-    image searches its own :func:`vp_window` of the grid, ``n`` VPs in place of ``V`` (the
-    window's bins ``8 n C`` bytes per image: 4 MB at 500x281 with the default window).
+    image searches its own :func:`vp_window` of the grid, ``n`` VPs in place of ``V``, their bins
+    computed per call (:func:`_window_histograms`; 4 MB per image and temporary at 500x281 with
+    the default window).
 
     The cell counts are scattered into ``(B, V, 3W + 1)`` int32 histograms along the bins
     (``VP_SLICE`` (image, VP, cell) triples per scatter, through :func:`vp_table`'s bins; the
@@ -344,21 +375,22 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     dev = mask.device
     grid, idx = vp_table(h, w, params, dev)
     if near is not None:
-        sel = vp_window(near, origin, w, params)
-        grid, idx = grid[sel], idx[sel]  # (B, n, 2), (B, n, C)
+        grid = grid[vp_window(near, origin, w, params)]  # (B, n, 2)
     if origin is not None:
         rows = torch.arange(h, device=dev).view(1, h) + origin.view(-1, 1)  # (B, H): the source row
         inside = (rows < h).view(bsz, h, 1)
         src = torch.clamp(rows, max=h - 1).view(bsz, h, 1).expand(bsz, h, w)
         mask = torch.gather(mask, 1, src) & inside
-    nv, ncell = idx.shape[-2:]
     s = params.lattice_vp_cell
     hc, wc = -(-h // s), -(-w // s)
+    nv, ncell = grid.shape[-2], hc * wc
     padded = torch.zeros((bsz, hc * s, wc * s), dtype=torch.int32, device=dev)
     padded[:, :h, :w] = mask
     cnt = padded.view(bsz, hc, s, wc, s).sum(dim=(2, 4), dtype=torch.int32).view(bsz, ncell)
     nb = 3 * w
-    if torch.compiler.is_exporting() and near is None:
+    if near is not None:
+        hist = _window_histograms(cnt, grid, h, w, params)
+    elif torch.compiler.is_exporting():
         hist = _gathered_histograms(cnt, h, w, params)
     else:
         hist = _scattered_histograms(cnt, idx, w)
