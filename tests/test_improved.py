@@ -135,9 +135,10 @@ def test_vp_search_gather_form_equals_the_scatter(monkeypatch) -> None:
            flat.vp_search(masks[1:2], IMPROVED, origin[1:2])]
     assert all(torch.equal(a, b) for a, b in zip(got, want))
     h, w = masks.shape[1:]
-    cnt = torch.randint(0, 5, (2, flat.vp_table(h, w, IMPROVED, torch.device("cpu"))[1].shape[1]), dtype=torch.int32)
     idx = flat.vp_table(h, w, IMPROVED, torch.device("cpu"))[1]
-    assert torch.equal(flat._gathered_histograms(cnt, h, w, IMPROVED), flat._scattered_histograms(cnt, idx, w))
+    cnt = torch.randint(0, 5, (2, idx.shape[1]), dtype=torch.int32)
+    scattered = flat._scattered_histograms(cnt, idx.shape[0], w, lambda v0, k: idx[v0:v0 + k])
+    assert torch.equal(flat._gathered_histograms(cnt, h, w, IMPROVED), scattered)
 
 
 def test_vp_search_in_slices_equals_one_slice(monkeypatch) -> None:

@@ -20,6 +20,7 @@ tooth half-width. Measured peak RSS of :class:`~torchrow.engines.detector.CropRo
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -217,36 +218,23 @@ def vp_table(height: int, width: int, params: Params, device: torch.device) -> t
     return table
 
 
-def _scattered_histograms(cnt: torch.Tensor, idx: torch.Tensor, width: int) -> torch.Tensor:
-    """The VP search's histograms ``(B, V, 3W)`` int32 from the cell counts ``cnt (B, C)`` int32:
-    scattered along :func:`vp_table`'s bins ``idx (V, C)``, ``VP_SLICE`` (image, VP, cell) triples
-    per scatter, the index and the counts broadcast (stride 0), so nothing is repeated."""
+def _scattered_histograms(cnt: torch.Tensor, nv: int, width: int,
+                          bins: Callable[[int, int], torch.Tensor]) -> torch.Tensor:
+    """The VP search's histograms ``(B, V, 3W)`` int32 of ``nv`` VPs from the cell counts
+    ``cnt (B, C)`` int32, scattered along ``bins(v0, k)``, the bins of VPs ``v0 .. v0+k-1``:
+    ``(k, C)`` int64 for every image (:func:`vp_table`'s rows, broadcast with stride 0, so nothing
+    is repeated) or ``(B, k, C)`` per image (a window, :func:`vp_window`); ``VP_SLICE`` (image,
+    VP, cell) triples per scatter."""
     bsz, ncell = cnt.shape
-    nv, nb = idx.shape[0], 3 * width
+    nb = 3 * width
     step = int_max(1, VP_SLICE // int_max(bsz * ncell, 1))
     parts = []
     for v0 in range(0, nv, step):
         k = min(step, nv - v0)
+        at = bins(v0, k)
         parts.append(torch.zeros((bsz, k, nb + 1), dtype=torch.int32, device=cnt.device).scatter_add_(
-            2, idx[v0:v0 + k].unsqueeze(0).expand(bsz, k, ncell), cnt.unsqueeze(1).expand(bsz, k, ncell)))
+            2, at.unsqueeze(0).expand(bsz, k, ncell) if at.dim() == 2 else at, cnt.unsqueeze(1).expand(bsz, k, ncell)))
     return torch.cat(parts, dim=1)[:, :, :nb] if len(parts) > 1 else parts[0][:, :, :nb]
-
-
-def _window_histograms(cnt: torch.Tensor, vps: torch.Tensor, height: int, width: int, params: Params) -> torch.Tensor:
-    """:func:`_scattered_histograms` for each image's own VPs ``vps (B, n, 2)`` int64 (a window of
-    the grid, :func:`vp_window`): their bins computed here (:func:`_bins`, :func:`vp_table`'s
-    bits), not taken from the table, so an exported graph holds no ``(V, C)`` table for them;
-    ``VP_SLICE`` (image, VP, cell) triples at a time (float64 temporaries ``8 n C`` bytes per image)."""
-    bsz, ncell = cnt.shape
-    n, nb = vps.shape[1], 3 * width
-    yc, xc = _cell_centres(height, width, params, cnt.device)
-    step = int_max(1, VP_SLICE // int_max(n * ncell, 1))  # images per scatter
-    parts = []
-    for b0 in range(0, bsz, step):
-        k = min(step, bsz - b0)
-        parts.append(torch.zeros((k, n, nb + 1), dtype=torch.int32, device=cnt.device).scatter_add_(
-            2, _bins(vps[b0:b0 + k], yc, xc, height, width, params), cnt[b0:b0 + k].unsqueeze(1).expand(k, n, ncell)))
-    return torch.cat(parts, dim=0)[:, :, :nb] if len(parts) > 1 else parts[0][:, :, :nb]
 
 
 _VP_GATHER_TABLES: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
@@ -284,7 +272,7 @@ def vp_gather_table(height: int, width: int, params: Params, device: torch.devic
 
 
 def _gathered_histograms(cnt: torch.Tensor, height: int, width: int, params: Params) -> torch.Tensor:
-    """:func:`_scattered_histograms` as gathers and one cumulative sum (:func:`vp_gather_table`),
+    """:func:`_scattered_histograms` of the whole grid as gathers and one cumulative sum (:func:`vp_gather_table`),
     the same integers. onnxruntime's ``ScatterElements`` spent about 7 ns per (VP, cell) pair
     (45 ms at 500x281, single thread), ``GatherElements`` and ``CumSum`` about 1 ns each."""
     order, ends = vp_gather_table(height, width, params, cnt.device)
@@ -355,8 +343,8 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     are searched moved up to row 0 (one gather of the mask) and ``origin`` is added to the VP's row.
     ``near (B, 2)`` int64 (section 11.7, tracked sequences' VPs; ``None``: the whole grid): each
     image searches its own :func:`vp_window` of the grid, ``n`` VPs in place of ``V``, their bins
-    computed per call (:func:`_window_histograms`; 4 MB per image and temporary at 500x281 with
-    the default window).
+    computed per call by :func:`vp_table`'s expression (float64 temporaries of at most
+    ``VP_SLICE`` entries; 4 MB per image at 500x281 with the default window).
 
     The cell counts are scattered into ``(B, V, 3W + 1)`` int32 histograms along the bins
     (``VP_SLICE`` (image, VP, cell) triples per scatter, through :func:`vp_table`'s bins; the
@@ -389,11 +377,13 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     cnt = padded.view(bsz, hc, s, wc, s).sum(dim=(2, 4), dtype=torch.int32).view(bsz, ncell)
     nb = 3 * w
     if near is not None:
-        hist = _window_histograms(cnt, grid, h, w, params)
+        # the window's bins computed here by the table's expression: an exported graph holds no (V, C) table
+        yc, xc = _cell_centres(h, w, params, dev)
+        hist = _scattered_histograms(cnt, nv, w, lambda v0, k: _bins(grid[:, v0:v0 + k], yc, xc, h, w, params))
     elif torch.compiler.is_exporting():
         hist = _gathered_histograms(cnt, h, w, params)
     else:
-        hist = _scattered_histograms(cnt, idx, w)
+        hist = _scattered_histograms(cnt, nv, w, lambda v0, k: idx[v0:v0 + k])
     # the spill bin dropped, zeros appended: a fold's last tooth may reach past 3W
     tail = torch.zeros((bsz, nv, 1 + params.lattice_max_spacing), dtype=torch.int32, device=dev)
     hist = torch.cat([hist, tail], dim=2)
