@@ -83,16 +83,17 @@ class LatticePriorBatch(NamedTuple):
     ``(B,)`` float64, the bottom-row x the central row is chosen nearest to; ``restrict`` ``(B,)``
     bool, a tracked frame (else a full search); ``vp`` ``(B, 2)`` int64, the VP the comb uses
     there (the previous frame's lattice VP, not searched), and ``spacing`` ``(B,)`` int64, the
-    previous comb spacing (both read where ``restrict``); ``near`` ``(B,)`` bool or ``None``
+    previous comb spacing (both read where ``restrict``); ``windowed`` ``(B,)`` bool or ``None``
     (all false): a full search of a tracked sequence, which takes :func:`vp_window` of the grid
-    around ``around`` ``(B, 2)`` int64, its last grid VP (read where ``near`` and not ``restrict``)."""
+    around ``near`` ``(B, 2)`` int64, its last grid VP (the reference's ``LatticePrior.near``;
+    read where ``windowed`` and not ``restrict``)."""
 
     centre: torch.Tensor
     restrict: torch.Tensor
     vp: torch.Tensor
     spacing: torch.Tensor
+    windowed: torch.Tensor | None = None
     near: torch.Tensor | None = None
-    around: torch.Tensor | None = None
 
 
 class LatticeFitBatch(NamedTuple):
@@ -760,27 +761,27 @@ def lattice_start(mask: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Ten
     if origin is None:
         origin = torch.zeros((bsz,), dtype=torch.int64, device=dev)
     if params.lattice_vp == "search" and prior is not None:
-        near = torch.zeros_like(prior.restrict) if prior.near is None else prior.near
-        around = prior.vp if prior.around is None else prior.around
+        windowed = torch.zeros_like(prior.restrict) if prior.windowed is None else prior.windowed
+        near = prior.vp if prior.near is None else prior.near
 
-        def whole(mask, vp, around, origin):
+        def whole(mask, vp, near, origin):
             return (vp_search(mask, params, origin if counted else None),)
 
-        def window(mask, vp, around, origin):
-            return (vp_search(mask, params, origin if counted else None, around),)
+        def window(mask, vp, near, origin):
+            return (vp_search(mask, params, origin if counted else None, near),)
 
-        def keep(mask, vp, around, origin):
+        def keep(mask, vp, near, origin):
             return (vp.clone(),)
 
-        def search(mask, restrict, near, vp, around, origin):
+        def search(mask, restrict, windowed, vp, near, origin):
             # untracked sequences search the whole grid, tracked ones their window (11.7): each when some image needs it
-            full = branch(flow, (~restrict & ~near).any(), whole, keep, (mask, vp, around, origin))[0]
-            part = branch(flow, (~restrict & near).any(), window, keep, (mask, vp, around, origin))[0]
-            return (torch.where(restrict.view(-1, 1), vp, torch.where(near.view(-1, 1), part, full)),)
+            full = branch(flow, (~restrict & ~windowed).any(), whole, keep, (mask, vp, near, origin))[0]
+            part = branch(flow, (~restrict & windowed).any(), window, keep, (mask, vp, near, origin))[0]
+            return (torch.where(restrict.view(-1, 1), vp, torch.where(windowed.view(-1, 1), part, full)),)
 
         # the grid search, skipped when every image is tracked (11.7)
-        v = branch(flow, (~prior.restrict).any(), search, lambda mask, restrict, near, vp, around, origin: (vp.clone(),),
-                   (mask, prior.restrict, near, prior.vp, around, origin))[0]
+        v = branch(flow, (~prior.restrict).any(), search, lambda mask, restrict, windowed, vp, near, origin: (vp.clone(),),
+                   (mask, prior.restrict, windowed, prior.vp, near, origin))[0]
     elif params.lattice_vp == "search":
         v = vp_search(mask, params, origin if counted else None)
     elif vp is None or has_vp is None:

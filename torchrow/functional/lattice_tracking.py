@@ -187,21 +187,21 @@ def _lattice(images: torch.Tensor, active: torch.Tensor, prior: LatticePriorBatc
     counted = params.lattice_vp_sky_origin()
     weak = active & prior.restrict & (start.contrast < params.lattice_min_contrast)
     if switch:
-        def search(images, mask, weak, centre, restrict, vp, spacing, around, sky, *now):
+        def search(images, mask, weak, centre, restrict, vp, spacing, near, sky, *now):
             if counted and not have_sky:
                 sky = fsky.sky_row(images, params)
             wide = LatticePriorBatch(centre, restrict & ~weak, vp, spacing)
             # a weak frame is tracked: the grid near its last grid VP (11.7)
-            grid = flattice.vp_search(mask, fparams, flattice.vp_origin(sky, h, params) if counted else None, around)
+            grid = flattice.vp_search(mask, fparams, flattice.vp_origin(sky, h, params) if counted else None, near)
             got = flattice.comb_start(mask, torch.where(weak.view(-1, 1), grid, now[4]), fparams, wide)
             return tuple(torch.where(weak.view(-1, *([1] * (x.dim() - 1))), x, y) for x, y in zip(got, now))
 
-        def keep(images, mask, weak, centre, restrict, vp, spacing, around, sky, *now):
+        def keep(images, mask, weak, centre, restrict, vp, spacing, near, sky, *now):
             return tuple(t.clone() for t in now)
 
         start = flattice.LatticeStartBatch(*branch(flow, weak.any(), search, keep,
                                                    (images, mask, weak, prior.centre, prior.restrict, prior.vp,
-                                                    prior.spacing, prior.around, sky) + tuple(start)))
+                                                    prior.spacing, prior.near, sky) + tuple(start)))
         prior = prior._replace(restrict=prior.restrict & ~weak)
     else:
         weak = torch.zeros_like(weak)
@@ -239,16 +239,16 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
     redo = active & ~full & ~switched & (status != _OK)
     n_rows = len(dataclasses.fields(LatticeRows))
 
-    def again(images, redo, centre, vp, spacing, around, sky, *now):  # a tracked frame that fails is searched again in full
+    def again(images, redo, centre, vp, spacing, near, sky, *now):  # a tracked frame that fails is searched again in full
         sky = sky if have_sky else fsky.sky_row(images, params)
         # redone frames are tracked: the grid near their last grid VP (the others' results are not kept)
         wide, wide_status, _ = _lattice(images, redo, LatticePriorBatch(centre, torch.zeros_like(redo), vp, spacing,
-                                                                        torch.ones_like(redo), around),
+                                                                        torch.ones_like(redo), near),
                                         params, flow, sky, True, switch=False)
         picked = _where(redo, wide, LatticeRows(*now[:n_rows]))
         return _fields(picked) + (torch.where(redo, wide_status, now[n_rows]),)
 
-    def unchanged(images, redo, centre, vp, spacing, around, sky, *now):  # no sequence needs it (a branch may not alias inputs)
+    def unchanged(images, redo, centre, vp, spacing, near, sky, *now):  # no sequence needs it (a branch may not alias inputs)
         return tuple(t.clone() for t in now)
 
     out = branch(flow, redo.any(), again, unchanged,
