@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from torchrow.apps.cli import main
+from torchrow.core.params import Params
 from torchrow.evaluation.synthetic import FieldSpec, render
 
 RECORD_KEYS = {"name", "status", "sky", "veg_color", "k", "bushy", "n_rows", "hough", "outliers", "vp",
@@ -191,4 +192,38 @@ def test_forward_flag_applies_the_forward_camera_setting_under_param() -> None:
     assert (q.lattice_vp_origin, q.lattice_max_spacing, q.lattice_min_spacing) == ("top", 200, 16)
     with pytest.raises(CLIError, match="leave out --mode faithful"):
         with_mode(parse_params(None), args(mode="faithful"))
-    assert with_mode(parse_params(None), args(forward=False)).mode == "faithful"
+    assert with_mode(parse_params(None), args(forward=None)).mode == "faithful"
+    assert with_mode(parse_params(None), args(forward=False)) == Params(mode="improved")  # --no-forward
+
+
+@pytest.mark.parametrize(("argv", "forward"), [
+    (["video", "F", "--out", "o.jsonl", "--mode", "improved"], True),  # the lattice tracker: a robot's camera
+    (["video", "F", "--out", "o.jsonl", "--param", "mode=improved"], True),
+    (["video", "F", "--out", "o.jsonl", "--mode", "improved", "--no-forward"], False),
+    (["export", "onnx", "--out", "t.onnx", "--tracker", "--mode", "improved"], True),
+    (["detect", "F", "--out", "o.jsonl", "--mode", "improved"], False),  # a camera looking down, as CRBD's
+    (["eval", "--data", "D", "--out", "O", "--mode", "improved"], False),
+    (["detect", "F", "--out", "o.jsonl", "--forward"], True),
+])
+def test_the_tracker_takes_the_forward_camera_setting_unless_told_otherwise(argv: list[str], forward: bool) -> None:
+    from torchrow.apps.cli import build_parser
+    from torchrow.apps.commands.shared import parse_params, with_mode
+    from torchrow.core.params import FORWARD_CAMERA
+
+    args = build_parser().parse_args(argv)
+    p = with_mode(parse_params(args.param), args)
+    assert p.mode == "improved"
+    assert all(getattr(p, k) == v for k, v in FORWARD_CAMERA.items()) is forward
+    assert p == (Params(mode="improved", **FORWARD_CAMERA) if forward else Params(mode="improved"))
+
+
+def test_setting_hint_names_forward_only_where_the_default_setting_failed_most_images() -> None:
+    from torchrow.apps.commands.shared import setting_hint
+    from torchrow.core.params import FORWARD_CAMERA
+
+    improved = Params(mode="improved")
+    assert "--forward" in setting_hint(improved, {"weak": 3, "ok": 2})
+    assert setting_hint(improved, {"weak": 2, "ok": 2}) is None
+    assert setting_hint(improved, {}) is None
+    assert setting_hint(Params(), {"weak": 5}) is None  # faithful
+    assert setting_hint(Params(mode="improved", **FORWARD_CAMERA), {"weak": 5}) is None

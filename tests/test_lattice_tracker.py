@@ -15,7 +15,7 @@ import torch
 import torchrow
 from torchrow.apps.cli import main
 from torchrow.core.camera import CameraModel
-from torchrow.core.params import Params
+from torchrow.core.params import FORWARD_CAMERA, Params
 from torchrow.core.results import record_differences
 from torchrow.evaluation.synthetic import CameraPose, GroundField, camera_path, render_camera
 from torchrow.reference import Tracker as RefTracker
@@ -134,7 +134,11 @@ def test_lattice_tracker_parameters_and_errors() -> None:
         torchrow.Tracker(P.replace(lattice_vp="section6"))
     with pytest.raises(ValueError, match="lattice_track_phase_tol"):
         Params(lattice_track_phase_tol=0.6)
-    assert torchrow.Tracker(Params(), mode="improved").params.mode == "improved"
+    assert torchrow.Tracker(Params(), mode="improved").params == Params(mode="improved")
+    # without params the lattice tracker takes the forward-camera setting: a robot's camera looks forward
+    forward = Params(mode="improved", **FORWARD_CAMERA)
+    assert torchrow.Tracker(mode="improved").params == forward == RefTracker(mode="improved").params
+    assert torchrow.Tracker().params == Params() == RefTracker(mode="faithful").params
     # the faithful tracker's records keep their keys
     frames = drive([CameraPose(0.05, 0.0, 0.0)], 1)
     faithful = torchrow.Tracker(Params(video_width=320)).track([[frames[0].image]])[0][0].to_record()

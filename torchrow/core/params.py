@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["Params", "Rule", "check_fields", "FORWARD_CAMERA"]
+__all__ = ["Params", "Rule", "check_fields", "FORWARD_CAMERA", "tracker_params"]
 
 
 @dataclass(frozen=True)
@@ -457,6 +457,19 @@ def _tracking(params: Params) -> Params:
 #: command line; ``Params(mode="improved", **FORWARD_CAMERA)`` in Python.
 FORWARD_CAMERA: dict[str, Any] = {"lattice_model": "auto", "lattice_min_spacing": 16, "lattice_max_spacing": 320,
                                   "lattice_vp_origin": "sky"}
+
+
+
+def tracker_params(params: Params | None, mode: str | None) -> Params:
+    """The parameters of a tracker built with ``params`` and ``mode`` (``torchrow.Tracker`` and
+    ``torchrow.reference.Tracker``): ``params`` with ``mode`` in place of ``params.mode``; without
+    ``params``, ``Params()``, or in improved mode the forward-camera setting
+    (:data:`FORWARD_CAMERA`), since the lattice tracker's camera is a robot's, which looks
+    forward (ALGORITHM.md 11.7)."""
+    if params is None:
+        params = Params(mode="improved", **FORWARD_CAMERA) if mode == "improved" else Params()
+    return params if mode is None else params.replace(mode=mode)
+
 
 #: Bytes section 11.2's tables may take for one working image (:meth:`Params.lattice_table_bytes`):
 #: with them an image of ``max_pixels`` pixels at ``image_width`` runs under 3 GiB in either path.

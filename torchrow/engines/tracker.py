@@ -22,7 +22,7 @@ from torch import nn
 from torchrow.core.camera import CameraModel
 from torchrow.core.frames import prepare_frame
 from torchrow.core.io import check_working_size
-from torchrow.core.params import Params
+from torchrow.core.params import Params, tracker_params
 from torchrow.core.results import concat_batches
 from torchrow.core.steering import FrameResult, check_optics
 from torchrow.functional import lattice_tracking as flt
@@ -57,7 +57,9 @@ class Tracker(nn.Module):
     chunk : int
         Frames per sequence segmented in one batched call by :meth:`track_iter`.
     mode : str, optional
-        ``"faithful"`` or ``"improved"``: overrides ``params.mode``. Improved mode is the lattice
+        ``"faithful"`` or ``"improved"``: overrides ``params.mode`` (without ``params``, improved
+        mode takes the forward-camera setting: :func:`~torchrow.core.params.tracker_params`).
+        Improved mode is the lattice
         tracker of ALGORITHM.md 11.7 (states :class:`LatticeTrackerState`, steps
         :class:`LatticeStep`; records add ``state``, ``row_change``, ``row_end_y``, ``row_end_m``).
 
@@ -81,9 +83,7 @@ class Tracker(nn.Module):
                  hfov_deg: float | None = None, chunk: int = 8, workers: int | None = None,
                  camera: CameraModel | None = None, mode: str | None = None) -> None:
         super().__init__()
-        self.params = params or Params()
-        if mode is not None:
-            self.params = self.params.replace(mode=mode)
+        self.params = tracker_params(params, mode)
         self.improved = self.params.mode == "improved"
         if self.improved:
             check_lattice_tracker(self.params)

@@ -37,7 +37,7 @@ import numpy as np
 from torchrow.core.camera import CameraModel
 from torchrow.core.frames import load_items
 from torchrow.core.io import resize_to_width, to_rgb8
-from torchrow.core.params import Params
+from torchrow.core.params import Params, tracker_params
 from torchrow.core.results import ImageResult
 from torchrow.core.steering import FrameResult, check_optics, confidence
 from torchrow.reference.color import vegetation_color
@@ -102,7 +102,9 @@ class Tracker:
         For ``lateral_m``, ``spacing_m`` and the ground ``heading_rad`` (as
         :class:`torchrow.Tracker`); not with ``hfov_deg``.
     mode : str, optional
-        ``"faithful"`` or ``"improved"``: overrides ``params.mode``. Improved mode runs the lattice
+        ``"faithful"`` or ``"improved"``: overrides ``params.mode`` (without ``params``, improved
+        mode takes the forward-camera setting: :func:`~torchrow.core.params.tracker_params`).
+        Improved mode runs the lattice
         tracker of section 11.7 (:class:`~torchrow.reference.lattice_tracking.LatticeTracker`;
         its states are :class:`~torchrow.reference.lattice_tracking.LatticeSequenceState`).
 
@@ -116,9 +118,7 @@ class Tracker:
 
     def __init__(self, params: Params | None = None, hfov_deg: float | None = None,
                  camera: CameraModel | None = None, mode: str | None = None) -> None:
-        self.params = params or Params()
-        if mode is not None:
-            self.params = self.params.replace(mode=mode)
+        self.params = tracker_params(params, mode)
         check_optics(hfov_deg, camera)
         self.hfov_deg = hfov_deg
         self.camera = camera

@@ -32,6 +32,7 @@ from torchrow.apps.commands.shared import (
     parse_params,
     record_names,
     run_header,
+    setting_hint,
     source_stems,
     split_bags,
     with_mode,
@@ -157,4 +158,7 @@ def run(args: argparse.Namespace) -> int:
     summary = ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
     kept = f"; {len(sink.done)} kept from the earlier run" if args.resume else ""
     print(f"torchrow: {sink.written} image(s) -> {out} ({summary}){kept}", file=sys.stderr)
+    hint = setting_hint(params, counts)
+    if hint:
+        print(hint, file=sys.stderr)
     return 0

@@ -33,7 +33,7 @@ if TYPE_CHECKING:
 __all__ = [
     "CLIError", "ERROR_STATUS", "DEFAULT_FPS", "print_error",
     "add_common", "add_engine", "add_impl", "add_mode",
-    "parse_params", "replace_params", "with_mode",
+    "parse_params", "replace_params", "setting_hint", "tracks", "with_mode",
     "collect_images", "record_names", "annotation_names", "bag_picture", "source_stems", "split_bags",
     "check_targets", "check_device", "check_engine", "check_model", "onnx_host_threads",
     "out_targets", "run_header", "open_sink", "check_foxglove", "open_recorder", "open_crbd", "open_crdld",
@@ -72,10 +72,12 @@ def add_mode(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mode", choices=("faithful", "improved"), default=None,
                    help="faithful: the thesis' algorithm (default); improved: curved rows on a spacing "
                         "lattice (ALGORITHM.md section 11, a torchrow extension)")
-    p.add_argument("--forward", action="store_true",
+    p.add_argument("--forward", action=argparse.BooleanOptionalAction, default=None,
                    help="the improved mode's forward-camera setting, for a camera that sees the horizon: "
                         + ", ".join(f"{k}={v}" for k, v in FORWARD_CAMERA.items())
-                        + " (implies --mode improved; --param overrides it)")
+                        + " (implies --mode improved; --param overrides it). The lattice tracker's default "
+                          "(video, export --tracker: a robot's camera looks forward); --no-forward: the "
+                          "improved mode's default setting (a camera looking down at the field, as CRBD's)")
 
 
 def add_impl(p: argparse.ArgumentParser, batch: int = 64, item: str = "image",
@@ -140,18 +142,39 @@ def replace_params(params: Params, option: str, **changes: object) -> Params:
         raise CLIError(f"{option}: {exc}") from None
 
 
+def tracks(args: argparse.Namespace) -> bool:
+    """Whether the command runs or exports the tracker (``video``, ``export --tracker``)."""
+    return args.command == "video" or (args.command == "export" and bool(getattr(args, "tracker", False)))
+
+
+def setting_hint(params: Params, counts: dict[str, int]) -> str | None:
+    """A line for a run whose images were mostly not ``ok`` in the improved mode's default
+    setting (VP grid above the image): the forward-camera setting is what a camera that sees the
+    horizon needs (ALGORITHM.md 11.2). ``None`` otherwise."""
+    n = sum(counts.values())
+    forward = all(getattr(params, k) == v for k, v in FORWARD_CAMERA.items())
+    if params.mode != "improved" or forward or n == 0 or 2 * counts.get("ok", 0) >= n:
+        return None
+    return (f"torchrow: {n - counts.get('ok', 0)} of {n} not ok with the improved mode's default setting, whose "
+            "vanishing-point grid lies above the image; for a camera that sees the horizon use --forward")
+
+
 def with_mode(params: Params, args: argparse.Namespace) -> Params:
     """Apply ``--mode`` (faithful | improved, ALGORITHM.md section 11) and ``--forward``
     (:data:`~torchrow.core.params.FORWARD_CAMERA` where no ``--param`` names the field) to the
-    parameters."""
+    parameters. The tracker's improved mode takes ``--forward`` unless ``--no-forward`` is given
+    (:func:`tracks`)."""
     mode = getattr(args, "mode", None)
-    if getattr(args, "forward", False):
-        if mode == "faithful":
-            raise CLIError("--forward is a setting of the improved mode; leave out --mode faithful")
-        if getattr(args, "impl", None) != "onnx":  # an exported model brings its own (check_model)
-            given = {item.partition("=")[0] for item in getattr(args, "param", None) or []}
-            params = replace_params(params, "--forward",
-                                    **{k: v for k, v in FORWARD_CAMERA.items() if k not in given})
+    forward = getattr(args, "forward", None)
+    if forward is not None and mode == "faithful":
+        raise CLIError(f"--{'' if forward else 'no-'}forward is a setting of the improved mode; leave out "
+                       "--mode faithful")
+    if forward is None and (mode or params.mode) == "improved" and tracks(args):
+        forward = True  # the lattice tracker runs on a robot's camera, which looks forward (README: video)
+    if forward and getattr(args, "impl", None) != "onnx":  # an exported model brings its own (check_model)
+        given = {item.partition("=")[0] for item in getattr(args, "param", None) or []}
+        params = replace_params(params, "--forward", **{k: v for k, v in FORWARD_CAMERA.items() if k not in given})
+    if forward is not None:
         mode = "improved"
     if mode is None:
         return params
@@ -376,9 +399,13 @@ def check_model(args: argparse.Namespace, kind: str = "detector") -> str | None:
                        f"--mode {mode}{' --tracker' if kind == 'tracker' else ''}, or leave out --mode)")
     if args.param:
         raise CLIError("--param cannot change an exported model; export one with those --param values")
-    if getattr(args, "forward", False) and any(info["params"].__dict__[k] != v for k, v in FORWARD_CAMERA.items()):
-        raise CLIError(f"--forward: {model} was exported without the forward-camera setting (export one with "
-                       f"--mode improved --forward{' --tracker' if kind == 'tracker' else ''})")
+    forward = getattr(args, "forward", None)
+    has = all(info["params"].__dict__[k] == v for k, v in FORWARD_CAMERA.items())
+    if forward is not None and forward != has:
+        raise CLIError(f"--{'' if forward else 'no-'}forward: {model} was exported "
+                       f"{'without' if forward else 'with'} the forward-camera setting (export one with "
+                       f"--mode improved --{'' if forward else 'no-'}forward{' --tracker' if kind == 'tracker' else ''}, "
+                       "or leave the option out)")
     want = info["params"].image_width if kind == "detector" else info["params"].video_width
     if want != info["width"]:
         raise CLIError(f"model {model} takes {info['width']}x{info['height']} images but its working width is {want}")

@@ -30,6 +30,7 @@ from torchrow.apps.commands.shared import (
     parse_params,
     replace_params,
     run_header,
+    setting_hint,
     source_stems,
     with_mode,
 )
@@ -339,6 +340,9 @@ def run(args: argparse.Namespace) -> int:
     kept = f"; {len(sink.done)} kept from the earlier run" if args.resume else ""
     print(f"torchrow: {n} frame(s) of {len(sources)} source(s) -> {out} ({summary}){kept}"
           + (f"; plot {plot}" if plot else ""), file=sys.stderr)
+    hint = setting_hint(params, counts)
+    if hint:
+        print(hint, file=sys.stderr)
     if plot is None:
         return 0
     # the plot and the summary read the records back from --out (the run itself keeps none)
