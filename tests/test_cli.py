@@ -227,3 +227,4 @@ def test_setting_hint_names_forward_only_where_the_default_setting_failed_most_i
     assert setting_hint(improved, {}) is None
     assert setting_hint(Params(), {"weak": 5}) is None  # faithful
     assert setting_hint(Params(mode="improved", **FORWARD_CAMERA), {"weak": 5}) is None
+    assert setting_hint(Params(mode="improved", lattice_vp_origin="sky"), {"weak": 5}) is None

@@ -148,15 +148,15 @@ def tracks(args: argparse.Namespace) -> bool:
 
 
 def setting_hint(params: Params, counts: dict[str, int]) -> str | None:
-    """A line for a run whose images were mostly not ``ok`` in the improved mode's default
-    setting (VP grid above the image): the forward-camera setting is what a camera that sees the
-    horizon needs (ALGORITHM.md 11.2). ``None`` otherwise."""
+    """A line for a run in improved mode whose images were mostly not ``ok`` with the VP grid
+    above the image (``lattice_vp_origin="top"``, the default setting): the forward-camera setting,
+    whose grid counts from the horizon (ALGORITHM.md 11.2), is what a camera that sees the horizon
+    needs. ``None`` otherwise."""
     n = sum(counts.values())
-    forward = all(getattr(params, k) == v for k, v in FORWARD_CAMERA.items())
-    if params.mode != "improved" or forward or n == 0 or 2 * counts.get("ok", 0) >= n:
+    if params.mode != "improved" or params.lattice_vp_origin == "sky" or n == 0 or 2 * counts.get("ok", 0) >= n:
         return None
-    return (f"torchrow: {n - counts.get('ok', 0)} of {n} not ok with the improved mode's default setting, whose "
-            "vanishing-point grid lies above the image; for a camera that sees the horizon use --forward")
+    return (f"torchrow: {n - counts.get('ok', 0)} of {n} not ok with the vanishing-point grid above the image "
+            "(the improved mode's default setting); for a camera that sees the horizon use --forward")
 
 
 def with_mode(params: Params, args: argparse.Namespace) -> Params:
