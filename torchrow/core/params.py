@@ -137,7 +137,7 @@ class Params:
     lattice_track_phase_tol: float = 0.25  # prior: a tooth within this fraction of the spacing of the tracked row
     lattice_track_hysteresis: float = 0.1  # row change: the tracked row is (0.5 + this) spacings off the centre
     lattice_end_drop: float = 0.02  # row end: this fraction of the supported cells, the topmost, is ignored
-    lattice_end_margin: int = 8  # px: the rows end ahead when their end lies this far below the resolvable rows
+    lattice_end_margin: int = 24  # px: the rows end ahead when their end lies this far below the resolvable rows
     lattice_headland_frac: float = 0.25  # rows ending in this bottom fraction of the image: headland
 
     def __post_init__(self) -> None:
