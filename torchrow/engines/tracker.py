@@ -59,9 +59,9 @@ class Tracker(nn.Module):
     mode : str, optional
         ``"faithful"`` or ``"improved"``: overrides ``params.mode`` (without ``params``, improved
         mode takes the forward-camera setting: :func:`~torchrow.core.params.tracker_params`).
-        Improved mode is the lattice
-        tracker of ALGORITHM.md 11.7 (states :class:`LatticeTrackerState`, steps
-        :class:`LatticeStep`; records add ``state``, ``row_change``, ``row_end_y``, ``row_end_m``).
+        Improved mode is the lattice tracker of ALGORITHM.md 11.7 (states
+        :class:`LatticeTrackerState`, steps :class:`LatticeStep`; records add ``state``,
+        ``row_change``, ``row_end_y``, ``row_end_m``).
 
     Examples
     --------

@@ -104,9 +104,9 @@ class Tracker:
     mode : str, optional
         ``"faithful"`` or ``"improved"``: overrides ``params.mode`` (without ``params``, improved
         mode takes the forward-camera setting: :func:`~torchrow.core.params.tracker_params`).
-        Improved mode runs the lattice
-        tracker of section 11.7 (:class:`~torchrow.reference.lattice_tracking.LatticeTracker`;
-        its states are :class:`~torchrow.reference.lattice_tracking.LatticeSequenceState`).
+        Improved mode runs the lattice tracker of section 11.7
+        (:class:`~torchrow.reference.lattice_tracking.LatticeTracker`; its states are
+        :class:`~torchrow.reference.lattice_tracking.LatticeSequenceState`).
 
     Examples
     --------
