@@ -5,7 +5,9 @@ field of view, 50 cm rows ending at 12 m; along a row, a turn, over to the next 
 rows' end), rendered for each variant below and tracked by ``torchrow.Tracker(mode="improved",
 camera=...)`` (the forward-camera setting, ``video_width`` 500). Per variant: ``lateral_m`` and
 ``heading_rad`` errors (frames more than 1.5 m before the rows' end), the row-end error on the
-``row_end_ahead`` frames, the states and the row changes. The truth of the tracked row is the
+``row_end_ahead`` frames, how far row 0 moves between frames in row spacings
+(``torchrow.evaluation.tracking.row_moves``, ALGORITHM.md 11.7's stability measure), the states and the row
+changes. The truth of the tracked row is the
 planted row nearest the camera on frame 0, moved by each reported row change, as in
 ``bench_lattice_tracker.py``. No timing.
 
@@ -26,6 +28,7 @@ from torchrow import Params
 from torchrow.core.camera import CameraModel
 from torchrow.core.params import FORWARD_CAMERA
 from torchrow.evaluation.synthetic import CameraPose, GroundField, camera_path, render_camera
+from torchrow.evaluation.tracking import row_moves
 
 BASE_CAMERA = {"height_m": 1.0, "tilt_deg": 30, "hfov_deg": 70}
 VARIANTS: dict[str, dict[str, Any]] = {
@@ -78,12 +81,17 @@ def run(variant: dict[str, Any], params: Params, frames_per_leg: int) -> str:
     for r in got:
         states[str(r.state)] = states.get(str(r.state), 0) + 1
     changes = [(r.frame, r.row_change) for r in got if r.row_change]
+    moves = row_moves([r.to_record() for r in got])
+    big = moves.largest
+    stable = (f"{moves.median:.3f} / {big.frac:.2f} ({len(moves.above())} of {len(moves.moves)})"
+              if big is not None else "-")
 
     def stat(v: list[float], scale: float, unit: str) -> str:
         return f"{scale * float(np.median(v)):.2f} / {scale * max(v):.2f} {unit}" if v else "-"
 
     return " | ".join([f"{len(got)}", stat(lat, 100.0, "cm"), stat(head, 180.0 / math.pi, "°"),
-                       stat(end, 1.0, "m") + f" ({len(end)})", json.dumps(states).replace('"', ""), str(changes)])
+                       stat(end, 1.0, "m") + f" ({len(end)})", stable, json.dumps(states).replace('"', ""),
+                       str(changes)])
 
 
 def main() -> None:
@@ -104,8 +112,9 @@ def main() -> None:
         ap.error(f"unknown variant(s) {unknown}; known: {list(VARIANTS)}")
     print(f"params over the forward-camera setting: {changes or 'none'}\n")
     print("| variant | frames | lateral_m error median / max | heading error median / max "
-          "| row-end error median / max (frames) | states | row changes |")
-    print("|---|---|---|---|---|---|---|")
+          "| row-end error median / max (frames) | row 0 moves, spacings: median / max (above 1/4) | states "
+          "| row changes |")
+    print("|---|---|---|---|---|---|---|---|")
     for name in names:
         print(f"| {name} | {run(VARIANTS[name], params, args.frames_per_leg)} |", flush=True)
 

@@ -18,6 +18,7 @@ from torchrow.core.camera import CameraModel
 from torchrow.core.params import FORWARD_CAMERA, Params
 from torchrow.core.results import record_differences
 from torchrow.evaluation.synthetic import CameraPose, GroundField, camera_path, render_camera
+from torchrow.evaluation.tracking import row_moves
 from torchrow.reference import Tracker as RefTracker
 
 # a forward camera: the forward-camera setting of ALGORITHM.md 11.3.1 (rows 16-320 px apart, straight or curved)
@@ -64,10 +65,10 @@ def test_caterra_frames_tensor_equals_reference(data_dir) -> None:
     got = torchrow.Tracker(sky).track([items], sources=["c"])[0]
     same(RefTracker(sky).track(items, source="c"), got)
     assert all(r.status == "ok" and r.state == "in_row" for r in got)
-    base = [(r.rows[1].x_at(280.0), r.rows[2].x_at(280.0) - r.rows[1].x_at(280.0), r.row_change) for r in got]
-    moves = [abs(x1 - x0) / d1 for (x0, _, _), (x1, d1, ch) in itertools.pairwise(base) if ch == 0]
+    moves = row_moves([r.to_record() for r in got])
     # row 0 moves 0.08-0.1 spacings a frame at the start, 0.28 on frame 4 (a redo), then < 0.02
-    assert np.median(moves) < 0.15 and max(moves) < 0.35
+    assert len(moves.moves) == 7 and moves.median < 0.15 and [m.frame for m in moves.above()] == [4]
+    assert moves.largest.frac < 0.35 and moves.largest.full
     assert all(r.state == "lost" for r in torchrow.Tracker(params).track([items[3:5]])[0])
 
 
@@ -118,6 +119,10 @@ def test_identity_row_change_and_row_end() -> None:
     # the same drive backwards: the change is to the left
     back = torchrow.Tracker(P, camera=camera()).track([[f.image for f in frames[::-1]]])[0]
     assert [r.row_change for r in back if r.row_change] == [-1]
+    # stability (11.7): row 0 never moves a quarter spacing between frames, the change included
+    for seq in (res, back):
+        moves = row_moves([r.to_record() for r in seq])
+        assert len(moves.moves) >= 10 and not moves.above()
 
 
 def test_lost_without_plants_and_full_search_after() -> None:

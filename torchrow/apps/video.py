@@ -17,9 +17,9 @@ from torchrow.core.frames import (
     display_name,
     open_source,  # noqa: F401  (the README's import path for frame sources)
 )
-from torchrow.core.results import Row
+from torchrow.evaluation.tracking import RowMoves, bottom_x
 
-__all__ = ["VideoWriter", "draw_frame", "draw_lattice_frame", "error_frame", "central_jumps", "plot_tracks",
+__all__ = ["VideoWriter", "draw_frame", "draw_lattice_frame", "error_frame", "central_jumps", "moves_line", "plot_tracks",
            "STATE_COLORS"]
 
 
@@ -109,17 +109,24 @@ class VideoWriter:
 # summaries, pictures and plots of tracked sequences
 # ----------------------------------------------------------------------------------------
 
-def _bottom_x(row: dict, height: int) -> float:
-    """Bottom-row x of a record's row, ``x = e*y**3 + c*y**2 + a*y + b`` at ``y = H-1`` (the
-    improved mode's rows bend; ``c``, ``e`` null or 0 for straight rows)."""
-    return float(Row(a=row["a"], b=row["b"], valid=True, c=row.get("c") or 0.0, e=row.get("e") or 0.0).x_at(
-        float(height - 1)))
-
-
 def _bottoms(rec: dict) -> list[float | None]:
     """Bottom-row x of every row slot of a record (None for invalid rows)."""
     h = rec.get("height") or 0
-    return [_bottom_x(r, h) if r["valid"] and r["a"] is not None else None for r in rec.get("rows", [])]
+    return [bottom_x(r, h) for r in rec.get("rows", [])]
+
+
+def moves_line(m: RowMoves) -> str:
+    """One line on a lattice-tracker sequence's stability (:func:`torchrow.evaluation.tracking.row_moves`):
+    the median and largest move of row 0 in row spacings and the moves above a quarter spacing."""
+    big = m.largest
+    if big is None:
+        return f"row 0 moves: none measured ({m.skipped} of {m.pairs} frame pairs without a tracked row 0)"
+    above = m.above()
+    frames = ", ".join(str(x.frame) for x in above[:8]) + (", ..." if len(above) > 8 else "")
+    return (f"row 0 moves (row changes aside) a median {m.median:.3f} spacings, at most {big.frac:.2f} "
+            f"({big.px:.1f} px into {'full-search ' if big.full else 'tracked '}frame {big.frame}); "
+            f"{len(above)} of {len(m.moves)} above a quarter spacing" + (f" (frames {frames})" if above else "")
+            + (f"; {m.skipped} frame pair(s) not measured" if m.skipped else ""))
 
 
 def central_jumps(records: list[dict]) -> dict[str, list[float]]:
@@ -456,9 +463,10 @@ def plot_tracks(records_by_source: dict[str, list[dict]], path: str | Path) -> N
         for r in recs:
             h = r.get("height") or 0
             for row in r.get("rows", []):
-                if row["valid"] and row["a"] is not None:
+                x = bottom_x(row, h)
+                if x is not None:
                     fx.append(r["frame"])
-                    bx.append(_bottom_x(row, h))
+                    bx.append(x)
         ax.scatter(fx, bx, s=6, c="tab:green", label="valid rows (x at bottom row)")
         cen = [(r["frame"], r["lateral_px"] + r["width"] / 2) for r in recs if r.get("lateral_px") is not None]
         if cen:

@@ -209,8 +209,9 @@ def _check_plot(plot: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from torchrow.apps.video import central_jumps, plot_tracks
+    from torchrow.apps.video import central_jumps, moves_line, plot_tracks
     from torchrow.core.progress import progress
+    from torchrow.evaluation.tracking import row_moves
 
     params = with_mode(parse_params(args.param), args)  # an exported model's params replace these below
     model = check_model(args, kind="tracker")
@@ -362,10 +363,9 @@ def run(args: argparse.Namespace) -> int:
             return f"{max(jumps[key]):.1f} px" if jumps[key] else "n/a"
 
         if params.mode == "improved":  # the lattice tracker (ALGORITHM.md 11.7): hough_ran = the full search ran
-            moves = sum(1 for r in recs if r.get("row_change"))
-            print(f"  {src}: full search on {hough} of {len(recs)} frames; {moves} row change(s); largest move of "
-                  f"row 0 at the bottom (row changes aside): {worst('tracked')} into a tracked frame, {worst('hough')} "
-                  "into a full-search frame", file=sys.stderr)
+            print(f"  {src}: full search on {hough} of {len(recs)} frames; "
+                  f"{sum(1 for r in recs if r.get('row_change'))} row change(s); {moves_line(row_moves(recs))}",
+                  file=sys.stderr)
             continue
         print(f"  {src}: Hough on {hough} of {len(recs)} frames; largest move of the central row at the "
               f"bottom: {worst('tracked')} into a tracked frame, {worst('hough')} into a Hough frame",
