@@ -51,3 +51,14 @@ def test_bottom_x_of_bent_and_invalid_rows():
     assert bottom_x({"a": None, "b": None, "valid": False}, 50) is None
     assert bottom_x({"a": float("nan"), "b": 1.0, "valid": True}, 50) is None
     assert QUARTER == 0.25
+
+
+def test_the_video_summary_line_names_the_moves_above_a_quarter():
+    from torchrow.apps.video import moves_line
+
+    recs = [rec(0, [50, 100, 150]), rec(1, [52, 102, 152]), rec(2, [70, 120, 170], full=True),
+            rec(3, [70, 120, 170], state="lost")]
+    line = moves_line(row_moves(recs))
+    assert "at most 0.36 (18.0 px into full-search frame 2)" in line
+    assert "1 of 2 above a quarter spacing (frame 2)" in line and "1 frame pair(s) not measured" in line
+    assert moves_line(row_moves(recs[2:])).startswith("row 0 moves: none measured (1 of 1 frame pairs")

@@ -123,9 +123,10 @@ def moves_line(m: RowMoves) -> str:
         return f"row 0 moves: none measured ({m.skipped} of {m.pairs} frame pairs without a tracked row 0)"
     above = m.above()
     frames = ", ".join(str(x.frame) for x in above[:8]) + (", ..." if len(above) > 8 else "")
+    where = f" (frame{'s' if len(above) > 1 else ''} {frames})" if above else ""
     return (f"row 0 moves (row changes aside) a median {m.median:.3f} spacings, at most {big.frac:.2f} "
             f"({big.px:.1f} px into {'full-search ' if big.full else 'tracked '}frame {big.frame}); "
-            f"{len(above)} of {len(m.moves)} above a quarter spacing" + (f" (frames {frames})" if above else "")
+            f"{len(above)} of {len(m.moves)} above a quarter spacing{where}"
             + (f"; {m.skipped} frame pair(s) not measured" if m.skipped else ""))
 
 

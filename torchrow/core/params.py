@@ -135,7 +135,7 @@ class Params:
     lattice_track_iterations: int = 8  # video: a frame's refits stop after this many steps (images: lattice_iterations)
     lattice_track_spacing_tol: float = 0.15  # prior: comb spacings within this fraction of the last spacing
     lattice_track_phase_tol: float = 0.25  # prior: a tooth within this fraction of the spacing of the tracked row
-    lattice_track_hysteresis: float = 0.1  # row change: the tracked row is (0.5 + this) spacings off the centre
+    lattice_track_hysteresis: float = 0.2  # row change: the tracked row is (0.5 + this) spacings off the centre
     lattice_end_drop: float = 0.02  # row end: this fraction of the supported cells, the topmost, is ignored
     lattice_end_margin: int = 24  # px: the rows end ahead when their end lies this far below the resolvable rows
     lattice_headland_frac: float = 0.25  # rows ending in this bottom fraction of the image: headland
