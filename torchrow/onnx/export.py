@@ -172,12 +172,10 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
         ep = torch.export.export(module, args, strict=False)
         _branch_constants(ep.graph_module)
         # bool <-> uint8/int8 reinterpretations in the vegetation stage only ever hold 0/1,
-        # whose bit patterns equal their cast values: export them as Cast.
-        if not control_flow:
-            ep = ep.run_decompositions({torch.ops.aten.view.dtype: _view_as_cast})
-            table: dict[Callable[..., Any], Callable[..., Any]] | None = None
-        else:  # re-decomposing a program with torch.cond subgraphs fails validation: translate instead
-            table = {torch.ops.aten.view.dtype: _view_dtype_onnx}
+        # whose bit patterns equal their cast values: export them as Cast, translated rather
+        # than decomposed (a second decomposition of the program fails validation with
+        # torch.cond subgraphs, and costs as much as the exporter's own without them)
+        table: dict[Callable[..., Any], Callable[..., Any]] = {torch.ops.aten.view.dtype: _view_dtype_onnx}
         note("onnx")
         with float64_python_constants(), nested_subgraph_opsets():
             prog = torch.onnx.export(ep, dynamo=True, opset_version=opset, input_names=names,
@@ -292,10 +290,6 @@ def _view_dtype_onnx(x, dtype: int):
     from onnxscript import opset18 as op
 
     return op.Cast(x, to=int(dtype))  # the exporter hands over the ONNX element type
-
-
-def _view_as_cast(x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    return x.to(dtype)
 
 
 def _params_dict(params: Params) -> dict:
