@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from torchrow.apps.cli import main
-from torchrow.core.params import Params
+from torchrow.core.params import FORWARD_CAMERA, Params
 from torchrow.core.results import ImageResult, Row, record_differences
 from torchrow.engines.detector import CropRowDetector
 from torchrow.evaluation.metrics import crda_official, rows_to_U
@@ -445,6 +445,27 @@ def test_tensor_equals_reference_on_adversarial_and_shuffled_batches() -> None:
     shuffled = det(_t([images[i] for i in perm])).results()
     for j, i in enumerate(perm):
         assert shuffled[j].to_record() == out[i].to_record()
+
+
+def test_forward_setting_rejects_rows_the_image_does_not_show() -> None:
+    """11.4: with spacings up to 320 px a forward camera's lattice can put the central row's
+    neighbours outside the image; the forward-camera setting's ``lattice_min_confidence`` (0.02)
+    makes such a row invalid (``no_support``), so the image is not ``ok``; both paths."""
+    fwd = Params(mode="improved", **FORWARD_CAMERA)
+    assert fwd.lattice_min_confidence == 0.02
+    images = [_field(ks=range(0, 1)), _field(ks=range(0, 2), spacing=120.0), _field()]
+    out = CropRowDetector(fwd)(_t(images)).results()
+    for img, got in zip(images, out):
+        _records_equal(detect(img, fwd), got)
+    assert [g.status for g in out] == ["invalid", "invalid", "ok"]
+    assert [(r.valid, r.reason) for r in out[0].rows] == [(False, "no_support"), (True, ""), (False, "no_support")]
+    assert [r.valid for r in out[1].rows] == [False, True, True]
+    assert out[2].lattice_rows and all(r.confidence >= 0.02 for r in out[2].lattice_rows)
+    # without the rule one row of green gave `ok` with three valid rows, two of them on bare soil
+    loose = fwd.replace(lattice_min_confidence=0.0)
+    got = CropRowDetector(loose)(_t(images[:1])).results()[0]
+    _records_equal(detect(images[0], loose), got)
+    assert got.status == "ok" and [r.confidence for r in got.rows] == [0.0, 1.0, 0.0]
 
 
 @pytest.mark.parametrize(("green", "comb"), [("row_mean", "contrast"), ("otsu", "uniform"), ("otsu", "contrast")])

@@ -454,9 +454,11 @@ def _tracking(params: Params) -> Params:
 
 #: The improved mode's forward-camera setting (ALGORITHM.md 11.2, 11.3.1): a camera that sees
 #: the horizon, rows converging near the top edge or inside the image. ``--forward`` on the
-#: command line; ``Params(mode="improved", **FORWARD_CAMERA)`` in Python.
+#: command line; ``Params(mode="improved", **FORWARD_CAMERA)`` in Python. Its
+#: ``lattice_min_confidence`` (11.4): a row seen on fewer than 2 % of the image rows is no row
+#: (with spacings up to 320 px a forward camera's lattice puts neighbours outside the image).
 FORWARD_CAMERA: dict[str, Any] = {"lattice_model": "auto", "lattice_min_spacing": 16, "lattice_max_spacing": 320,
-                                  "lattice_vp_origin": "sky"}
+                                  "lattice_vp_origin": "sky", "lattice_min_confidence": 0.02}
 
 
 
