@@ -5,7 +5,8 @@ against ``lattice_min_confidence`` (ALGORITHM.md 11.4, the table under *Rows the
 
 Detects once (tensor path, ``Params(mode="improved", **FORWARD_CAMERA)`` with
 ``lattice_min_confidence=0``) on a CRDLD split, the CRBD training images, both turned by 90°
-each way (CRDLD: every ``--turn-every``-th image), and ten made-up images without crop rows; then
+each way (CRDLD: every ``--turn-every``-th image), and ten made-up images without crop rows
+(:func:`torchrow.evaluation.synthetic.rowless_scenes`); then
 applies each threshold to the records. That is exact: the threshold decides only which rows are
 valid (a row's confidence below it: ``no_support``) and so the status, never the fit. A row
 made invalid is no longer scored (10.1). Prints, per threshold, the CRDLD ``ok`` share, the share
@@ -27,40 +28,11 @@ from torchrow.core.params import FORWARD_CAMERA, Params
 from torchrow.engines.runner import run
 from torchrow.evaluation.crdld import LOW_SCORE, score
 from torchrow.evaluation.datasets import CRBD, CRDLD
+from torchrow.evaluation.synthetic import rowless_scenes
 from torchrow.reference.pipeline import prepare
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import data_root
-
-
-def made_up(seed: int = 0, h: int = 240, w: int = 320) -> dict[str, np.ndarray]:
-    """Ten RGB images without crop rows: wall, noise, green noise, sky, soil, soil with weed
-    spots, asphalt, two lawns, a road under sky."""
-    rng = np.random.default_rng(seed)
-
-    def smooth(s: float) -> np.ndarray:
-        a = cv2.GaussianBlur(rng.normal(0, 1, (h, w)).astype(np.float32), (0, 0), s)
-        return (a / a.std())[..., None]
-
-    def u8(a: np.ndarray) -> np.ndarray:
-        return np.clip(a, 0, 255).astype(np.uint8)
-
-    g = np.linspace(0, 1, h)[:, None, None]
-    sky = u8(np.array([120, 170, 235]) * (1 - 0.3 * g) + rng.normal(0, 3, (h, w, 3)))
-    coarse = smooth(6)
-    spots = smooth(3) > 0.35
-    return {
-        "wall": np.full((h, w, 3), 128, np.uint8),
-        "noise": rng.integers(0, 256, (h, w, 3), dtype=np.uint8),
-        "green noise": u8(rng.normal([90, 120, 70], 40, (h, w, 3))),
-        "sky": sky,
-        "soil": u8(np.array([110, 80, 55]) + 25 * smooth(2) + rng.normal(0, 6, (h, w, 3))),
-        "soil with weed spots": u8(np.where(spots, np.array([60, 140, 50]), np.array([120, 90, 60]) + 20 * coarse)),
-        "asphalt": u8(90 + rng.normal(0, 18, (h, w, 1)).repeat(3, 2)),
-        "lawn": u8(np.array([70, 130, 50]) + 30 * smooth(1.5) + rng.normal(0, 8, (h, w, 3))),
-        "coarse lawn": u8(np.array([60, 120, 45]) + 40 * coarse),
-        "road under sky": np.concatenate([sky[:80], u8(85 + rng.normal(0, 10, (h - 80, w, 1)).repeat(3, 2))]),
-    }
 
 
 def _read(path: Path) -> np.ndarray:
@@ -104,7 +76,7 @@ def main() -> None:
     crbd_train = [crbd.image(i) for i in crbd.indices("train")]
     turned_crdld = [np.ascontiguousarray(np.rot90(fields[i], k)) for i in range(0, len(ds), args.turn_every) for k in (1, 3)]
     turned_crbd = [np.ascontiguousarray(np.rot90(im, k)) for im in crbd_train for k in (1, 3)]
-    fake = made_up()
+    fake = rowless_scenes()
     sets = {"crdld": fields, "crbd": crbd_train, "turned crdld": turned_crdld, "turned crbd": turned_crbd,
             "made up": list(fake.values())}
     recs = {name: _detect(images, params, name) for name, images in sets.items()}

@@ -11,6 +11,7 @@ from torchrow.core.params import FORWARD_CAMERA, Params
 from torchrow.core.results import ImageResult, Row, record_differences
 from torchrow.engines.detector import CropRowDetector
 from torchrow.evaluation.metrics import crda_official, rows_to_U
+from torchrow.evaluation.synthetic import rowless_scenes
 from torchrow.functional import lattice as flat
 from torchrow.reference import detect
 from torchrow.reference import lattice as rlat
@@ -466,6 +467,22 @@ def test_forward_setting_rejects_rows_the_image_does_not_show() -> None:
     got = CropRowDetector(loose)(_t(images[:1])).results()[0]
     _records_equal(detect(images[0], loose), got)
     assert got.status == "ok" and [r.confidence for r in got.rows] == [0.0, 1.0, 0.0]
+
+
+def test_scenes_without_crop_rows_are_never_ok() -> None:
+    """Issue 25: a wall, noise, sky, soil, asphalt, lawns and a road are never ``ok``, in the
+    default and the forward-camera setting, and both paths agree on them."""
+    scenes = rowless_scenes()
+    assert len(scenes) == 10 and all(v.shape == (240, 320, 3) and v.dtype == np.uint8 for v in scenes.values())
+    assert all(np.array_equal(a, b) for a, b in zip(scenes.values(), rowless_scenes().values()))
+    images = list(scenes.values())
+    for params in (IMPROVED, Params(mode="improved", **FORWARD_CAMERA)):
+        out = CropRowDetector(params)(_t(images)).results()
+        for name, img, got in zip(scenes, images, out):
+            _records_equal(detect(img, params), got)
+            assert got.status != "ok", (name, params.lattice_model)
+    with pytest.raises(ValueError, match="2x2"):
+        rowless_scenes(height=1)
 
 
 @pytest.mark.parametrize(("green", "comb"), [("row_mean", "contrast"), ("otsu", "uniform"), ("otsu", "contrast")])

@@ -62,6 +62,7 @@ __all__ = [
     "render",
     "render_batch",
     "demo_field",
+    "rowless_scenes",
     "write_crp",
     "save",
     "sequence",
@@ -785,6 +786,44 @@ def render_batch(specs: Sequence[FieldSpec]) -> np.ndarray:
 def demo_field() -> SyntheticField:
     """The default field, ``render(FieldSpec())`` (320 x 240, used by ``torchrow demo``)."""
     return render(FieldSpec())
+
+
+def rowless_scenes(seed: int = 0, height: int = 240, width: int = 320) -> dict[str, np.ndarray]:
+    """Ten RGB images without crop rows, for checking that a detector does not call them ``ok``.
+
+    A grey wall, uniform noise, green noise, sky, bare soil, soil with weed spots, asphalt, a
+    fine and a coarse lawn, and a road under sky: ``uint8 (height, width, 3)`` each, in that
+    order, from ``numpy.random.default_rng(seed)`` (the same images for the same arguments).
+    """
+    if height < 2 or width < 2:
+        raise ValueError(f"scenes need at least 2x2 pixels, got {width}x{height}")
+    rng = np.random.default_rng(seed)
+    h, w = height, width
+
+    def smooth(sigma: float) -> np.ndarray:  # unit-variance texture, features of about sigma px
+        a = cv2.GaussianBlur(rng.normal(0, 1, (h, w)).astype(np.float32), (0, 0), sigma)
+        return (a / max(float(a.std()), 1e-6))[..., None]
+
+    def u8(a: np.ndarray) -> np.ndarray:
+        return np.clip(a, 0, 255).astype(np.uint8)
+
+    g = np.linspace(0, 1, h)[:, None, None]
+    sky = u8(np.array([120, 170, 235]) * (1 - 0.3 * g) + rng.normal(0, 3, (h, w, 3)))
+    coarse = smooth(6)
+    spots = smooth(3) > 0.35
+    horizon = max(1, h // 3)
+    return {
+        "wall": np.full((h, w, 3), 128, np.uint8),
+        "noise": rng.integers(0, 256, (h, w, 3), dtype=np.uint8),
+        "green noise": u8(rng.normal([90, 120, 70], 40, (h, w, 3))),
+        "sky": sky,
+        "soil": u8(np.array([110, 80, 55]) + 25 * smooth(2) + rng.normal(0, 6, (h, w, 3))),
+        "soil with weed spots": u8(np.where(spots, np.array([60, 140, 50]), np.array([120, 90, 60]) + 20 * coarse)),
+        "asphalt": u8(90 + rng.normal(0, 18, (h, w, 1)).repeat(3, 2)),
+        "lawn": u8(np.array([70, 130, 50]) + 30 * smooth(1.5) + rng.normal(0, 8, (h, w, 3))),
+        "coarse lawn": u8(np.array([60, 120, 45]) + 40 * coarse),
+        "road under sky": np.concatenate([sky[:horizon], u8(85 + rng.normal(0, 10, (h - horizon, w, 1)).repeat(3, 2))]),
+    }
 
 
 def write_crp(path: str | Path, crp: np.ndarray) -> Path:
