@@ -63,9 +63,11 @@ class CropRowDetector(nn.Module):
             raise ValueError(f"workers must be None or >= 1, got {workers}")
         # Hough/VP/RANSAC keep per-image accumulators of ~0.6 MB: on a CPU, groups of 8 images
         # stay in cache (measured 1.5x faster per image than 64 at once); a GPU takes all. The
-        # improved mode likewise: 8 was 0-11% faster per image than 12 or 16 at batch 64 once its
-        # refits stopped rebuilding their tables per step (benchmarks/RESULTS.md).
-        self.chunk = chunk if chunk is not None else (8 if self.device.type == "cpu" else None)
+        # improved mode takes 12: at batch 64 on 2 workers, 12 was within 1 % of 8 on one day and
+        # 9-13 % faster on another, where 16 ranged from 11 % slower to 18 % faster
+        # (benchmarks/RESULTS.md); its many small ops contend for the GIL across the workers.
+        default = 12 if self.params.mode == "improved" else 8
+        self.chunk = chunk if chunk is not None else (default if self.device.type == "cpu" else None)
         # Most of the work is many small ops (sorts, cumsums, scatters, argmax over one
         # chunk) that torch runs on one thread, so on a CPU whole chunks run concurrently on
         # single-threaded workers instead (measured 1.5x the images/s of 2 intra-op threads

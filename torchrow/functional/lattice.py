@@ -12,7 +12,7 @@ the VP search's ``(V, C)`` bin table, ``8 V C`` bytes once per size and grid; pe
 ``(V, 3W + 1 + lattice_max_spacing)`` int32 histograms and one spacing's folds, ``4 V (3W + 8
 lattice_max_spacing)``, the comb's scores ``16 Q`` and its tooth windows, ``24 W`` per distinct
 tooth half-width. Measured peak RSS of :class:`~torchrow.engines.detector.CropRowDetector`
-(the whole detection, CPU: chunks of 8 images on 2 workers) for a batch of 64 images of
+(the whole detection, CPU: chunks of 12 images on 2 workers) for a batch of 64 images of
 320x240: 0.6 GiB with the defaults, 0.8-1.0 GiB with spacings 12..320, ``lattice_vp_step``
 10 and 15 VP heights; one image of 320x1638 (the largest ``max_pixels`` admits): 1.3 and 1.6 GiB.
 """
