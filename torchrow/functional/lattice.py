@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
+import torch.nn.functional as F
 
 from torchrow.core.io import check_lattice_size, lattice_params
 from torchrow.core.params import VP_SLICE, Params
@@ -289,33 +290,16 @@ def _gathered_histograms(cnt: torch.Tensor, height: int, width: int, params: Par
     return (at[:, :, 1:] - at[:, :, :-1]).to(torch.int32)
 
 
-_FOLD_INDEX: dict[tuple[int, int, str], torch.Tensor] = {}
-
-
-def _fold_index(d: int, hw: int, device: torch.device) -> torch.Tensor:
-    """The bins ``(-hw - 1 .. d + d//2 + hw) mod d`` of a fold, ``(d + d//2 + 2 hw + 2,)`` int64:
-    the fold circularly extended for :func:`_fold_peak`, cached per spacing (never while exporting)."""
-    key = (d, hw, str(device))
-    idx = _FOLD_INDEX.get(key)
-    if idx is None:
-        idx = torch.remainder(torch.arange(-hw - 1, d + d // 2 + hw + 1, device=device), d)
-        if not torch.compiler.is_exporting():  # never cache a tensor traced by torch.export
-            _FOLD_INDEX[key] = idx
-    return idx
-
-
 def _fold_peak(fold: torch.Tensor, d: int, params: Params) -> torch.Tensor:
     """The best tooth minus anti-tooth of ``(B, V, d)`` int32 folds over the phases, ``(B, V)``.
 
     With ``h = floor(d lattice_window)`` and ``a = d // 2``, the teeth of every phase ``p < d + a``
-    are differences of one cumulative sum ``C`` of the circularly extended fold; the anti-tooth of
-    phase ``p`` is the tooth of ``p + a``. The extension is one gather (:func:`_fold_index`) and
-    starts one bin early, which adds that bin to every entry of ``C`` and so to none of the
-    differences (integers). Ten tensor operations per spacing: at batch 1 with a tracked
-    sequence's 15 grid VPs the spacings' loop costs its operations, not its data."""
+    are differences of one cumulative sum ``C`` of the circularly extended fold (one circular
+    pad, which starts one bin early: that bin adds to every entry of ``C`` and so to none of the
+    differences, integers); the anti-tooth of phase ``p`` is the tooth of ``p + a``."""
     hw = int(math.floor(d * params.lattice_window))
     a = d // 2
-    cs = torch.cumsum(fold.index_select(-1, _fold_index(d, hw, fold.device)), dim=-1, dtype=torch.int32)
+    cs = torch.cumsum(F.pad(fold, (hw + 1, a + hw + 1), mode="circular"), dim=-1, dtype=torch.int32)
     tooth = cs[..., 2 * hw + 1:] - cs[..., :-(2 * hw + 1)]  # tooth[p], p = 0 .. d + a: C[p + 2h + 1] - C[p]
     return (tooth[..., :d] - tooth[..., a:a + d]).amax(dim=-1)
 
@@ -405,7 +389,7 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     tail = torch.zeros((bsz, nv, 1 + params.lattice_max_spacing), dtype=torch.int32, device=dev)
     hist = torch.cat([hist, tail], dim=2)
     total = hist.sum(dim=2, dtype=torch.int64)
-    peaks = []
+    best = torch.full((bsz, nv), -(2**31) + 1, dtype=torch.int32, device=dev)
     spacings = range(params.lattice_min_spacing, params.lattice_max_spacing + 1, params.lattice_vp_spacing_step)
     for top in spacings:
         if 2 * top in spacings:
@@ -414,12 +398,11 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
         teeth = -(-nb // d)
         fold = hist[:, :, :teeth * d].view(bsz, nv, teeth, d).sum(dim=2, dtype=torch.int32)
         while True:
-            peaks.append(_fold_peak(fold, d, params))
+            best = torch.maximum(best, _fold_peak(fold, d, params))
             if d % 2 or d // 2 not in spacings:
                 break
             d //= 2
             fold = fold[..., :d] + fold[..., d:]  # bins = r mod d are those = r or r + d mod 2d
-    best = torch.stack(peaks, dim=2).amax(dim=2)  # once, not one maximum per spacing
     seen = total > 0
     value = torch.where(seen, best.to(torch.float64) / torch.clamp(total, min=1).to(torch.float64),
                         torch.full_like(total, -math.inf, dtype=torch.float64))
