@@ -530,6 +530,39 @@ def test_vp_search_tensor_equals_reference_batched_and_alone(change: dict) -> No
         assert torch.equal(flat.vp_search(torch.from_numpy(m)[None], params)[0], got[i])
     empty = flat.vp_search(torch.zeros((0, 240, 320), dtype=torch.bool), params)
     assert empty.shape == (0, 2)
+    # a tracked window (11.7): its spacings at once alone, one by one in the batch (AT_ONCE_ROWS)
+    spots = [[160, -40], [0, -250], [320, -20], [100, -90], [250, -130], [40, -60], [-300, 10], [900, -900]]
+    near = torch.tensor([spots[i % len(spots)] for i in range(len(masks))])
+    got = flat.vp_search(torch.from_numpy(np.stack(masks)), params, None, near)
+    for i, m in enumerate(masks):
+        assert tuple(got[i].tolist()) == rlat.vp_search(m, params, 0, tuple(near[i].tolist()))
+        assert torch.equal(flat.vp_search(torch.from_numpy(m)[None], params, None, near[i:i + 1])[0], got[i])
+
+
+@pytest.mark.parametrize("change", [{}, {"lattice_min_spacing": 16, "lattice_max_spacing": 320},
+                                    {"lattice_min_spacing": 7, "lattice_max_spacing": 97, "lattice_vp_spacing_step": 3,
+                                     "lattice_window": 0.3}])
+def test_vp_search_fold_peaks_at_once_equal_spacing_by_spacing(change: dict) -> None:
+    # vp_search takes the spacings at once for small batches and spacing by spacing for large
+    # ones (a size bound, not a rule): the same integers, on extreme histograms too
+    params = IMPROVED.replace(**change)
+    rng = np.random.default_rng(5)
+    nb = 3 * 320
+    hist = torch.from_numpy(rng.integers(0, 60, (3, 4, nb + 1 + params.lattice_max_spacing)).astype(np.int32))
+    hist[0, 0] = 0
+    hist[0, 1, :] = 0
+    hist[0, 1, 17] = 240 * 320  # every pixel in one bin
+    hist[0, 2] = torch.arange(hist.shape[2], dtype=torch.int32) % 2 * 100
+    hist[:, :, nb:] = 0  # the spill bin dropped, the tail zeros (as vp_search's)
+    before = hist.clone()
+    tables = flat._fold_tables(nb, 240 * 320, params, hist.device)
+    got = flat._peaks_at_once(hist, tables)
+    assert got.dtype == torch.int32 and got.shape == (3, 4)
+    assert torch.equal(got, flat._peaks_by_spacing(hist, nb, params))
+    assert torch.equal(hist, before)
+    assert flat._peaks_at_once(hist[:0], tables).shape == (0, 4)
+    wide = flat._fold_tables(nb, 2**30, params, hist.device)  # sums that could pass 2**31: int64
+    assert wide.wide and not tables.wide and torch.equal(flat._peaks_at_once(hist, wide), got)
 
 
 def test_vp_window_both_paths_and_its_bounds() -> None:

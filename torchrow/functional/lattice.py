@@ -304,6 +304,137 @@ def _fold_peak(fold: torch.Tensor, d: int, params: Params) -> torch.Tensor:
     return (tooth[..., :d] - tooth[..., a:a + d]).amax(dim=-1)
 
 
+def _top_spacings(params: Params) -> tuple[range, list[int]]:
+    """The VP search's spacings and those folded from the histograms, not from a double's fold."""
+    spacings = range(params.lattice_min_spacing, params.lattice_max_spacing + 1, params.lattice_vp_spacing_step)
+    return spacings, [d for d in spacings if 2 * d not in spacings]
+
+
+def _peaks_by_spacing(hist: torch.Tensor, nb: int, params: Params) -> torch.Tensor:
+    """:func:`vp_search`'s best fold peak over the spacings, ``(B, V)`` int32, of ``hist (B, V,
+    3W + 1 + lattice_max_spacing)`` int32, spacing by spacing: one spacing's folds at a time,
+    what large batches of large grids take (:func:`_peaks_at_once` for small ones)."""
+    bsz, nv = hist.shape[:2]
+    best = torch.full((bsz, nv), -(2**31) + 1, dtype=torch.int32, device=hist.device)
+    spacings, tops = _top_spacings(params)
+    for d in tops:
+        teeth = -(-nb // d)
+        fold = hist[:, :, :teeth * d].view(bsz, nv, teeth, d).sum(dim=2, dtype=torch.int32)
+        while True:
+            best = torch.maximum(best, _fold_peak(fold, d, params))
+            if d % 2 or d // 2 not in spacings:
+                break
+            d //= 2
+            fold = fold[..., :d] + fold[..., d:]  # bins = r mod d are those = r or r + d mod 2d
+    return best
+
+
+class _FoldTables(NamedTuple):
+    """:func:`_peaks_at_once`'s index tables, int64. ``halve[l]``: ``(lo, hi)`` into the folds of
+    level ``l`` (level 0: the top spacings', each folded from the histograms; level ``l + 1``:
+    the halves of level ``l``'s even spacings whose half is searched), ``fold_{d/2}[p] =
+    fold_d[p] + fold_d[p + d/2]``; ``ext``: into all levels' folds concatenated, per spacing its
+    fold circularly extended from ``-h - 1`` to ``d + h - 1`` (``d + 2h + 1`` entries; :func:`_fold_peak`'s
+    ``h``); ``lo``, ``hi`` ``(L,)``: per spacing and phase ``p < d`` the entries ``p`` and ``p + 2h
+    + 1`` of its extension, so that a tooth is a difference of the extension's cumulative sum;
+    ``anti`` ``(L,)``: per spacing and phase the tooth of phase ``(p + d // 2) mod d``
+    (``L`` = the sum of the spacings); ``wide``: that cumulative sum needs int64; ``nb`` and
+    ``tops``: the bins folded and the top spacings, level 0's order."""
+
+    nb: int
+    tops: tuple[int, ...]
+    halve: tuple[tuple[torch.Tensor, torch.Tensor], ...]
+    ext: torch.Tensor
+    lo: torch.Tensor
+    hi: torch.Tensor
+    anti: torch.Tensor
+    wide: bool
+
+
+_FOLD_TABLES: dict[tuple, _FoldTables] = {}
+
+#: :func:`vp_search` takes the spacings at once (:func:`_peaks_at_once`) up to this many
+#: (image, VP) pairs, spacing by spacing beyond: on one CPU thread at 500x281 with spacings
+#: 16..320 the two cost the same near 30 pairs (a tracked window of 15 VPs at batch 2; at
+#: batch 1 5.4 against 7.6 ms, at batch 8 100 against 43 ms), and a whole grid at batch 1
+#: (119 VPs at 320x240) takes 9.7 against 7.1 ms.
+AT_ONCE_ROWS = 16
+
+
+def _fold_tables(nb: int, pixels: int, params: Params, device: torch.device) -> _FoldTables:
+    """:class:`_FoldTables` for ``nb`` histogram bins of images of ``pixels`` pixels, built once per
+    size and spacings (``8 (L + sum(d + 2h + 1))`` bytes and the halvings', 1 MB at 500x281 with
+    spacings 16..320) and cached (never while exporting: an exported graph holds them as constants)."""
+    key = (nb, pixels, params.lattice_min_spacing, params.lattice_max_spacing, params.lattice_vp_spacing_step,
+           params.lattice_window, str(device))
+    tables = _FOLD_TABLES.get(key)
+    if tables is not None:
+        return tables
+    def table(t: list[int]) -> torch.Tensor:
+        return torch.tensor(t, dtype=torch.int64, device=device)
+
+    spacings, tops = _top_spacings(params)
+    levels, halve = [list(tops)], []
+    while True:
+        lo: list[int] = []
+        hi: list[int] = []
+        nxt = []
+        off = 0
+        for d in levels[-1]:
+            if d % 2 == 0 and d // 2 in spacings:
+                lo += range(off, off + d // 2)
+                hi += range(off + d // 2, off + d)
+                nxt.append(d // 2)
+            off += d
+        if not nxt:
+            break
+        halve.append((table(lo), table(hi)))
+        levels.append(nxt)
+    ext: list[int] = []
+    anti: list[int] = []
+    lo, hi = [], []
+    off = 0
+    for d in (d for level in levels for d in level):
+        hw = int(math.floor(d * params.lattice_window))
+        start = len(ext)
+        ext += (off + (i - hw - 1) % d for i in range(d + 2 * hw + 1))
+        lo += range(start, start + d)
+        hi += range(start + 2 * hw + 1, start + 2 * hw + 1 + d)
+        anti += (off + (p + d // 2) % d for p in range(d))
+        off += d
+    # every extension sums to at most twice its fold's total, at most the image's pixels
+    wide = 2 * len(spacings) * pixels >= 2**31
+    tables = _FoldTables(nb, tuple(tops), tuple(halve), table(ext), table(lo), table(hi), table(anti), wide)
+    if not torch.compiler.is_exporting():  # never cache a tensor traced by torch.export
+        _FOLD_TABLES.clear()  # one size at a time
+        _FOLD_TABLES[key] = tables
+    return tables
+
+
+def _peaks_at_once(hist: torch.Tensor, tables: _FoldTables) -> torch.Tensor:
+    """:func:`_peaks_by_spacing`'s integers with the spacings at once: one sum per top spacing (the
+    folds of the histograms), then the halvings one level at a time, one circular extension, one
+    cumulative sum and the teeth and anti-teeth as index selections (:class:`_FoldTables`), about
+    3 tensor operations per top spacing and 20 in all in place of 10 per spacing. A tracked
+    sequence's windowed search at batch 1 (15 VPs) costs its operations, not its data; the
+    extension is ``4 B V sum(d + 2h + 1)`` bytes (1.9 MB at 500x281, 15 VPs, spacings 16..320),
+    and beyond a few dozen (image, VP) pairs the spacing-by-spacing loop, whose working set is
+    one spacing's folds, is faster (:data:`AT_ONCE_ROWS`).
+    ``hist (B, V, 3W + 1 + lattice_max_spacing)`` int32 -> ``(B, V)`` int32."""
+    bsz, nv = hist.shape[:2]
+    # spacings and phases first: each selection copies rows of B V entries
+    level = torch.cat([hist[:, :, :-(-tables.nb // d) * d].view(bsz, nv, -(-tables.nb // d), d).sum(
+        dim=2, dtype=torch.int32) for d in tables.tops], dim=2).view(bsz * nv, sum(tables.tops)).t().contiguous()
+    folds = [level]
+    for lo, hi in tables.halve:
+        level = level.index_select(0, lo) + level.index_select(0, hi)
+        folds.append(level)
+    ext = torch.cat(folds, dim=0).index_select(0, tables.ext)
+    cs = torch.cumsum(ext, dim=0, dtype=torch.int64 if tables.wide else torch.int32)
+    tooth = cs.index_select(0, tables.hi) - cs.index_select(0, tables.lo)
+    return (tooth - tooth.index_select(0, tables.anti)).amax(dim=0).to(torch.int32).view(bsz, nv)
+
+
 def vp_origin(sky: torch.Tensor, height: int, params: Params) -> torch.Tensor:
     """Section 11.2: the row the VP grid's heights count from, ``(B,)`` int64 from section 1's
     ``sky (B,)`` (:func:`torchrow.reference.lattice.vp_origin`): 0, or ``min(sky +
@@ -344,15 +475,18 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     are searched moved up to row 0 (one gather of the mask) and ``origin`` is added to the VP's row.
     ``near (B, 2)`` int64 (section 11.7, tracked sequences' VPs; ``None``: the whole grid): each
     image searches its own :func:`vp_window` of the grid, ``n`` VPs in place of ``V``, their bins
-    computed per call by :func:`vp_table`'s expression (float64 temporaries of at most
-    ``VP_SLICE`` entries; 4 MB per image at 500x281 with the default window).
+    the table's rows (eagerly) or, while exporting, computed per call by :func:`vp_table`'s
+    expression (float64 temporaries of at most ``VP_SLICE`` entries; 4 MB per image at 500x281
+    with the default window), so that an exported graph holds no ``(V, C)`` table for it.
 
     The cell counts are scattered into ``(B, V, 3W + 1)`` int32 histograms along the bins
     (``VP_SLICE`` (image, VP, cell) triples per scatter, through :func:`vp_table`'s bins; the
-    table and the counts broadcast with stride 0, nothing repeated), then folded spacing by
-    spacing (a static loop; a spacing whose double is searched too is folded from that fold,
-    ``2d`` values instead of ``3W``); every sum is an integer below ``2**31``, so the scores are
-    the reference's. Peak memory: the histograms twice, ``8 V (3W + d_max)`` bytes per image
+    table and the counts broadcast with stride 0, nothing repeated), then folded per spacing (a
+    spacing whose double is searched too is folded from that fold, ``2d`` values instead of
+    ``3W``): all spacings at once for at most ``AT_ONCE_ROWS`` (image, VP) pairs
+    (:func:`_peaks_at_once`: a tracked sequence's window), spacing by spacing beyond
+    (:func:`_peaks_by_spacing`); every sum is an integer below ``2**31`` (int64 where
+    it could pass), so the scores are the reference's. Peak memory: the histograms twice, ``8 V (3W + d_max)`` bytes per image
     (1 MB at 320x240), plus the table. (Repeating the counts for a flat scatter cost 9-10 % of
     the search eagerly, best of interleaved runs at batch 1, 16 and 64.) While exporting
     (``torch.compiler.is_exporting()``) the histograms come from :func:`_gathered_histograms`
@@ -363,8 +497,9 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     bsz, h, w = mask.shape
     dev = mask.device
     grid, idx = vp_table(h, w, params, dev)
-    if near is not None:
-        grid = grid[vp_window(near, origin, w, params)]  # (B, n, 2)
+    win = None if near is None else vp_window(near, origin, w, params)  # (B, n)
+    if win is not None:
+        grid = grid[win]  # (B, n, 2)
     if origin is not None:
         rows = torch.arange(h, device=dev).view(1, h) + origin.view(-1, 1)  # (B, H): the source row
         inside = (rows < h).view(bsz, h, 1)
@@ -377,10 +512,12 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     padded[:, :h, :w] = mask
     cnt = padded.view(bsz, hc, s, wc, s).sum(dim=(2, 4), dtype=torch.int32).view(bsz, ncell)
     nb = 3 * w
-    if near is not None:
+    if win is not None and torch.compiler.is_exporting():
         # the window's bins computed here by the table's expression: an exported graph holds no (V, C) table
         yc, xc = _cell_centres(h, w, params, dev)
         hist = _scattered_histograms(cnt, nv, w, lambda v0, k: _bins(grid[:, v0:v0 + k], yc, xc, h, w, params))
+    elif win is not None:
+        hist = _scattered_histograms(cnt, nv, w, lambda v0, k: idx[win[:, v0:v0 + k]])
     elif torch.compiler.is_exporting():
         hist = _gathered_histograms(cnt, h, w, params)
     else:
@@ -389,20 +526,11 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     tail = torch.zeros((bsz, nv, 1 + params.lattice_max_spacing), dtype=torch.int32, device=dev)
     hist = torch.cat([hist, tail], dim=2)
     total = hist.sum(dim=2, dtype=torch.int64)
-    best = torch.full((bsz, nv), -(2**31) + 1, dtype=torch.int32, device=dev)
-    spacings = range(params.lattice_min_spacing, params.lattice_max_spacing + 1, params.lattice_vp_spacing_step)
-    for top in spacings:
-        if 2 * top in spacings:
-            continue  # folded from its double's fold, below
-        d = top
-        teeth = -(-nb // d)
-        fold = hist[:, :, :teeth * d].view(bsz, nv, teeth, d).sum(dim=2, dtype=torch.int32)
-        while True:
-            best = torch.maximum(best, _fold_peak(fold, d, params))
-            if d % 2 or d // 2 not in spacings:
-                break
-            d //= 2
-            fold = fold[..., :d] + fold[..., d:]  # bins = r mod d are those = r or r + d mod 2d
+    tables = _fold_tables(nb, h * w, params, dev)
+    if bsz * nv <= AT_ONCE_ROWS:
+        best = _peaks_at_once(hist, tables)
+    else:
+        best = _peaks_by_spacing(hist, nb, params)
     seen = total > 0
     value = torch.where(seen, best.to(torch.float64) / torch.clamp(total, min=1).to(torch.float64),
                         torch.full_like(total, -math.inf, dtype=torch.float64))
