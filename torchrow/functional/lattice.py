@@ -293,15 +293,19 @@ def _gathered_histograms(cnt: torch.Tensor, height: int, width: int, params: Par
 def _fold_peak(fold: torch.Tensor, d: int, params: Params) -> torch.Tensor:
     """The best tooth minus anti-tooth of ``(B, V, d)`` int32 folds over the phases, ``(B, V)``.
 
-    With ``h = floor(d lattice_window)`` and ``a = d // 2``, the teeth of every phase ``p < d + a``
-    are differences of one cumulative sum ``C`` of the circularly extended fold (one circular
-    pad, which starts one bin early: that bin adds to every entry of ``C`` and so to none of the
-    differences, integers); the anti-tooth of phase ``p`` is the tooth of ``p + a``."""
+    With ``h = floor(d lattice_window)`` and ``a = d // 2``, phase ``p``'s tooth minus its
+    anti-tooth (the tooth of ``p + a``) is the sum of ``g[i] = fold[i] - fold[(i + a) mod d]`` over
+    the circular window ``p - h .. p + h``: a difference of one cumulative sum ``C`` of ``g``
+    circularly extended (one circular pad of the fold, which starts one bin early: that bin adds
+    to every entry of ``C`` and so to none of the differences, integers)."""
     hw = int(math.floor(d * params.lattice_window))
     a = d // 2
-    cs = torch.cumsum(F.pad(fold, (hw + 1, a + hw + 1), mode="circular"), dim=-1, dtype=torch.int32)
-    tooth = cs[..., 2 * hw + 1:] - cs[..., :-(2 * hw + 1)]  # tooth[p], p = 0 .. d + a: C[p + 2h + 1] - C[p]
-    return (tooth[..., :d] - tooth[..., a:a + d]).amax(dim=-1)
+    n = d + 2 * hw + 1
+    ext = F.pad(fold, (hw + 1, a + hw + 1), mode="circular")
+    # g[i] = e[i] - e[i + a]: a tooth minus its anti-tooth is a window sum of g, one difference of
+    # its cumulative sum (shorter than the teeth's own, d + 2h + 1 entries instead of d + a + 2h + 2)
+    cs = torch.cumsum(ext[..., :n] - ext[..., a:a + n], dim=-1, dtype=torch.int32)
+    return (cs[..., 2 * hw + 1:] - cs[..., :d]).amax(dim=-1)  # C[p + 2h + 1] - C[p], p = 0 .. d - 1
 
 
 def _top_spacings(params: Params) -> tuple[range, list[int]]:
@@ -508,9 +512,11 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     s = params.lattice_vp_cell
     hc, wc = -(-h // s), -(-w // s)
     nv, ncell = grid.shape[-2], hc * wc
-    padded = torch.zeros((bsz, hc * s, wc * s), dtype=torch.int32, device=dev)
-    padded[:, :h, :w] = mask
-    cnt = padded.view(bsz, hc, s, wc, s).sum(dim=(2, 4), dtype=torch.int32).view(bsz, ncell)
+    padded = F.pad(mask.to(torch.int32), (0, wc * s - w, 0, hc * s - h))
+    # a cell's rows first, then its columns: two contiguous reductions (one over both axes at
+    # once strided through the image, 10x slower at batch 12)
+    cnt = padded.view(bsz, hc, s, wc * s).sum(dim=2, dtype=torch.int32).view(bsz, hc, wc, s).sum(
+        dim=3, dtype=torch.int32).view(bsz, ncell)
     nb = 3 * w
     if win is not None and torch.compiler.is_exporting():
         # the window's bins computed here by the table's expression: an exported graph holds no (V, C) table
