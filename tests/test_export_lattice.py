@@ -246,9 +246,14 @@ def test_vp_search_traced_in_a_branch_keeps_its_chunks() -> None:
 
     args = (mask, torch.ones(1, dtype=torch.bool), near)
     flat._VP_GATHER_TABLES.clear()
+    flat._VP_WINDOW_TABLES.clear()
     with pytest.raises(RuntimeError, match="built eagerly"):
         torch.export.export(Search(), args, strict=False)
     flat.vp_gather_table(HEIGHT, WIDTH, params, mask.device)
+    with pytest.raises(RuntimeError, match=r"vp_window_table\(.*built eagerly"):
+        torch.export.export(Search(), args, strict=False)
+    flat.vp_window_table(HEIGHT, WIDTH, params, mask.device)
+    assert flat.vp_window_table(HEIGHT, WIDTH, params, mask.device).dtype == torch.int16
     program = torch.export.export(Search(), args, strict=False)
     calls = [str(n.target) for sub in program.graph_module.modules() if isinstance(sub, torch.fx.GraphModule)
              for n in sub.graph.nodes if n.op == "call_function"]

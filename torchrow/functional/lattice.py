@@ -273,6 +273,28 @@ def vp_gather_table(height: int, width: int, params: Params, device: torch.devic
     return table
 
 
+_VP_WINDOW_TABLES: dict[tuple, torch.Tensor] = {}
+
+
+def vp_window_table(height: int, width: int, params: Params, device: torch.device) -> torch.Tensor:
+    """:func:`vp_table`'s bins in the smallest integer type that holds ``3W`` (int16 up to ``W =
+    10922``, else int32), ``(V, C)``: the table an exported graph takes a tracked window's rows from
+    (:func:`vp_window`, then widened to int64), ``2 V C`` bytes (13 MB at 500x281) where the int64
+    table would be 51 MB. Built once per size from :func:`vp_table` and cached; only the exported
+    step uses it (eagerly the window takes :func:`vp_table`'s rows), and like
+    :func:`vp_gather_table` it must be built before an export traces the search."""
+    key = (height, width, params.lattice_vp_step, params.lattice_vp_heights, params.lattice_vp_cell,
+           params.lattice_vp_margin, str(device))
+    table = _VP_WINDOW_TABLES.get(key)
+    if table is None and torch.compiler.is_exporting():
+        raise RuntimeError(f"vp_window_table({height}, {width}, ...) must be built eagerly before an export traces "
+                           "the VP search (torchrow.onnx.to_onnx does)")
+    if table is None:
+        table = vp_table(height, width, params, device)[1].to(torch.int16 if 3 * width < 2**15 else torch.int32)
+        _VP_WINDOW_TABLES[key] = table
+    return table
+
+
 def _gathered_histograms(cnt: torch.Tensor, height: int, width: int, params: Params) -> torch.Tensor:
     """:func:`_scattered_histograms` of the whole grid as gathers and one cumulative sum (:func:`vp_gather_table`),
     the same integers. onnxruntime's ``ScatterElements`` spent about 7 ns per (VP, cell) pair
@@ -479,9 +501,8 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     are searched moved up to row 0 (one gather of the mask) and ``origin`` is added to the VP's row.
     ``near (B, 2)`` int64 (section 11.7, tracked sequences' VPs; ``None``: the whole grid): each
     image searches its own :func:`vp_window` of the grid, ``n`` VPs in place of ``V``, their bins
-    the table's rows (eagerly) or, while exporting, computed per call by :func:`vp_table`'s
-    expression (float64 temporaries of at most ``VP_SLICE`` entries; 4 MB per image at 500x281
-    with the default window), so that an exported graph holds no ``(V, C)`` table for it.
+    the table's rows (eagerly :func:`vp_table`, while exporting :func:`vp_window_table`, the same
+    integers in int16, so that the graph holds a quarter of the int64 table).
 
     The cell counts are scattered into ``(B, V, 3W + 1)`` int32 histograms along the bins
     (``VP_SLICE`` (image, VP, cell) triples per scatter, through :func:`vp_table`'s bins; the
@@ -519,9 +540,9 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
         dim=3, dtype=torch.int32).view(bsz, ncell)
     nb = 3 * w
     if win is not None and torch.compiler.is_exporting():
-        # the window's bins computed here by the table's expression: an exported graph holds no (V, C) table
-        yc, xc = _cell_centres(h, w, params, dev)
-        hist = _scattered_histograms(cnt, nv, w, lambda v0, k: _bins(grid[:, v0:v0 + k], yc, xc, h, w, params))
+        # an exported graph holds the table in int16 (vp_window_table), a quarter of the int64 one
+        small = vp_window_table(h, w, params, dev)
+        hist = _scattered_histograms(cnt, nv, w, lambda v0, k: small[win[:, v0:v0 + k]].to(torch.int64))
     elif win is not None:
         hist = _scattered_histograms(cnt, nv, w, lambda v0, k: idx[win[:, v0:v0 + k]])
     elif torch.compiler.is_exporting():

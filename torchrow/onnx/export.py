@@ -141,6 +141,7 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
             module(*args)
             # the VP search's gather form, which only the exported graph uses (eagerly it scatters)
             flattice.vp_gather_table(height, width, params, images.device)
+            flattice.vp_window_table(height, width, params, images.device)  # a tracked window's, in int16
         names, outputs = list(static.LATTICE_INPUTS), list(static.LATTICE_OUTPUTS)
     elif tracker:
         from torchrow.functional.tracking import TrackerState
