@@ -390,12 +390,14 @@ AT_ONCE_ROWS = 16
 def _fold_tables(nb: int, pixels: int, params: Params, device: torch.device) -> _FoldTables:
     """:class:`_FoldTables` for ``nb`` histogram bins of images of ``pixels`` pixels, built once per
     size and spacings (``8 (L + sum(d + 2h + 1))`` bytes and the halvings', 1 MB at 500x281 with
-    spacings 16..320) and cached (never while exporting: an exported graph holds them as constants)."""
+    spacings 16..320; about 20 ms to build) and cached (never while exporting: an exported graph
+    holds them as constants)."""
     key = (nb, pixels, params.lattice_min_spacing, params.lattice_max_spacing, params.lattice_vp_spacing_step,
            params.lattice_window, str(device))
     tables = _FOLD_TABLES.get(key)
     if tables is not None:
         return tables
+
     def table(t: list[int]) -> torch.Tensor:
         return torch.tensor(t, dtype=torch.int64, device=device)
 
@@ -432,7 +434,8 @@ def _fold_tables(nb: int, pixels: int, params: Params, device: torch.device) -> 
     wide = 2 * len(spacings) * pixels >= 2**31
     tables = _FoldTables(nb, tuple(tops), tuple(halve), table(ext), table(lo), table(hi), table(anti), wide)
     if not torch.compiler.is_exporting():  # never cache a tensor traced by torch.export
-        _FOLD_TABLES.clear()  # one size at a time
+        if len(_FOLD_TABLES) >= 8:  # a few sizes at a time (about 20 ms to build one)
+            _FOLD_TABLES.clear()
         _FOLD_TABLES[key] = tables
     return tables
 
@@ -553,9 +556,8 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     tail = torch.zeros((bsz, nv, 1 + params.lattice_max_spacing), dtype=torch.int32, device=dev)
     hist = torch.cat([hist, tail], dim=2)
     total = hist.sum(dim=2, dtype=torch.int64)
-    tables = _fold_tables(nb, h * w, params, dev)
     if bsz * nv <= AT_ONCE_ROWS:
-        best = _peaks_at_once(hist, tables)
+        best = _peaks_at_once(hist, _fold_tables(nb, h * w, params, dev))
     else:
         best = _peaks_by_spacing(hist, nb, params)
     seen = total > 0
