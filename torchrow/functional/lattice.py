@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -171,6 +171,12 @@ def init_vp(vp: torch.Tensor, has_vp: torch.Tensor, width: int, params: Params) 
 _VP_TABLES: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
 
 
+def _grid_key(height: int, width: int, params: Params, device: torch.device) -> tuple:
+    """What the VP grid's tables depend on: the sizes, the grid's fields and the device."""
+    return (height, width, params.lattice_vp_step, params.lattice_vp_heights, params.lattice_vp_cell,
+            params.lattice_vp_margin, str(device))
+
+
 def _cell_centres(height: int, width: int, params: Params, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
     """The VP search's cell centres ``(yc, xc)``, ``(C,)`` float64 each, row-major
     (:func:`torchrow.reference.lattice.vp_cells`)."""
@@ -201,8 +207,7 @@ def vp_table(height: int, width: int, params: Params, device: torch.device) -> t
     ``VP_SLICE`` (VP, cell) pairs at a time) and cached:
     ``8 V C`` bytes, 18 MB at 320x240; sizes whose tables exceed the bound of
     :meth:`Params.lattice_table_bytes` raise :class:`~torchrow.core.io.ImageError` first."""
-    key = (height, width, params.lattice_vp_step, params.lattice_vp_heights, params.lattice_vp_cell,
-           params.lattice_vp_margin, str(device))
+    key = _grid_key(height, width, params, device)
     table = _VP_TABLES.get(key)
     if table is None:
         check_lattice_size(width, height, params)
@@ -250,27 +255,23 @@ def vp_gather_table(height: int, width: int, params: Params, device: torch.devic
     bin ``b`` holds ``S[ends[v, b + 1]] - S[ends[v, b]]`` of the cumulative sum ``S`` of the counts
     taken in that order. Built once per size from :func:`vp_table` and cached (``8 N`` bytes, about
     ``8 V C``: 48 MB at 500x281); only the exported step uses it (:func:`vp_search`)."""
-    key = (height, width, params.lattice_vp_step, params.lattice_vp_heights, params.lattice_vp_cell,
-           params.lattice_vp_margin, str(device))
-    table = _VP_GATHER_TABLES.get(key)
-    if table is None and torch.compiler.is_exporting():
-        # its sizes depend on the table's values: traced, they would be data-dependent
-        raise RuntimeError(f"vp_gather_table({height}, {width}, ...) must be built eagerly before an export traces "
-                           "the VP search (torchrow.onnx.to_onnx does)")
-    if table is None:
-        idx = vp_table(height, width, params, device)[1]
-        nv, ncell = idx.shape
-        nb = 3 * width
-        order = torch.argsort(idx, dim=1, stable=True)
-        bins = torch.gather(idx, 1, order)
-        binned = bins < nb  # the spill bin sorts last
-        count = binned.sum(dim=1)
-        start = torch.cumsum(count, 0) - count + 1  # after the leading zero
-        below = torch.searchsorted(bins, torch.arange(nb + 1, device=device).expand(nv, nb + 1).contiguous())
-        ends = (start.unsqueeze(1) + torch.minimum(below, count.unsqueeze(1)) - 1).reshape(-1)
-        table = (torch.cat([torch.full((1,), ncell, dtype=torch.int64, device=device), order[binned]]), ends)
-        _VP_GATHER_TABLES[key] = table
-    return table
+    return _export_table(_VP_GATHER_TABLES, "vp_gather_table", height, width, params, device,
+                         lambda: _gather_order(vp_table(height, width, params, device)[1], width))
+
+
+def _gather_order(idx: torch.Tensor, width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`vp_gather_table` built from :func:`vp_table`'s bins ``idx (V, C)`` int64."""
+    nv, ncell = idx.shape
+    nb = 3 * width
+    device = idx.device
+    order = torch.argsort(idx, dim=1, stable=True)
+    bins = torch.gather(idx, 1, order)
+    binned = bins < nb  # the spill bin sorts last
+    count = binned.sum(dim=1)
+    start = torch.cumsum(count, 0) - count + 1  # after the leading zero
+    below = torch.searchsorted(bins, torch.arange(nb + 1, device=device).expand(nv, nb + 1).contiguous())
+    ends = (start.unsqueeze(1) + torch.minimum(below, count.unsqueeze(1)) - 1).reshape(-1)
+    return torch.cat([torch.full((1,), ncell, dtype=torch.int64, device=device), order[binned]]), ends
 
 
 _VP_WINDOW_TABLES: dict[tuple, torch.Tensor] = {}
@@ -283,15 +284,23 @@ def vp_window_table(height: int, width: int, params: Params, device: torch.devic
     table would be 51 MB. Built once per size from :func:`vp_table` and cached; only the exported
     step uses it (eagerly the window takes :func:`vp_table`'s rows), and like
     :func:`vp_gather_table` it must be built before an export traces the search."""
-    key = (height, width, params.lattice_vp_step, params.lattice_vp_heights, params.lattice_vp_cell,
-           params.lattice_vp_margin, str(device))
-    table = _VP_WINDOW_TABLES.get(key)
-    if table is None and torch.compiler.is_exporting():
-        raise RuntimeError(f"vp_window_table({height}, {width}, ...) must be built eagerly before an export traces "
-                           "the VP search (torchrow.onnx.to_onnx does)")
+    return _export_table(_VP_WINDOW_TABLES, "vp_window_table", height, width, params, device,
+                         lambda: vp_table(height, width, params, device)[1].to(
+                             torch.int16 if 3 * width < 2**15 else torch.int32))
+
+
+def _export_table(cache: dict, name: str, height: int, width: int, params: Params, device: torch.device,
+                  build: Callable[[], Any]) -> Any:
+    """A table only the exported graph uses, from ``cache`` or ``build()`` (cached): built eagerly
+    before an export traces the search (:func:`torchrow.onnx.export.to_onnx` does; traced, its
+    sizes could depend on the table's values), so while exporting a missing one is an error."""
+    key = _grid_key(height, width, params, device)
+    table = cache.get(key)
     if table is None:
-        table = vp_table(height, width, params, device)[1].to(torch.int16 if 3 * width < 2**15 else torch.int32)
-        _VP_WINDOW_TABLES[key] = table
+        if torch.compiler.is_exporting():
+            raise RuntimeError(f"{name}({height}, {width}, ...) must be built eagerly before an export traces "
+                               "the VP search (torchrow.onnx.to_onnx does)")
+        table = cache[key] = build()
     return table
 
 
