@@ -247,6 +247,7 @@ def test_vp_search_traced_in_a_branch_keeps_its_chunks() -> None:
     args = (mask, torch.ones(1, dtype=torch.bool), near)
     flat._VP_GATHER_TABLES.clear()
     flat._VP_WINDOW_TABLES.clear()
+    flat.vp_fold_tables(HEIGHT, WIDTH, params, mask.device)  # the at-once folds' (every search at this size)
     with pytest.raises(RuntimeError, match="built eagerly"):
         torch.export.export(Search(), args, strict=False)
     flat.vp_gather_table(HEIGHT, WIDTH, params, mask.device)
@@ -254,6 +255,10 @@ def test_vp_search_traced_in_a_branch_keeps_its_chunks() -> None:
         torch.export.export(Search(), args, strict=False)
     flat.vp_window_table(HEIGHT, WIDTH, params, mask.device)
     assert flat.vp_window_table(HEIGHT, WIDTH, params, mask.device).dtype == torch.int16
+    flat._FOLD_TABLES.clear()  # a window's at-once folds: their index lists too (4840 entries at 500x281)
+    with pytest.raises(RuntimeError, match=r"vp_fold_tables\(\.\.\.\) for 5184-pixel images 96 px wide .*built eagerly"):
+        torch.export.export(Search(), args, strict=False)
+    flat.vp_fold_tables(HEIGHT, WIDTH, params, mask.device)
     program = torch.export.export(Search(), args, strict=False)
     calls = [str(n.target) for sub in program.graph_module.modules() if isinstance(sub, torch.fx.GraphModule)
              for n in sub.graph.nodes if n.op == "call_function"]

@@ -399,13 +399,17 @@ AT_ONCE_ROWS = 16
 def _fold_tables(nb: int, pixels: int, params: Params, device: torch.device) -> _FoldTables:
     """:class:`_FoldTables` for ``nb`` histogram bins of images of ``pixels`` pixels, built once per
     size and spacings (``8 (L + sum(d + 2h + 1))`` bytes and the halvings', 1 MB at 500x281 with
-    spacings 16..320; about 20 ms to build) and cached (never while exporting: an exported graph
-    holds them as constants)."""
+    spacings 16..320; about 20 ms to build) and cached. An exported graph holds them as
+    constants, built before the export traces the search (:func:`vp_fold_tables`): traced inside
+    a branch of the step, their index lists (4840 entries at 500x281) would be constants made there."""
     key = (nb, pixels, params.lattice_min_spacing, params.lattice_max_spacing, params.lattice_vp_spacing_step,
            params.lattice_window, str(device))
     tables = _FOLD_TABLES.get(key)
     if tables is not None:
         return tables
+    if torch.compiler.is_exporting():
+        raise RuntimeError(f"vp_fold_tables(...) for {pixels}-pixel images {nb // 3} px wide must be built eagerly "
+                           "before an export traces the VP search (torchrow.onnx.to_onnx does)")
 
     def table(t: list[int]) -> torch.Tensor:
         return torch.tensor(t, dtype=torch.int64, device=device)
@@ -442,11 +446,17 @@ def _fold_tables(nb: int, pixels: int, params: Params, device: torch.device) -> 
     # every extension sums to at most twice its fold's total, at most the image's pixels
     wide = 2 * len(spacings) * pixels >= 2**31
     tables = _FoldTables(nb, tuple(tops), tuple(halve), table(ext), table(lo), table(hi), table(anti), wide)
-    if not torch.compiler.is_exporting():  # never cache a tensor traced by torch.export
-        if len(_FOLD_TABLES) >= 8:  # a few sizes at a time (about 20 ms to build one)
-            _FOLD_TABLES.clear()
-        _FOLD_TABLES[key] = tables
+    if len(_FOLD_TABLES) >= 8:  # a few sizes at a time (about 20 ms to build one)
+        _FOLD_TABLES.clear()
+    _FOLD_TABLES[key] = tables
     return tables
+
+
+def vp_fold_tables(height: int, width: int, params: Params, device: torch.device) -> _FoldTables:
+    """The tables of :func:`_peaks_at_once` (a tracked window's VP search) for ``height x width``
+    images: what :func:`vp_search` uses, built and cached eagerly; an export of the tracker step
+    builds them first (:func:`torchrow.onnx.to_onnx`), as :func:`vp_gather_table`."""
+    return _fold_tables(3 * width, height * width, params, device)
 
 
 def _peaks_at_once(hist: torch.Tensor, tables: _FoldTables) -> torch.Tensor:

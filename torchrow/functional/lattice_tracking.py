@@ -27,8 +27,8 @@ from torchrow.functional._flow import branch
 from torchrow.functional.lattice import LatticePriorBatch, LatticeRows
 from torchrow.functional.ransac import image_status
 
-__all__ = ["LatticeTrackerState", "LatticeStep", "lattice_advance", "row_end", "resolvable_row", "frame_state",
-           "lattice_vp", "records"]
+__all__ = ["LatticeTrackerState", "LatticeStep", "lattice_advance", "row_end", "resolvable_row", "confirms",
+           "frame_state", "lattice_vp", "records"]
 
 _OK = STATUSES.index("ok")
 _CODE = {s: i for i, s in enumerate(LATTICE_STATES)}
@@ -41,7 +41,8 @@ class LatticeTrackerState:
     ``ready`` bool: a frame was seen; ``frames``/``age`` int64 (frames processed; since the last
     full search, that frame counting 1); ``last`` int64: the previous frame's state code
     (:data:`~torchrow.core.steering.LATTICE_STATES`, -1 before frame 0); ``vp`` ``(B, 2)`` int64:
-    its lattice VP (:func:`lattice_vp`); ``spacing`` int64: its comb spacing; ``centre`` float64 with ``has_centre`` bool:
+    its lattice VP (:func:`lattice_vp`); ``spacing`` int64: its comb spacing where its status was ``ok``,
+    else 0 (0 before frame 0; the lattice an acquiring frame confirms, :func:`confirms`); ``centre`` float64 with ``has_centre`` bool:
     the tracked row's bottom-row x for the next frame; ``pending`` int64: the row change the next
     frame reports; ``grid_vp`` ``(B, 2)`` int64: the VP the last full search chose on the grid,
     whose window the next full search takes (11.7).
@@ -66,7 +67,7 @@ class LatticeTrackerState:
         no = torch.zeros(batch, dtype=torch.bool, device=dev)
         return cls(ready=no, frames=torch.zeros(batch, **i64), age=torch.zeros(batch, **i64),
                    last=torch.full((batch,), -1, **i64), vp=torch.zeros((batch, 2), **i64),
-                   spacing=torch.ones(batch, **i64), centre=torch.zeros(batch, dtype=torch.float64, device=dev),
+                   spacing=torch.zeros(batch, **i64), centre=torch.zeros(batch, dtype=torch.float64, device=dev),
                    has_centre=no.clone(), pending=torch.zeros(batch, **i64), grid_vp=torch.zeros((batch, 2), **i64))
 
     def __len__(self) -> int:
@@ -128,14 +129,25 @@ def resolvable_row(coef: torch.Tensor, height: int, params: Params) -> torch.Ten
     return torch.where(ok.any(dim=1), first, torch.full_like(first, height))
 
 
+def confirms(spacing: torch.Tensor, previous: torch.Tensor, params: Params) -> torch.Tensor:
+    """Batched :func:`torchrow.reference.lattice_tracking.confirms`: ``(B,)`` bool, the comb
+    spacings ``spacing`` agree with the previous frame's ``ok`` lattice's ``previous`` (0: none),
+    both ``(B,)`` int64."""
+    agree = (spacing - previous).to(torch.float64).abs() <= params.lattice_track_spacing_tol * previous.to(torch.float64)
+    return (previous > 0) & agree
+
+
 def frame_state(ok: torch.Tensor, last: torch.Tensor, y_end: torch.Tensor, has_end: torch.Tensor,
-                y_res: torch.Tensor, height: int, params: Params) -> torch.Tensor:
+                y_res: torch.Tensor, height: int, params: Params, confirmed: torch.Tensor | None = None) -> torch.Tensor:
     """Batched :func:`torchrow.reference.lattice_tracking.frame_state`: ``(B,)`` int64 codes into
     :data:`~torchrow.core.steering.LATTICE_STATES` from ``ok`` (status ``ok``), the previous
-    frame's code ``last``, the row end ``y_end`` (where ``has_end``) and ``y_res``, all ``(B,)``."""
+    frame's code ``last``, the row end ``y_end`` (where ``has_end``), ``y_res`` and ``confirmed``
+    (bool; ``None``: all), all ``(B,)``."""
     head_rows = int(math.floor(params.lattice_headland_frac * height))
     code = torch.full_like(y_end, _CODE["in_row"])
     code = torch.where(y_end > y_res + params.lattice_end_margin, torch.full_like(code, _CODE["row_end_ahead"]), code)
+    if confirmed is not None:
+        code = torch.where(confirmed, code, torch.full_like(code, _CODE["lost"]))
     code = torch.where(~has_end | (y_end > (height - 1) - head_rows), torch.full_like(code, _CODE["headland"]), code)
     ended = (last == _CODE["row_end_ahead"]) | (last == _CODE["headland"])
     failed = torch.where(ended, torch.full_like(code, _CODE["headland"]), torch.full_like(code, _CODE["lost"]))
@@ -227,9 +239,9 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
     tracked = state.ready & state.has_centre
     full = ~tracked | (state.age >= params.lattice_track_every)
     centre = torch.where(tracked, state.centre, torch.full_like(state.centre, float(w) / 2))
-    # a tracked sequence's full search takes the grid near its last grid VP, not near the lattice's
-    # own VP, which lies far off where a bent refit extrapolates (11.7)
-    prior = LatticePriorBatch(centre, ~full, state.vp, state.spacing, tracked, state.grid_vp)
+    # a full search takes the grid near the last grid VP where the last frame was ok (tracked, or
+    # acquiring), not near the lattice's own VP, which lies far off where a bent refit extrapolates (11.7)
+    prior = LatticePriorBatch(centre, ~full, state.vp, state.spacing, state.spacing > 0, state.grid_vp)
     # section 1 where the grid is searched: on frames with a full search (here) or a redo (again;
     # computed there unless it is known here to have run: eagerly, or in the unbranched graph)
     sky = grid_sky(images, full, params, flow)
@@ -257,7 +269,7 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
     ok = status == _OK
     y_end, has_end = row_end(rows.lit, params)
     y_res = resolvable_row(rows.coef, h, params)
-    code = frame_state(ok, state.last, y_end, has_end, y_res, h, params)
+    code = frame_state(ok, state.last, y_end, has_end, y_res, h, params, tracked | confirms(rows.spacing, state.spacing, params))
     change = torch.where(tracked & ok, state.pending, torch.zeros_like(state.pending))
     # identity: the tracked row, or its neighbour once the neighbour is clearly nearer the centre
     x0, d0 = rows.coef[:, 0], rows.coef[:, 4]
@@ -271,7 +283,7 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
     new = LatticeTrackerState(
         ready=torch.ones_like(state.ready), frames=state.frames + 1,
         age=torch.where(searched_full, one, state.age + 1), last=code, vp=lattice_vp(rows.coef, h, rows.vp),
-        spacing=rows.spacing,
+        spacing=torch.where(ok, rows.spacing, torch.zeros_like(rows.spacing)),
         centre=x0 + pend.to(torch.float64) * d0, has_centre=keep, pending=torch.where(keep, pend, torch.zeros_like(pend)),
         grid_vp=torch.where(searched_full.view(-1, 1), rows.vp, state.grid_vp))
     new = _where(active, new, state)

@@ -142,6 +142,7 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
             # the VP search's gather form, which only the exported graph uses (eagerly it scatters)
             flattice.vp_gather_table(height, width, params, images.device)
             flattice.vp_window_table(height, width, params, images.device)  # a tracked window's, in int16
+            flattice.vp_fold_tables(height, width, params, images.device)  # and its folds' index lists
         names, outputs = list(static.LATTICE_INPUTS), list(static.LATTICE_OUTPUTS)
     elif tracker:
         from torchrow.functional.tracking import TrackerState

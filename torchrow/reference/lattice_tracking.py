@@ -23,7 +23,8 @@ from torchrow.core.steering import FrameResult, LatticeTrack, check_optics
 from torchrow.reference.lattice import LatticePrior, centre_spacing, horizon_row, improved_result, improved_rows
 from torchrow.reference.sky import sky_row
 
-__all__ = ["LatticeSequenceState", "LatticeTracker", "row_end", "resolvable_row", "lattice_vp", "check_lattice_tracker"]
+__all__ = ["LatticeSequenceState", "LatticeTracker", "row_end", "resolvable_row", "lattice_vp", "check_lattice_tracker",
+           "confirms", "frame_state"]
 
 
 def check_lattice_tracker(params: Params) -> None:
@@ -78,12 +79,24 @@ def lattice_vp(coef: Iterable[float], height: int, fallback: tuple[int, int]) ->
     return int(np.rint(x)), int(np.rint(y))
 
 
-def frame_state(status: str, last: str | None, y_end: int | None, y_res: int, height: int, params: Params) -> str:
-    """Section 11.7's state of a frame: ``lost`` / ``headland`` when not ``ok``, else by the row end."""
+def confirms(spacing: int, previous: int, params: Params) -> bool:
+    """Section 11.7's acquisition: a lattice found without a tracked row is trusted when the
+    frame before had an ``ok`` lattice (``previous`` its comb spacing, 0 if none) whose spacing
+    agrees, ``abs(d - d') <= lattice_track_spacing_tol * d'`` (float64, the comb's rule)."""
+    return previous > 0 and bool(np.abs(np.float64(spacing - previous)) <= np.float64(params.lattice_track_spacing_tol)
+                                 * np.float64(previous))
+
+
+def frame_state(status: str, last: str | None, y_end: int | None, y_res: int, height: int, params: Params,
+                confirmed: bool = True) -> str:
+    """Section 11.7's state of a frame: ``lost`` / ``headland`` when not ``ok``, else by the row
+    end; ``lost`` too where rows lie ahead but the lattice is not ``confirmed`` (:func:`confirms`)."""
     if status != "ok":
         return "headland" if last in ("row_end_ahead", "headland") else "lost"
     if y_end is None or y_end > (height - 1) - int(math.floor(np.float64(params.lattice_headland_frac) * height)):
         return "headland"
+    if not confirmed:
+        return "lost"
     if y_end > y_res + params.lattice_end_margin:
         return "row_end_ahead"
     return "in_row"
@@ -95,7 +108,8 @@ class LatticeSequenceState:
 
     ``frames``: frames processed; ``age``: frames since the last full search (that frame counts
     1); ``last``: the previous frame's state; ``vp``: its lattice VP (:func:`lattice_vp`);
-    ``spacing``: its comb spacing;
+    ``spacing``: its comb spacing where its status was ``ok``, else 0 (the lattice a full search
+    without a tracked row confirms, :func:`confirms`);
     ``centre``: the tracked row's bottom-row x for the next frame (``None``: no identity, the next
     frame starts from ``W/2`` with a full search); ``pending``: the row change the next frame
     reports (its central row is the previous frame's row ``k = pending``); ``grid_vp``: the VP
@@ -108,7 +122,7 @@ class LatticeSequenceState:
     age: int = 0
     last: str | None = None
     vp: tuple[int, int] | None = None
-    spacing: int | None = None
+    spacing: int = 0
     centre: float | None = None
     pending: int = 0
     grid_vp: tuple[int, int] | None = None
@@ -154,8 +168,9 @@ class LatticeTracker:
         tracked = state.centre is not None
         full = not tracked or state.age >= p.lattice_track_every
         centre = state.centre if state.centre is not None else np.float64(w) / 2
-        # a tracked sequence's full search (scheduled or redone) takes the grid near its last grid VP (11.7)
-        wide = LatticePrior(float(centre), near=state.grid_vp if tracked else None)
+        # a sequence's full search takes the grid near its last grid VP where the last frame was
+        # ok (tracked, or to be confirmed: scheduled, redone or acquiring, 11.7)
+        wide = LatticePrior(float(centre), near=state.grid_vp if state.spacing > 0 else None)
         # section 1 only where the grid is searched (a full search or a redo) and counts from it
         def grid_sky() -> int:
             return sky_row(rgb, p) if p.lattice_vp_sky_origin() else 0
@@ -171,7 +186,8 @@ class LatticeTracker:
         fit = imp.fit
         ok = res.status == "ok"
         y_end = row_end(fit.lit, p) if ok else None
-        st = frame_state(res.status, state.last, y_end, resolvable_row(fit.coef, h, p), h, p)
+        st = frame_state(res.status, state.last, y_end, resolvable_row(fit.coef, h, p), h, p,
+                         tracked or confirms(fit.spacing, state.spacing, p))
         change = state.pending if tracked and ok else 0
         new_centre, pending = None, 0
         if st in ("in_row", "row_end_ahead"):
@@ -183,7 +199,7 @@ class LatticeTracker:
         new = LatticeSequenceState(width=w, height=h, frames=state.frames + 1,
                                    age=1 if (full or redo) else state.age + 1, last=st,
                                    vp=lattice_vp(fit.coef, h, fit.vp),
-                                   spacing=fit.spacing, centre=new_centre, pending=pending,
+                                   spacing=int(fit.spacing) if ok else 0, centre=new_centre, pending=pending,
                                    grid_vp=fit.vp if (full or redo) else state.grid_vp)
         track = LatticeTrack(st, change, y_end if st == "row_end_ahead" else None, full or redo, redo)
         out = FrameResult.build(res, source=source, frame=state.frames if index is None else index,
