@@ -41,11 +41,12 @@ class LatticeTrackerState:
     ``ready`` bool: a frame was seen; ``frames``/``age`` int64 (frames processed; since the last
     full search, that frame counting 1); ``last`` int64: the previous frame's state code
     (:data:`~torchrow.core.steering.LATTICE_STATES`, -1 before frame 0); ``vp`` ``(B, 2)`` int64:
-    its lattice VP (:func:`lattice_vp`); ``spacing`` int64: its comb spacing where its status was ``ok``,
-    else 0 (0 before frame 0; the lattice an acquiring frame confirms, :func:`confirms`); ``centre`` float64 with ``has_centre`` bool:
-    the tracked row's bottom-row x for the next frame; ``pending`` int64: the row change the next
-    frame reports; ``grid_vp`` ``(B, 2)`` int64: the VP the last full search chose on the grid,
-    whose window the next full search takes (11.7).
+    its lattice VP (:func:`lattice_vp`); ``spacing`` int64: its comb spacing where its status was
+    ``ok``, else 0 (0 before frame 0; the lattice an acquiring frame confirms, :func:`confirms`);
+    ``centre`` float64 with ``has_centre`` bool: the tracked row's bottom-row x for the next
+    frame; ``pending`` int64: the row change the next frame reports; ``grid_vp`` ``(B, 2)``
+    int64: the VP the last full search chose on the grid, whose window the next full search
+    takes (11.7).
     """
 
     ready: torch.Tensor
