@@ -33,7 +33,7 @@ from torchrow.core.results import STATUSES
 from torchrow.functional._checks import below_horizon
 from torchrow.functional._flow import branch, int_max, repeat
 
-__all__ = ["LatticeRows", "LatticePriorBatch", "improved_batch", "horizon_row", "excess_green", "ImprovedStart",
+__all__ = ["LatticeRows", "LatticePriorBatch", "spacing_near", "improved_batch", "horizon_row", "excess_green", "ImprovedStart",
            "improved_start", "improved_finish", "vp_gather_table", "vp_window", "otsu_threshold", "green_mask", "init_vp",
            "vp_table", "vp_origin", "vp_search", "comb_table", "comb_search", "solve_normal", "prefix_sums",
            "centre_spacing", "row_cells", "monomial_tables", "normal_equations", "refine", "LatticeStartBatch",
@@ -629,6 +629,12 @@ def comb_table(width: int, params: Params, device: torch.device) -> _CombTable:
     return table
 
 
+def spacing_near(d: torch.Tensor, previous: torch.Tensor, params: Params) -> torch.Tensor:
+    """:func:`torchrow.reference.lattice.spacing_near`: int64 spacings ``d`` within
+    ``lattice_track_spacing_tol`` of ``previous`` (broadcast), bool."""
+    return (d - previous).to(torch.float64).abs() <= params.lattice_track_spacing_tol * previous.to(torch.float64)
+
+
 def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params, prior: LatticePriorBatch | None = None):
     """Section 11.2 per image: ``(spacing, phase, found, contrast)``, each ``(B,)`` (int64, int64,
     bool, float64; ``contrast`` = the best score per binned pixel, 0 without pixels).
@@ -684,8 +690,7 @@ def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params, prior: Lat
         d_prev = prior.spacing.view(-1, 1)
         rel = target - (p_all - w).to(torch.float64).view(1, -1)
         off = rel - d_f * torch.round(rel / d_f)
-        near_d = (d_all - d_prev).to(torch.float64).abs() <= params.lattice_track_spacing_tol * d_prev.to(torch.float64)
-        near = near_d & (off.abs() <= params.lattice_track_phase_tol * d_f)
+        near = spacing_near(d_all, d_prev, params) & (off.abs() <= params.lattice_track_phase_tol * d_f)
         near = near | ~prior.restrict.view(-1, 1)
         allsc = torch.where(near, allsc, torch.full_like(allsc, -math.inf))
     q = torch.argmax(allsc, dim=1)  # first maximum: spacing, then phase order

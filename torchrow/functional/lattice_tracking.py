@@ -134,21 +134,19 @@ def confirms(spacing: torch.Tensor, previous: torch.Tensor, params: Params) -> t
     """Batched :func:`torchrow.reference.lattice_tracking.confirms`: ``(B,)`` bool, the comb
     spacings ``spacing`` agree with the previous frame's ``ok`` lattice's ``previous`` (0: none),
     both ``(B,)`` int64."""
-    agree = (spacing - previous).to(torch.float64).abs() <= params.lattice_track_spacing_tol * previous.to(torch.float64)
-    return (previous > 0) & agree
+    return (previous > 0) & flattice.spacing_near(spacing, previous, params)
 
 
 def frame_state(ok: torch.Tensor, last: torch.Tensor, y_end: torch.Tensor, has_end: torch.Tensor,
-                y_res: torch.Tensor, height: int, params: Params, confirmed: torch.Tensor | None = None) -> torch.Tensor:
+                y_res: torch.Tensor, height: int, params: Params, confirmed: torch.Tensor) -> torch.Tensor:
     """Batched :func:`torchrow.reference.lattice_tracking.frame_state`: ``(B,)`` int64 codes into
     :data:`~torchrow.core.steering.LATTICE_STATES` from ``ok`` (status ``ok``), the previous
     frame's code ``last``, the row end ``y_end`` (where ``has_end``), ``y_res`` and ``confirmed``
-    (bool; ``None``: all), all ``(B,)``."""
+    (bool), all ``(B,)``."""
     head_rows = int(math.floor(params.lattice_headland_frac * height))
     code = torch.full_like(y_end, _CODE["in_row"])
     code = torch.where(y_end > y_res + params.lattice_end_margin, torch.full_like(code, _CODE["row_end_ahead"]), code)
-    if confirmed is not None:
-        code = torch.where(confirmed, code, torch.full_like(code, _CODE["lost"]))
+    code = torch.where(confirmed, code, torch.full_like(code, _CODE["lost"]))
     code = torch.where(~has_end | (y_end > (height - 1) - head_rows), torch.full_like(code, _CODE["headland"]), code)
     ended = (last == _CODE["row_end_ahead"]) | (last == _CODE["headland"])
     failed = torch.where(ended, torch.full_like(code, _CODE["headland"]), torch.full_like(code, _CODE["lost"]))

@@ -28,7 +28,7 @@ from torchrow.core.io import lattice_params
 from torchrow.core.params import VP_SLICE, Params
 from torchrow.core.results import ImageResult, LatticeRow, Row
 
-__all__ = ["LatticeFit", "LatticePrior", "comb_near",
+__all__ = ["LatticeFit", "LatticePrior", "comb_near", "spacing_near",
            "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_grid",
            "vp_cells", "vp_origin", "vp_window", "vp_search", "comb_search",
            "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
@@ -59,6 +59,14 @@ class LatticePrior:
     near: tuple[int, int] | None = None
 
 
+def spacing_near(d: np.ndarray | int, previous: int, params: Params) -> np.ndarray:
+    """Section 11.7: spacings ``d`` within ``lattice_track_spacing_tol`` of ``previous``, ``abs(d -
+    d') <= lattice_track_spacing_tol * d'`` (float64), bool like ``d``: the tracked comb's candidates
+    (:func:`comb_near`) and the tracker's acquisition (``lattice_tracking.confirms``)."""
+    return np.abs(np.asarray(d - previous).astype(np.float64)) <= np.float64(params.lattice_track_spacing_tol) * np.float64(
+        previous)
+
+
 def comb_near(d: np.ndarray, p: np.ndarray, width: int, prior: LatticePrior, params: Params) -> np.ndarray:
     """Section 11.7: the comb candidates ``(d, p)`` (``(Q,)`` int64) kept on a tracked frame, bool:
     ``abs(d - d') <= lattice_track_spacing_tol * d'`` and, with ``P = p - W``, ``o = (c - P) - d
@@ -68,9 +76,7 @@ def comb_near(d: np.ndarray, p: np.ndarray, width: int, prior: LatticePrior, par
     rel = (np.float64(prior.centre) - (p - width).astype(np.float64))
     off = rel - df * np.rint(rel / df)
     assert prior.spacing is not None
-    near_d = np.abs((d - prior.spacing).astype(np.float64)) <= np.float64(params.lattice_track_spacing_tol) * np.float64(
-        prior.spacing)
-    return near_d & (np.abs(off) <= np.float64(params.lattice_track_phase_tol) * df)
+    return spacing_near(d, prior.spacing, params) & (np.abs(off) <= np.float64(params.lattice_track_phase_tol) * df)
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ from torchrow.core.camera import CameraModel
 from torchrow.core.io import resize_to_width, to_rgb8
 from torchrow.core.params import Params
 from torchrow.core.steering import FrameResult, LatticeTrack, check_optics
-from torchrow.reference.lattice import LatticePrior, centre_spacing, horizon_row, improved_result, improved_rows
+from torchrow.reference.lattice import LatticePrior, centre_spacing, horizon_row, improved_result, improved_rows, spacing_near
 from torchrow.reference.sky import sky_row
 
 __all__ = ["LatticeSequenceState", "LatticeTracker", "row_end", "resolvable_row", "lattice_vp", "check_lattice_tracker",
@@ -82,13 +82,12 @@ def lattice_vp(coef: Iterable[float], height: int, fallback: tuple[int, int]) ->
 def confirms(spacing: int, previous: int, params: Params) -> bool:
     """Section 11.7's acquisition: a lattice found without a tracked row is trusted when the
     frame before had an ``ok`` lattice (``previous`` its comb spacing, 0 if none) whose spacing
-    agrees, ``abs(d - d') <= lattice_track_spacing_tol * d'`` (float64, the comb's rule)."""
-    return previous > 0 and bool(np.abs(np.float64(spacing - previous)) <= np.float64(params.lattice_track_spacing_tol)
-                                 * np.float64(previous))
+    agrees (:func:`~torchrow.reference.lattice.spacing_near`, the tracked comb's rule)."""
+    return previous > 0 and bool(spacing_near(spacing, previous, params))
 
 
 def frame_state(status: str, last: str | None, y_end: int | None, y_res: int, height: int, params: Params,
-                confirmed: bool = True) -> str:
+                confirmed: bool) -> str:
     """Section 11.7's state of a frame: ``lost`` / ``headland`` when not ``ok``, else by the row
     end; ``lost`` too where rows lie ahead but the lattice is not ``confirmed`` (:func:`confirms`)."""
     if status != "ok":
