@@ -542,7 +542,7 @@ def test_vp_search_tensor_equals_reference_batched_and_alone(change: dict) -> No
 @pytest.mark.parametrize("change", [{}, {"lattice_min_spacing": 16, "lattice_max_spacing": 320},
                                     {"lattice_min_spacing": 7, "lattice_max_spacing": 97, "lattice_vp_spacing_step": 3,
                                      "lattice_window": 0.3}])
-def test_vp_search_fold_peaks_at_once_equal_spacing_by_spacing(change: dict) -> None:
+def test_vp_search_fold_peaks_at_once_equal_spacing_by_spacing(change: dict, monkeypatch) -> None:
     # vp_search takes the spacings at once for small batches and spacing by spacing for large
     # ones (a size bound, not a rule): the same integers, on extreme histograms too
     params = IMPROVED.replace(**change)
@@ -558,9 +558,14 @@ def test_vp_search_fold_peaks_at_once_equal_spacing_by_spacing(change: dict) -> 
     tables = flat._fold_tables(nb, 240 * 320, params, hist.device)
     got = flat._peaks_at_once(hist, tables)
     assert got.dtype == torch.int32 and got.shape == (3, 4)
-    assert torch.equal(got, flat._peaks_by_spacing(hist, nb, params))
+    assert torch.equal(got, flat._peaks_by_spacing(hist, nb, params, 240 * 320))
     assert torch.equal(hist, before)
     assert flat._peaks_at_once(hist[:0], tables).shape == (0, 4)
+    # the exported graph's forms (float32 fold sums where exact, the extension concatenated)
+    monkeypatch.setattr(torch.compiler, "is_exporting", lambda: True)
+    for pixels in (240 * 320, 2**24 + 1):
+        assert torch.equal(flat._peaks_by_spacing(hist, nb, params, pixels), got)
+    monkeypatch.undo()
     wide = flat._fold_tables(nb, 2**30, params, hist.device)  # sums that could pass 2**31: int64
     assert wide.wide and not tables.wide and torch.equal(flat._peaks_at_once(hist, wide), got)
 
