@@ -561,12 +561,14 @@ def test_vp_search_fold_peaks_at_once_equal_spacing_by_spacing(change: dict, mon
     assert torch.equal(got, flat._peaks_by_spacing(hist, nb, params, 240 * 320))
     assert torch.equal(hist, before)
     assert flat._peaks_at_once(hist[:0], tables).shape == (0, 4)
+    wide = flat._fold_tables(nb, 2**30, params, hist.device)  # sums that could pass 2**31: int64
     # the exported graph's forms (float32 fold sums where exact, the extension concatenated)
     monkeypatch.setattr(torch.compiler, "is_exporting", lambda: True)
     for pixels in (240 * 320, 2**24 + 1):
         assert torch.equal(flat._peaks_by_spacing(hist, nb, params, pixels), got)
+    for t in (tables, wide):
+        assert torch.equal(flat._peaks_at_once(hist, t), got)
     monkeypatch.undo()
-    wide = flat._fold_tables(nb, 2**30, params, hist.device)  # sums that could pass 2**31: int64
     assert wide.wide and not tables.wide and torch.equal(flat._peaks_at_once(hist, wide), got)
 
 

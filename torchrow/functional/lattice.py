@@ -351,21 +351,34 @@ def _top_spacings(params: Params) -> tuple[range, list[int]]:
     return spacings, [d for d in spacings if 2 * d not in spacings]
 
 
+def _summed(hist: torch.Tensor, pixels: int) -> torch.Tensor:
+    """The histograms ``hist`` int32 of images of ``pixels`` pixels as :func:`_top_fold` sums them:
+    while exporting float32 where that is exact (``pixels <= 2**24``: every partial sum is an
+    integer no larger than the VP's binned pixels), else themselves. onnxruntime's float32
+    ``ReduceSum`` took 7 ms of a whole grid's top folds at 500x281 where int32 took 18 ms; eagerly
+    float32 is no faster, so eager sums stay int32."""
+    return hist.to(torch.float32) if torch.compiler.is_exporting() and pixels <= 2**24 else hist
+
+
+def _top_fold(summed: torch.Tensor, nb: int, d: int) -> torch.Tensor:
+    """The fold of spacing ``d`` of the first ``nb`` bins of :func:`_summed`'s ``(B, V, >= nb + d -
+    1)`` histograms (zeros past ``nb``), ``(B, V, d)`` int32: bin ``r`` sums the bins ``= r mod d``."""
+    bsz, nv = summed.shape[:2]
+    teeth = -(-nb // d)
+    return summed[:, :, :teeth * d].view(bsz, nv, teeth, d).sum(dim=2, dtype=summed.dtype).to(torch.int32)
+
+
 def _peaks_by_spacing(hist: torch.Tensor, nb: int, params: Params, pixels: int) -> torch.Tensor:
     """:func:`vp_search`'s best fold peak over the spacings, ``(B, V)`` int32, of ``hist (B, V,
     3W + 1 + lattice_max_spacing)`` int32 of images of ``pixels`` pixels, spacing by spacing: one
     spacing's folds at a time, what large batches of large grids take (:func:`_peaks_at_once` for
-    small ones). While exporting, the top spacings' folds are summed in float32 where that is
-    exact (``pixels <= 2**24``: every partial sum is an integer no larger than the VP's binned
-    pixels): onnxruntime's float32 ``ReduceSum`` took 7 ms of a whole grid at 500x281 where int32
-    took 18 ms (eagerly float32 is no faster, so eager sums stay int32)."""
+    small ones)."""
     bsz, nv = hist.shape[:2]
     best = torch.full((bsz, nv), -(2**31) + 1, dtype=torch.int32, device=hist.device)
     spacings, tops = _top_spacings(params)
-    summed = hist.to(torch.float32) if torch.compiler.is_exporting() and pixels <= 2**24 else hist
+    summed = _summed(hist, pixels)
     for d in tops:
-        teeth = -(-nb // d)
-        fold = summed[:, :, :teeth * d].view(bsz, nv, teeth, d).sum(dim=2, dtype=summed.dtype).to(torch.int32)
+        fold = _top_fold(summed, nb, d)
         while True:
             best = torch.maximum(best, _fold_peak(fold, d, params))
             if d % 2 or d // 2 not in spacings:
@@ -385,9 +398,10 @@ class _FoldTables(NamedTuple):
     + 1`` of its extension, so that a tooth is a difference of the extension's cumulative sum;
     ``anti`` ``(L,)``: per spacing and phase the tooth of phase ``(p + d // 2) mod d``
     (``L`` = the sum of the spacings); ``wide``: that cumulative sum needs int64; ``nb`` and
-    ``tops``: the bins folded and the top spacings, level 0's order."""
+    ``tops``: the bins folded and the top spacings, level 0's order; ``pixels``: the images'."""
 
     nb: int
+    pixels: int
     tops: tuple[int, ...]
     halve: tuple[tuple[torch.Tensor, torch.Tensor], ...]
     ext: torch.Tensor
@@ -456,7 +470,7 @@ def _fold_tables(nb: int, pixels: int, params: Params, device: torch.device) -> 
         off += d
     # every extension sums to at most twice its fold's total, at most the image's pixels
     wide = 2 * len(spacings) * pixels >= 2**31
-    tables = _FoldTables(nb, tuple(tops), tuple(halve), table(ext), table(lo), table(hi), table(anti), wide)
+    tables = _FoldTables(nb, pixels, tuple(tops), tuple(halve), table(ext), table(lo), table(hi), table(anti), wide)
     if len(_FOLD_TABLES) >= 8:  # a few sizes at a time (about 20 ms to build one)
         _FOLD_TABLES.clear()
     _FOLD_TABLES[key] = tables
@@ -482,8 +496,9 @@ def _peaks_at_once(hist: torch.Tensor, tables: _FoldTables) -> torch.Tensor:
     ``hist (B, V, 3W + 1 + lattice_max_spacing)`` int32 -> ``(B, V)`` int32."""
     bsz, nv = hist.shape[:2]
     # spacings and phases first: each selection copies rows of B V entries
-    level = torch.cat([hist[:, :, :-(-tables.nb // d) * d].view(bsz, nv, -(-tables.nb // d), d).sum(
-        dim=2, dtype=torch.int32) for d in tables.tops], dim=2).view(bsz * nv, sum(tables.tops)).t().contiguous()
+    summed = _summed(hist, tables.pixels)
+    level = torch.cat([_top_fold(summed, tables.nb, d) for d in tables.tops], dim=2).view(
+        bsz * nv, sum(tables.tops)).t().contiguous()
     folds = [level]
     for lo, hi in tables.halve:
         level = level.index_select(0, lo) + level.index_select(0, hi)
