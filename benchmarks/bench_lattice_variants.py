@@ -9,7 +9,9 @@ camera=...)`` (the forward-camera setting, ``video_width`` 500). Per variant: ``
 (``torchrow.evaluation.tracking.row_moves``, ALGORITHM.md 11.7's stability measure), the states and the row
 changes. The truth of the tracked row is the
 planted row nearest the camera on frame 0, moved by each reported row change, as in
-``bench_lattice_tracker.py``. No timing.
+``bench_lattice_tracker.py``; after frames reported ``lost`` (a covered lens), the planted row
+nearest the camera on the first frame found again (the tracker's identity starts afresh there).
+No timing.
 
     python benchmarks/bench_lattice_variants.py [--variant NAME ...] [--param NAME=VALUE ...]
 """
@@ -46,6 +48,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "sparse maize": {"camera": {"height_m": 1.5, "tilt_deg": 25},
                      "field": {"spacing_m": 0.75, "plant_radius_m": 0.04, "plant_spacing_m": 0.25}},
     "sensor noise 8, soil texture 20": {"field": {"noise": 8.0, "soil_texture": 20.0}},
+    # frames 14-21 dark (a lens covered while the camera turns): the search after a loss (11.7)
+    "lens covered 8 frames": {"covered": (14, 8)},
 }
 
 
@@ -64,13 +68,21 @@ def run(variant: dict[str, Any], params: Params, frames_per_leg: int) -> str:
     cam = CameraModel.from_json({**BASE_CAMERA, **variant.get("camera", {})}, (width, height))
     field = GroundField(**{"plant_radius_m": 0.03, "row_end_m": 12.0, "seed": 1, **variant.get("field", {})})
     truth = [render_camera(field, cam, p, frame=i) for i, p in enumerate(drive(field.spacing_m, frames_per_leg))]
-    got = torchrow.Tracker(params, camera=cam).track([[t.image for t in truth]])[0]
+    images = [t.image for t in truth]
+    first, n = variant.get("covered", (0, 0))
+    for i in range(first, first + n):
+        images[i] = np.full_like(images[i], 30)
+    got = torchrow.Tracker(params, camera=cam).track([images])[0]
     sp = truth[0].spacing_m
     k = round((truth[0].lateral_m - truth[0].pose.lateral_m) / sp)
     lat, head = [], []
-    for r, t in zip(got, truth):
+    found = None if n == 0 else next((i for i in range(first + n, len(got)) if got[i].state in ("in_row", "row_end_ahead")),
+                                     len(got))
+    for i, (r, t) in enumerate(zip(got, truth)):
         k += r.row_change or 0
-        if t.row_end_m is None or t.row_end_m <= 1.5:
+        if i == found:  # identity starts afresh
+            k = round((t.lateral_m - t.pose.lateral_m) / sp)
+        if t.row_end_m is None or t.row_end_m <= 1.5 or (found is not None and first <= i < found):
             continue
         if r.lateral_m is not None:
             lat.append(abs(r.lateral_m - (t.pose.lateral_m + k * sp)))
@@ -89,7 +101,8 @@ def run(variant: dict[str, Any], params: Params, frames_per_leg: int) -> str:
     def stat(v: list[float], scale: float, unit: str) -> str:
         return f"{scale * float(np.median(v)):.2f} / {scale * max(v):.2f} {unit}" if v else "-"
 
-    return " | ".join([f"{len(got)}", stat(lat, 100.0, "cm"), stat(head, 180.0 / math.pi, "°"),
+    again = "" if found is None else f" (found {found - first - n} frames after the lens)"
+    return " | ".join([f"{len(got)}" + again, stat(lat, 100.0, "cm"), stat(head, 180.0 / math.pi, "°"),
                        stat(end, 1.0, "m") + f" ({len(end)})", stable, json.dumps(states).replace('"', ""),
                        str(changes)])
 

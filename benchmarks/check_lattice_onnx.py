@@ -1,21 +1,23 @@
 """The exported lattice tracker step (improved mode) against torch on every Caterra frame:
 ``python benchmarks/check_lattice_onnx.py [--data DIR] [--model M.onnx | --out M.onnx] [--top]
-[--frames N] [--rounds R] [--compare OTHER.onnx ...]``.
+[--frames N] [--cover FIRST:N ...] [--rounds R] [--compare OTHER.onnx ...]``.
 
 Exports the step at the real working size (500x281, the forward-camera setting
 ``Params(mode="improved", video_width=500, lattice_model="auto", lattice_min_spacing=16,
 lattice_max_spacing=320, lattice_vp_origin="sky")``, batch 1; or uses ``--model``). The VP grid
 counts from the camera's horizon (ALGORITHM.md 11.2), the frames pass as ``ok`` and are
 tracked, with redos and scheduled full searches (section 1 inside a graph ``If``); with
-``--top`` (the grid above the image) every frame is ``weak``, so every frame runs the full search.
+``--top`` (the grid above the image) every frame is ``weak``, so every frame runs the full search;
+``--cover 30:8`` darkens frames 30-37 (a lens covered: a loss, and the search after it).
 Tracks the frames with :class:`torchrow.Tracker` and with
 :class:`~torchrow.onnx.runtime.OnnxTracker`, and compares the records (discrete values equal,
 floats within 1e-4) and every field of every step and state (floats within 1e-9). Prints the
 export time, the model's size and op census, and frames/s of onnxruntime on one and on two
 intra-op threads and of torch eager on one thread (the host's frame loop included, frames
 read beforehand), and per kind of frame (tracked, a scheduled full search, a tracked frame
-redone in full; the tracked sequence's full searches take the grid's window of ALGORITHM.md 11.7,
-frame 0 the whole grid, as a frame after a loss) the median and the slowest: each frame's time
+redone in full, a full search after a frame that was not ``ok``; the full searches take the
+grid's window of ALGORITHM.md 11.7, after a loss with one grid height more, frame 0 the whole
+grid) the median and the slowest: each frame's time
 is its fastest over ``--rounds`` passes over the sequence,
 the passes of all runs interleaved, so that the VM's drift hits every run alike; ``--compare
 OTHER.onnx ...`` times other exports of the same step beside it (e.g. an earlier commit's).
@@ -55,12 +57,17 @@ def main() -> None:
     ap.add_argument("--out", default=None, help="keep the exported model here")
     ap.add_argument("--top", action="store_true", help="the VP grid counted from row 0 (every frame weak)")
     ap.add_argument("--frames", type=int, default=None, help="the first N frames only")
+    ap.add_argument("--cover", nargs="*", default=[], metavar="FIRST:N", help="darken frames FIRST..FIRST+N-1")
     ap.add_argument("--rounds", type=int, default=3, help="passes per run; each frame's fastest counts")
     ap.add_argument("--compare", nargs="*", default=[], help="other exports of the step, timed beside it")
     args = ap.parse_args()
     params = PARAMS.replace(lattice_vp_origin="top") if args.top else PARAMS
     files = sorted((data_root(args.data) / "caterra_video").glob("*.jpg"))[:args.frames]
     frames = [load_image(f, params.video_width) for f in files]
+    for item in args.cover:
+        first, _, n = item.partition(":")
+        for i in range(int(first), min(int(first) + int(n), len(frames))):
+            frames[i] = frames[i] * 0 + 30
     h, w = frames[0].shape[:2]
     print(f"{len(frames)} Caterra frames at {w}x{h}", flush=True)
     tmp = tempfile.TemporaryDirectory()
@@ -84,7 +91,8 @@ def main() -> None:
     st_e = st_o = None
     step_problems, record_problems, tracked, redo = [], [], 0, 0
     states: dict = {}
-    kinds: list[str] = []  # per frame: tracked, full (a scheduled full search) or redone
+    kinds: list[str] = []  # per frame: tracked, full (a scheduled full search), redone or after a loss
+    lost = False  # the previous frame's status was not ok
     for t, xt in enumerate(x):
         step_e, st_e = eager(xt, st_e)
         step_o, st_o = ort(xt, st_o)
@@ -96,7 +104,9 @@ def main() -> None:
         record_problems += [f"frame {t}: {d}" for d in record_differences(rec_e.to_record(), rec_o.to_record(), 1e-4)]
         tracked += int(not bool(step_e.full[0]))
         redo += int(bool(step_e.redo[0]))
-        kinds.append("redone" if bool(step_e.redo[0]) else "full" if bool(step_e.full[0]) else "tracked")
+        kinds.append("redone" if bool(step_e.redo[0]) else "after a loss" if lost else "full" if bool(step_e.full[0])
+                     else "tracked")
+        lost = rec_e.status != "ok"
         states[rec_e.state] = states.get(rec_e.state, 0) + 1
     print(f"parity: {len(x)} frames ({tracked} tracked, {redo} redone in full; states {states}); records differing: "
           f"{len({p.split(':')[0] for p in record_problems})}; steps/states differing: "
@@ -128,7 +138,7 @@ def main() -> None:
                 best[name][t] = min(best[name][t], time.perf_counter() - t0)
     for name, b in best.items():
         by_kind = []
-        for kind in ("tracked", "full", "redone"):
+        for kind in ("tracked", "full", "redone", "after a loss"):
             ms = sorted(1000 * b[t] for t in range(1, len(x)) if kinds[t] == kind)
             if ms:
                 by_kind.append(f"{kind} {len(ms)}: median {ms[len(ms) // 2]:.1f}, max {ms[-1]:.1f}")

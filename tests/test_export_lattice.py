@@ -72,8 +72,9 @@ def _tensor(frames: list[np.ndarray]) -> torch.Tensor:
 def test_graph_interface_and_op_list(model_path: Path) -> None:
     """Inputs/outputs as documented; the refits are ONNX ``Loop`` nodes (straight and curved
     together, one in the first pass and one in the redo), the redo, the first pass's VP grid
-    search (which tracked frames skip), inside it the whole grid's and the window's searches
-    (11.7), and the switch of a too weak tracked comb to the full search ``If`` nodes; no op with
+    search (which tracked frames skip), inside it the whole grid's, the window's and the window
+    and grid height's searches (11.7), and the switch of a too weak tracked comb to the full
+    search ``If`` nodes; no op with
     a data-dependent shape; the metadata names the mode."""
     import onnx
 
@@ -82,7 +83,7 @@ def test_graph_interface_and_op_list(model_path: Path) -> None:
     assert [o.name for o in model.graph.output] == list(LATTICE_OUTPUTS)
     ops = op_counts(model)
     assert not {"NonZero", "Unique", "Scan", "Compress"} & set(ops), ops  # onnxruntime only: no TensorRT op list
-    assert ops["Loop"] == 2 and ops["If"] == 5, ops
+    assert ops["Loop"] == 2 and ops["If"] == 6, ops
     info = model_info(model_path)
     assert (info["kind"], info["mode"], info["batch"], info["height"], info["width"]) == (
         "tracker", "improved", BATCH, HEIGHT, WIDTH)
@@ -118,6 +119,7 @@ def test_steps_equal_the_eager_tracker(onnx_tracker: OnnxTracker, drive: list[np
     assert not problems, "\n".join(problems[:20])
     redo_t, full_t = torch.stack(redo), torch.stack(full)
     assert int(redo_t.sum()) >= 2 and int((~full_t).sum()) >= 2, "redos and tracked frames must be exercised"
+    assert bool((full_t[4] & ~redo_t[4])[0]), "a full search after a frame that was not ok (the grey frame's)"
 
 
 def test_records_equal_the_eager_tracker(onnx_tracker: OnnxTracker, drive: list[np.ndarray]) -> None:

@@ -590,6 +590,16 @@ def test_vp_window_both_paths_and_its_bounds() -> None:
         # the nearest grid column and height are inside
         col = min(max(int(np.floor(near[0] / IMPROVED.lattice_vp_step + 0.5)), 0), ncol - 1) * IMPROVED.lattice_vp_step
         assert col in grid[:, 0] and heights[np.argmin(np.abs(heights - (near[1] - origin)))] in grid[:, 1]
+        # after a frame that was not ok: one grid height's every column follows, left to right
+        sweep = int(rng.integers(0, heights.size))
+        wide = rlat.vp_window(320, params, near, origin, sweep)
+        assert flat.vp_window(torch.tensor([near]), torch.tensor([origin]), 320, params,
+                              torch.tensor([sweep]))[0].tolist() == wide.tolist()
+        row = rlat.vp_grid(320, params)[wide[want.size:]]
+        assert wide[:want.size].tolist() == want.tolist() and (row[:, 1] == heights[sweep]).all()
+        assert row[:, 0].tolist() == list(range(0, 321, IMPROVED.lattice_vp_step))
+    with pytest.raises(ValueError, match="sweep must index one of the 7 grid heights, got 7"):
+        rlat.vp_window(320, IMPROVED, (0, 0), 0, 7)
 
 
 def test_windowed_vp_search_both_paths_batched_and_alone() -> None:
@@ -604,7 +614,22 @@ def test_windowed_vp_search_both_paths_batched_and_alone() -> None:
         assert torch.equal(flat.vp_search(batch[i:i + 1], IMPROVED, origin[i:i + 1], near[i:i + 1])[0], got[i])
     # a window beyond the grid is the whole grid, the same VP and tie-break
     whole = IMPROVED.replace(lattice_track_vp_cols=99, lattice_track_vp_rows=99)
-    assert torch.equal(flat.vp_search(batch, whole, origin, near), flat.vp_search(batch, IMPROVED, origin))
+    everywhere = flat.vp_search(batch, IMPROVED, origin)
+    assert torch.equal(flat.vp_search(batch, whole, origin, near), everywhere)
+    # with a grid height swept (11.7): its whole row competes beside the window, the first
+    # maximum in the window's order; sweeping the height of the whole grid's choice finds it
+    # (an empty mask's fallback VP is not on the grid: any height)
+    heights = list(IMPROVED.lattice_vp_heights)
+    chosen = [heights.index(y - o) if y - o in heights else 0 for (_, y), o in zip(everywhere.tolist(), origin.tolist())]
+    for sweep in (torch.arange(len(masks)) % len(heights), torch.tensor(chosen)):
+        got = flat.vp_search(batch, IMPROVED, origin, near, sweep)
+        for i, m in enumerate(masks):
+            want = rlat.vp_search(m, IMPROVED, int(origin[i]), tuple(near[i].tolist()), int(sweep[i]))
+            assert tuple(got[i].tolist()) == want
+            alone = flat.vp_search(batch[i:i + 1], IMPROVED, origin[i:i + 1], near[i:i + 1], sweep[i:i + 1])
+            assert torch.equal(alone[0], got[i])
+    # (the border column ties many VPs: there the window's, listed first, wins)
+    assert torch.equal(got[:-1], everywhere[:-1]) and not torch.equal(got[-1], everywhere[-1])
 
 
 def test_vp_origin_both_paths_on_every_case() -> None:

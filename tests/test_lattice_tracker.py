@@ -16,7 +16,7 @@ import torchrow
 from torchrow.apps.cli import main
 from torchrow.core.camera import CameraModel
 from torchrow.core.params import FORWARD_CAMERA, Params
-from torchrow.core.results import record_differences
+from torchrow.core.results import STATUSES, record_differences
 from torchrow.evaluation.synthetic import CameraPose, GroundField, camera_path, render_camera
 from torchrow.evaluation.tracking import row_moves
 from torchrow.reference import Tracker as RefTracker
@@ -134,8 +134,9 @@ def test_lost_without_plants_and_full_search_after() -> None:
     rows = drive([CameraPose(0.05, 0.0, 0.0), CameraPose(0.05, 0.0, 0.2)], 2)
     seq = [soil, *(f.image for f in rows), soil]
     res = torchrow.Tracker(P).track([seq])[0]
-    # frame 1 follows a loss: a full search of the whole grid, its rows ok but not yet trusted
-    # (acquisition, 11.7); frame 2's full search (the grid near frame 1's VP) confirms them;
+    # frame 0 searches the whole grid; frame 1 follows a loss: a full search of the window
+    # around frame 0's grid VP and grid height 1 (11.7), its rows ok but not yet trusted
+    # (acquisition); frame 2's full search (the grid near frame 1's VP) confirms them;
     # frame 3 is tracked; frame 4 is tracked, fails, and is searched again in full
     assert [r.status for r in res] == ["weak", "ok", "ok", "ok", "weak"]
     assert [r.state for r in res] == ["lost", "lost", "in_row", "in_row", "lost"]
@@ -305,6 +306,41 @@ def test_a_tracked_full_search_takes_the_window_around_its_grid_vp() -> None:
                                       dataclasses.astuple(st), dataclasses.astuple(LatticeTrackerState.empty(1))))), P)
         alone, _ = lattice_advance(x, one, LatticeTrackerState.empty(1), P)
         assert both.rows.vp.tolist() == [list(chosen), list(full.vp)] == [list(chosen), alone.rows.vp[0].tolist()]
+
+
+def test_after_a_loss_the_full_search_sweeps_one_grid_height_per_frame() -> None:
+    # 11.7: after a frame that was not ok the full search takes the window around the last grid
+    # VP of an ok frame and the whole row of grid height frames % len(heights): a loss sweeps
+    # the grid in 7 frames at a window's cost per frame; a frame that fails keeps the grid VP
+    from torchrow.functional.lattice_tracking import LatticeTrackerState, lattice_advance
+    from torchrow.reference import lattice as rlattice
+    from torchrow.reference.lattice_tracking import LatticeSequenceState, LatticeTracker
+
+    img = drive([CameraPose(0.12, 0.02, 0.0)], 1)[0].image
+    grey = np.full_like(img, 120)
+    mask = rlattice.green_mask(img, 0, P)
+    x = torch.from_numpy(np.stack([img, grey])).permute(0, 3, 1, 2).contiguous()
+    grid, heights = rlattice.vp_grid(img.shape[1], P), len(P.lattice_vp_heights)
+    corner = (0, -250)  # far from the rows' VP: the window alone cannot reach it
+    seen = set()
+    for frames in range(heights):
+        st = LatticeTrackerState.empty(2)
+        st.ready, st.frames, st.last = torch.ones(2, dtype=torch.bool), torch.full((2,), frames), torch.zeros(2)
+        st.vp = st.grid_vp = torch.tensor([corner, corner])
+        step, new = lattice_advance(x, torch.ones(2, dtype=torch.bool), st, P)
+        chosen = tuple(step.rows.vp[0].tolist())
+        assert step.full.tolist() == [True, True] and [STATUSES[c] for c in step.status.tolist()] == ["ok", "invalid"]
+        assert chosen in {tuple(v) for v in grid[rlattice.vp_window(img.shape[1], P, corner, 0, frames)].tolist()}
+        seen.add(chosen[1])
+        prior = rlattice.LatticePrior(img.shape[1] / 2, near=corner, sweep=frames)
+        assert rlattice.fit_lattice(mask, 0, None, P.tracking(), prior).vp == chosen
+        # the ok frame moves the window's centre; the grey frame keeps it
+        assert new.grid_vp.tolist() == [list(chosen), list(corner)]
+        for b, frame in enumerate((img, grey)):
+            rec, ref = LatticeTracker(P).step(frame, LatticeSequenceState(320, 240, frames, 1, "lost", corner, 0,
+                                                                           None, 0, corner))
+            assert rec.status == STATUSES[int(step.status[b])] and ref.grid_vp == tuple(new.grid_vp[b].tolist())
+    assert len(seen) >= 3  # the swept heights won on several frames
 
 
 def test_lattice_vp_both_paths_on_adversarial_coefficients() -> None:

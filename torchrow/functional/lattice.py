@@ -87,7 +87,9 @@ class LatticePriorBatch(NamedTuple):
     previous comb spacing (both read where ``restrict``); ``windowed`` ``(B,)`` bool or ``None``
     (all false): a full search of a tracked sequence, which takes :func:`vp_window` of the grid
     around ``near`` ``(B, 2)`` int64, its last grid VP (the reference's ``LatticePrior.near``;
-    read where ``windowed`` and not ``restrict``)."""
+    read where ``windowed`` and not ``restrict``); ``sweep`` ``(B,)`` int64 or ``None`` (all -1):
+    where ``>= 0`` (a windowed search after a frame that was not ``ok``) the grid height whose
+    row of VPs is searched too (:func:`vp_window`; ``LatticePrior.sweep``)."""
 
     centre: torch.Tensor
     restrict: torch.Tensor
@@ -95,6 +97,7 @@ class LatticePriorBatch(NamedTuple):
     spacing: torch.Tensor
     windowed: torch.Tensor | None = None
     near: torch.Tensor | None = None
+    sweep: torch.Tensor | None = None
 
 
 class LatticeFitBatch(NamedTuple):
@@ -520,12 +523,16 @@ def vp_origin(sky: torch.Tensor, height: int, params: Params) -> torch.Tensor:
     return torch.where(seen, torch.clamp(sky + params.lattice_vp_sky, min=0, max=height), torch.zeros_like(sky))
 
 
-def vp_window(near: torch.Tensor, origin: torch.Tensor | None, width: int, params: Params) -> torch.Tensor:
+def vp_window(near: torch.Tensor, origin: torch.Tensor | None, width: int, params: Params,
+              sweep: torch.Tensor | None = None) -> torch.Tensor:
     """Section 11.7: per image the indices into :func:`vp_table`'s grid (ascending) that a full
-    search of a tracked sequence takes around its VP ``near (B, 2)`` int64, ``(B, n)`` int64 with
-    ``n = min(2 lattice_track_vp_cols + 1, W // lattice_vp_step + 1) min(2 lattice_track_vp_rows
-    + 1, len(lattice_vp_heights))``; ``origin (B,)`` int64 as :func:`vp_search`'s (``None``:
-    zeros). :func:`torchrow.reference.lattice.vp_window`'s integers."""
+    search of a tracked sequence takes around its last grid VP ``near (B, 2)`` int64, ``(B, n)``
+    int64 with ``n = min(2 lattice_track_vp_cols + 1, W // lattice_vp_step + 1) min(2
+    lattice_track_vp_rows + 1, len(lattice_vp_heights))``; ``origin (B,)`` int64 as
+    :func:`vp_search`'s (``None``: zeros). With ``sweep (B,)`` int64 (a grid height's index
+    per image, each in range) the ``W // lattice_vp_step + 1`` VPs of that height follow, left to
+    right: ``(B, n + W // lattice_vp_step + 1)``. :func:`torchrow.reference.lattice.vp_window`'s
+    integers."""
     bsz, dev = near.shape[0], near.device
     step, rx, ry = params.lattice_vp_step, params.lattice_track_vp_cols, params.lattice_track_vp_rows
     ncol = width // step + 1
@@ -537,17 +544,22 @@ def vp_window(near: torch.Tensor, origin: torch.Tensor | None, width: int, param
     x0 = torch.clamp(c - rx, min=0, max=ncol - nx)
     y0 = torch.clamp(i - ry, min=0, max=heights.numel() - ny)
     rows = y0.view(-1, 1, 1) + torch.arange(ny, dtype=torch.int64, device=dev).view(1, -1, 1)
-    return (rows * ncol + x0.view(-1, 1, 1) + torch.arange(nx, dtype=torch.int64, device=dev).view(1, 1, -1)).view(
+    win = (rows * ncol + x0.view(-1, 1, 1) + torch.arange(nx, dtype=torch.int64, device=dev).view(1, 1, -1)).view(
         bsz, ny * nx)
+    if sweep is None:
+        return win
+    return torch.cat([win, sweep.view(-1, 1) * ncol + torch.arange(ncol, dtype=torch.int64, device=dev).view(1, -1)], dim=1)
 
 
 def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = None,
-              near: torch.Tensor | None = None) -> torch.Tensor:
+              near: torch.Tensor | None = None, sweep: torch.Tensor | None = None) -> torch.Tensor:
     """Section 11.2 (``lattice_vp == "search"``): per image the grid VP whose folded contrast
     comb is strongest, ``(B, 2)`` int64; see :func:`torchrow.reference.lattice.vp_search`.
     ``origin (B,)`` int64 (:func:`vp_origin`; ``None``: zeros): each image's rows ``origin .. H-1``
     are searched moved up to row 0 (one gather of the mask) and ``origin`` is added to the VP's row.
-    ``near (B, 2)`` int64 (section 11.7, tracked sequences' VPs; ``None``: the whole grid): each
+    ``near (B, 2)`` int64 (section 11.7, tracked sequences' last grid VPs; ``None``: the whole
+    grid) and ``sweep (B,)`` int64 (with ``near``: a grid height each, swept after a frame that
+    was not ``ok``; ``None``: none): each
     image searches its own :func:`vp_window` of the grid, ``n`` VPs in place of ``V``, their bins
     the table's rows (eagerly :func:`vp_table`, while exporting :func:`vp_window_table`, the same
     integers in int16, so that the graph holds a quarter of the int64 table).
@@ -570,7 +582,7 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     bsz, h, w = mask.shape
     dev = mask.device
     grid, idx = vp_table(h, w, params, dev)
-    win = None if near is None else vp_window(near, origin, w, params)  # (B, n)
+    win = None if near is None else vp_window(near, origin, w, params, sweep)  # (B, n)
     if win is not None:
         grid = grid[win]  # (B, n, 2)
     if origin is not None:
@@ -977,25 +989,36 @@ def lattice_start(mask: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Ten
     if params.lattice_vp == "search" and prior is not None:
         windowed = torch.zeros_like(prior.restrict) if prior.windowed is None else prior.windowed
         near = prior.vp if prior.near is None else prior.near
+        swept = prior.sweep is not None  # else no sequence sweeps: no such branch
+        sweep = torch.full_like(prior.spacing, -1) if prior.sweep is None else prior.sweep
 
-        def whole(mask, vp, near, origin):
+        def whole(mask, vp, near, sweep, origin):
             return (vp_search(mask, params, origin if counted else None),)
 
-        def window(mask, vp, near, origin):
+        def window(mask, vp, near, sweep, origin):
             return (vp_search(mask, params, origin if counted else None, near),)
 
-        def keep(mask, vp, near, origin):
+        def wider(mask, vp, near, sweep, origin):  # the window and a grid height (the others' results are not kept)
+            return (vp_search(mask, params, origin if counted else None, near, torch.clamp(sweep, min=0)),)
+
+        def keep(mask, vp, near, sweep, origin):
             return (vp.clone(),)
 
-        def search(mask, restrict, windowed, vp, near, origin):
-            # untracked sequences search the whole grid, tracked ones their window (11.7): each when some image needs it
-            full = branch(flow, (~restrict & ~windowed).any(), whole, keep, (mask, vp, near, origin))[0]
-            part = branch(flow, (~restrict & windowed).any(), window, keep, (mask, vp, near, origin))[0]
+        def search(mask, restrict, windowed, vp, near, sweep, origin):
+            # sequences without a grid VP (frame 0) search the whole grid, the others their window,
+            # and after a frame that was not ok a grid height too (11.7): each when some image needs it
+            args = (mask, vp, near, sweep, origin)
+            full = branch(flow, (~restrict & ~windowed).any(), whole, keep, args)[0]
+            part = branch(flow, (~restrict & windowed & (sweep < 0)).any(), window, keep, args)[0]
+            if swept:
+                part = torch.where((sweep < 0).view(-1, 1), part,
+                                   branch(flow, (~restrict & windowed & (sweep >= 0)).any(), wider, keep, args)[0])
             return (torch.where(restrict.view(-1, 1), vp, torch.where(windowed.view(-1, 1), part, full)),)
 
         # the grid search, skipped when every image is tracked (11.7)
-        v = branch(flow, (~prior.restrict).any(), search, lambda mask, restrict, windowed, vp, near, origin: (vp.clone(),),
-                   (mask, prior.restrict, windowed, prior.vp, near, origin))[0]
+        v = branch(flow, (~prior.restrict).any(), search,
+                   lambda mask, restrict, windowed, vp, near, sweep, origin: (vp.clone(),),
+                   (mask, prior.restrict, windowed, prior.vp, near, sweep, origin))[0]
     elif params.lattice_vp == "search":
         v = vp_search(mask, params, origin if counted else None)
     elif vp is None or has_vp is None:

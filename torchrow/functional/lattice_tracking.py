@@ -45,8 +45,8 @@ class LatticeTrackerState:
     ``ok``, else 0 (0 before frame 0; the lattice an acquiring frame confirms, :func:`confirms`);
     ``centre`` float64 with ``has_centre`` bool: the tracked row's bottom-row x for the next
     frame; ``pending`` int64: the row change the next frame reports; ``grid_vp`` ``(B, 2)``
-    int64: the VP the last full search chose on the grid, whose window the next full search
-    takes (11.7).
+    int64: the VP the last full search of an ``ok`` frame (or of frame 0) chose on the grid,
+    whose window the next full search takes (11.7).
     """
 
     ready: torch.Tensor
@@ -238,9 +238,11 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
     tracked = state.ready & state.has_centre
     full = ~tracked | (state.age >= params.lattice_track_every)
     centre = torch.where(tracked, state.centre, torch.full_like(state.centre, float(w) / 2))
-    # a full search takes the grid near the last grid VP where the last frame was ok (tracked, or
-    # acquiring), not near the lattice's own VP, which lies far off where a bent refit extrapolates (11.7)
-    prior = LatticePriorBatch(centre, ~full, state.vp, state.spacing, state.spacing > 0, state.grid_vp)
+    # a full search takes the grid near the last grid VP (frame 0: the whole grid), not near the
+    # lattice's own VP, which lies far off where a bent refit extrapolates; after a frame that was
+    # not ok, one more grid height, in turn: a loss sweeps the grid at a bounded cost per frame (11.7)
+    sweep = torch.where(state.spacing > 0, torch.full_like(state.frames, -1), state.frames % len(params.lattice_vp_heights))
+    prior = LatticePriorBatch(centre, ~full, state.vp, state.spacing, state.ready, state.grid_vp, sweep)
     # section 1 where the grid is searched: on frames with a full search (here) or a redo (again;
     # computed there unless it is known here to have run: eagerly, or in the unbranched graph)
     sky = grid_sky(images, full, params, flow)
@@ -284,7 +286,7 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
         age=torch.where(searched_full, one, state.age + 1), last=code, vp=lattice_vp(rows.coef, h, rows.vp),
         spacing=torch.where(ok, rows.spacing, torch.zeros_like(rows.spacing)),
         centre=x0 + pend.to(torch.float64) * d0, has_centre=keep, pending=torch.where(keep, pend, torch.zeros_like(pend)),
-        grid_vp=torch.where(searched_full.view(-1, 1), rows.vp, state.grid_vp))
+        grid_vp=torch.where((searched_full & (ok | ~state.ready)).view(-1, 1), rows.vp, state.grid_vp))
     new = _where(active, new, state)
     end = torch.where(code == _CODE["row_end_ahead"], y_end, torch.full_like(y_end, -1))
     return LatticeStep(rows, status, code, change, end, searched_full, redo, active), new

@@ -51,12 +51,15 @@ class LatticePrior:
     row). ``vp``/``spacing``: on a tracked frame the VP the comb uses (the previous frame's
     lattice VP, not searched) and the previous comb spacing; ``None`` = a full search (the VP
     grid searched, the comb unrestricted). ``near``: on a full search of a tracked sequence its
-    VP, whose :func:`vp_window` of the grid is searched (``None``: the whole grid)."""
+    last grid VP, whose :func:`vp_window` of the grid is searched (``None``: the whole grid).
+    ``sweep``: with ``near``, after a frame that was not ``ok``, the grid height (an index into
+    ``lattice_vp_heights``) whose whole row of VPs is searched too, after the window."""
 
     centre: float
     vp: tuple[int, int] | None = None
     spacing: int | None = None
     near: tuple[int, int] | None = None
+    sweep: int | None = None
 
 
 def spacing_near(d: np.ndarray | int, previous: int, params: Params) -> np.ndarray:
@@ -206,9 +209,11 @@ def vp_origin(sky: int, height: int, params: Params) -> int:
     return min(max(sky + params.lattice_vp_sky, 0), height)
 
 
-def vp_window(width: int, params: Params, near: tuple[int, int], origin: int = 0) -> np.ndarray:
-    """Section 11.7: the indices into :func:`vp_grid` (ascending: the grid's order) that a full
-    search of a tracked sequence takes, ``(n,)`` int64, around its VP ``near`` (image pixels).
+def vp_window(width: int, params: Params, near: tuple[int, int], origin: int = 0, sweep: int | None = None) -> np.ndarray:
+    """Section 11.7: the indices into :func:`vp_grid` that a full search of a tracked sequence
+    takes, ``(n,)`` int64, around its last grid VP ``near`` (image pixels), ascending (the grid's
+    order); with ``sweep`` (a grid height's index) the ``ncol`` VPs of that height follow, left
+    to right (``n + ncol`` indices; those inside the window appear twice).
 
     With ``step = lattice_vp_step``, ``ncol = W // step + 1`` columns and ``nh`` heights: the
     nearest column ``c = clip((2 x + step) // (2 step), 0, ncol - 1)`` (integers) and the first
@@ -224,16 +229,23 @@ def vp_window(width: int, params: Params, near: tuple[int, int], origin: int = 0
     i = int(np.argmin(np.abs(heights - (int(near[1]) - origin))))
     x0 = min(max(c - params.lattice_track_vp_cols, 0), ncol - nx)
     y0 = min(max(i - params.lattice_track_vp_rows, 0), heights.size - ny)
-    return ((y0 + np.arange(ny, dtype=np.int64))[:, None] * ncol + x0 + np.arange(nx, dtype=np.int64)).ravel()
+    win = ((y0 + np.arange(ny, dtype=np.int64))[:, None] * ncol + x0 + np.arange(nx, dtype=np.int64)).ravel()
+    if sweep is None:
+        return win
+    if not 0 <= sweep < heights.size:
+        raise ValueError(f"sweep must index one of the {heights.size} grid heights, got {sweep}")
+    return np.concatenate([win, sweep * ncol + np.arange(ncol, dtype=np.int64)])
 
 
-def vp_search(mask: np.ndarray, params: Params, origin: int = 0, near: tuple[int, int] | None = None) -> tuple[int, int]:
+def vp_search(mask: np.ndarray, params: Params, origin: int = 0, near: tuple[int, int] | None = None,
+              sweep: int | None = None) -> tuple[int, int]:
     """Section 11.2: the grid VP whose folded contrast comb is strongest (``lattice_vp == "search"``).
 
     ``origin`` (:func:`vp_origin`): the search runs on the mask's rows ``origin .. H-1`` moved
     up to rows ``0 .. H-1-origin`` (the rows below are empty) and adds ``origin`` to the VP's
     row, so the grid's heights count from row ``origin``. ``near`` (section 11.7, a tracked
-    sequence's VP): only the grid VPs of :func:`vp_window` are candidates, in the grid's order.
+    sequence's last grid VP; ``sweep``: the grid height swept after a frame that was not ``ok``):
+    only the grid VPs of :func:`vp_window` are candidates, in its order.
 
     The green pixels are counted in cells (:func:`vp_cells`). For each VP of :func:`vp_grid`,
     every cell with ``yc - yv > lattice_vp_margin`` projects its count through the VP onto the
@@ -258,7 +270,7 @@ def vp_search(mask: np.ndarray, params: Params, origin: int = 0, near: tuple[int
     yc, xc, cnt = yc[occupied], xc[occupied], cnt[occupied]
     grid = vp_grid(w, params)
     if near is not None:
-        grid = grid[vp_window(w, params, near, origin)]
+        grid = grid[vp_window(w, params, near, origin, sweep)]
     nb = 3 * w
     hist = np.zeros((grid.shape[0], nb), np.int64)
     step = max(1, VP_SLICE // max(cnt.size, 1))  # VPs per slice: the projections stay ~VP_SLICE entries
@@ -542,7 +554,7 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
     params = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
     if params.lattice_vp == "search":
         v = prior.vp if prior is not None and prior.vp is not None else vp_search(
-            mask, params, origin, None if prior is None else prior.near)
+            mask, params, origin, None if prior is None else prior.near, None if prior is None else prior.sweep)
     else:
         v = init_vp(vp, w, params)
     d, phase, found, contrast = comb_search(mask, v, params, prior)

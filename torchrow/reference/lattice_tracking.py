@@ -112,7 +112,8 @@ class LatticeSequenceState:
     ``centre``: the tracked row's bottom-row x for the next frame (``None``: no identity, the next
     frame starts from ``W/2`` with a full search); ``pending``: the row change the next frame
     reports (its central row is the previous frame's row ``k = pending``); ``grid_vp``: the VP
-    the last full search chose on the grid, whose window the next full search takes.
+    the last full search of an ``ok`` frame (or of frame 0) chose on the grid, whose window the
+    next full search takes.
     """
 
     width: int
@@ -167,9 +168,11 @@ class LatticeTracker:
         tracked = state.centre is not None
         full = not tracked or state.age >= p.lattice_track_every
         centre = state.centre if state.centre is not None else np.float64(w) / 2
-        # a sequence's full search takes the grid near its last grid VP where the last frame was
-        # ok (tracked, or to be confirmed: scheduled, redone or acquiring, 11.7)
-        wide = LatticePrior(float(centre), near=state.grid_vp if state.spacing > 0 else None)
+        # a sequence's full search takes the grid near its last grid VP (frame 0: the whole grid);
+        # after a frame that was not ok, one more grid height, in turn, so that a loss sweeps the
+        # whole grid in len(lattice_vp_heights) frames at a bounded cost per frame (11.7)
+        sweep = state.frames % len(p.lattice_vp_heights) if state.grid_vp is not None and state.spacing == 0 else None
+        wide = LatticePrior(float(centre), near=state.grid_vp, sweep=sweep)
         # section 1 only where the grid is searched (a full search or a redo) and counts from it
         def grid_sky() -> int:
             return sky_row(rgb, p) if p.lattice_vp_sky_origin() else 0
@@ -199,7 +202,7 @@ class LatticeTracker:
                                    age=1 if (full or redo) else state.age + 1, last=st,
                                    vp=lattice_vp(fit.coef, h, fit.vp),
                                    spacing=int(fit.spacing) if ok else 0, centre=new_centre, pending=pending,
-                                   grid_vp=fit.vp if (full or redo) else state.grid_vp)
+                                   grid_vp=fit.vp if (full or redo) and (ok or state.grid_vp is None) else state.grid_vp)
         track = LatticeTrack(st, change, y_end if st == "row_end_ahead" else None, full or redo, redo)
         out = FrameResult.build(res, source=source, frame=state.frames if index is None else index,
                                 hough_ran=full or redo, hough_redo=redo, confidence=imp.image_confidence,
