@@ -101,7 +101,7 @@ def run(variant: dict[str, Any], params: Params, frames_per_leg: int) -> str:
     def stat(v: list[float], scale: float, unit: str) -> str:
         return f"{scale * float(np.median(v)):.2f} / {scale * max(v):.2f} {unit}" if v else "-"
 
-    again = "" if found is None else f" (found {found - first - n} frames after the lens)"
+    again = "" if found is None else f" (trusted again on frame {found})"
     return " | ".join([f"{len(got)}" + again, stat(lat, 100.0, "cm"), stat(head, 180.0 / math.pi, "°"),
                        stat(end, 1.0, "m") + f" ({len(end)})", stable, json.dumps(states).replace('"', ""),
                        str(changes)])
