@@ -32,6 +32,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -67,7 +68,7 @@ def main() -> None:
     for item in args.cover:
         first, _, n = item.partition(":")
         for i in range(int(first), min(int(first) + int(n), len(frames))):
-            frames[i] = frames[i] * 0 + 30
+            frames[i] = np.full_like(frames[i], 30)
     h, w = frames[0].shape[:2]
     print(f"{len(frames)} Caterra frames at {w}x{h}", flush=True)
     tmp = tempfile.TemporaryDirectory()

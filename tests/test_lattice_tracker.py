@@ -312,6 +312,7 @@ def test_after_a_loss_the_full_search_sweeps_one_grid_height_per_frame() -> None
     # 11.7: after a frame that was not ok the full search takes the window around the last grid
     # VP of an ok frame and the whole row of grid height frames % len(heights): a loss sweeps
     # the grid in 7 frames at a window's cost per frame; a frame that fails keeps the grid VP
+    from torchrow.core.steering import LATTICE_STATES
     from torchrow.functional.lattice_tracking import LatticeTrackerState, lattice_advance
     from torchrow.reference import lattice as rlattice
     from torchrow.reference.lattice_tracking import LatticeSequenceState, LatticeTracker
@@ -325,7 +326,8 @@ def test_after_a_loss_the_full_search_sweeps_one_grid_height_per_frame() -> None
     seen = set()
     for frames in range(heights):
         st = LatticeTrackerState.empty(2)
-        st.ready, st.frames, st.last = torch.ones(2, dtype=torch.bool), torch.full((2,), frames), torch.zeros(2)
+        st.ready, st.frames = torch.ones(2, dtype=torch.bool), torch.full((2,), frames)
+        st.last = torch.full((2,), LATTICE_STATES.index("lost"))
         st.vp = st.grid_vp = torch.tensor([corner, corner])
         step, new = lattice_advance(x, torch.ones(2, dtype=torch.bool), st, P)
         chosen = tuple(step.rows.vp[0].tolist())
@@ -337,8 +339,8 @@ def test_after_a_loss_the_full_search_sweeps_one_grid_height_per_frame() -> None
         # the ok frame moves the window's centre; the grey frame keeps it
         assert new.grid_vp.tolist() == [list(chosen), list(corner)]
         for b, frame in enumerate((img, grey)):
-            rec, ref = LatticeTracker(P).step(frame, LatticeSequenceState(320, 240, frames, 1, "lost", corner, 0,
-                                                                           None, 0, corner))
+            rec, ref = LatticeTracker(P).step(frame, LatticeSequenceState(320, 240, frames=frames, age=1, last="lost",
+                                                                           vp=corner, grid_vp=corner))
             assert rec.status == STATUSES[int(step.status[b])] and ref.grid_vp == tuple(new.grid_vp[b].tolist())
     assert len(seen) >= 3  # the swept heights won on several frames
 
