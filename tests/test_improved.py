@@ -311,7 +311,7 @@ def test_comb_and_fit_recover_a_synthetic_lattice(spacing: float, shift: float) 
     d, phase, found, _ = rlat.comb_search(mask, (int(vp[0]), -60), IMPROVED)
     assert found and abs(d - spacing) <= 2
     assert abs(phase - (160 + shift)) <= 0.1 * spacing  # the refit below makes it exact
-    rows, conf, _fit, _ = rlat.improved_rows(img, 0, vp, IMPROVED)
+    rows, conf, _fit, *_ = rlat.improved_rows(img, 0, vp, IMPROVED)
     assert [r.valid for r in rows] == [True] * 3 and conf > 0.75  # the far rows are 14 px apart
     xb = sorted(r.x_at(239.0) for r in rows)
     np.testing.assert_allclose(xb, [160 + shift - spacing, 160 + shift, 160 + shift + spacing], atol=1.5)
@@ -320,7 +320,7 @@ def test_comb_and_fit_recover_a_synthetic_lattice(spacing: float, shift: float) 
 def test_curved_lattice_gets_its_curvature() -> None:
     # the rows bend 17 px by the top row, where they are 18 px apart (more would alias)
     img = _field(curve=0.0003)
-    rows, _, _fit, _ = rlat.improved_rows(img, 0, (160.0, -60.0), IMPROVED.replace(lattice_model="curved"))
+    rows, _, _fit, *_ = rlat.improved_rows(img, 0, (160.0, -60.0), IMPROVED.replace(lattice_model="curved"))
     assert all(r.valid for r in rows)
     assert all(abs(r.c - 0.0003) < 3e-5 for r in rows)
     y = np.arange(240.0)
@@ -346,11 +346,11 @@ def test_cubic_lattice_follows_an_s_bend_that_a_quadratic_cannot() -> None:
     img = _s_field()
     y = np.arange(240.0)
     truth = 160 + 1e-5 * (y - 239) * (y - 119) * y
-    rows, _, fit, _ = rlat.improved_rows(img, 0, None, IMPROVED)
+    rows, _, fit, *_ = rlat.improved_rows(img, 0, None, IMPROVED)
     assert all(r.valid for r in rows) and fit.coef[3] != 0.0
     assert abs(rows[1].e - 1e-5) < 1e-6
     assert np.abs(rows[1].x_at(y) - truth).max() < 2
-    quad, _, qfit, _ = rlat.improved_rows(img, 0, None, IMPROVED.replace(lattice_center_degree=2))
+    quad, _, qfit, *_ = rlat.improved_rows(img, 0, None, IMPROVED.replace(lattice_center_degree=2))
     assert qfit.coef[3] == 0.0 and all(r.e == 0.0 for r in quad)
     assert np.abs(quad[1].x_at(y) - truth).max() > 4
     got = CropRowDetector(IMPROVED)(_t([img])).results()[0]
@@ -485,6 +485,45 @@ def test_scenes_without_crop_rows_are_never_ok() -> None:
             assert got.status != "ok", (name, params.lattice_model)
     with pytest.raises(ValueError, match="2x2"):
         rowless_scenes(height=1)
+
+
+def test_row_dominance_counts_cells_where_a_row_beats_its_fuller_gap() -> None:
+    # rows -1..1 on three image rows; gaps -1.5..1.5. Image row 0: every row beats both gaps;
+    # row 1: row 0 ties its gap (3 vs 3: lit, no win), the others win; row 2: nothing lit
+    rows = np.array([[5, 4, 2], [4, 3, 6], [0, 0, 0]], np.int64).T  # (2K+1, H)
+    gaps = np.array([[1, 0, 1, 0], [1, 3, 0, 2], [0, 0, 0, 0]], np.int64).T  # (2K+2, H)
+    want = 5 / 6
+    assert rlat.row_dominance(rows, gaps) == want
+    batched = torch.from_numpy(np.stack([rows.T, np.zeros_like(rows.T)]))  # (B, H, 2K+1)
+    gaps_t = torch.from_numpy(np.stack([gaps.T, gaps.T]))
+    before = (batched.clone(), gaps_t.clone())
+    got = flat.row_dominance(batched, gaps_t)
+    assert got.dtype == torch.float64 and got.tolist() == [want, 0.0]  # all-zero rows: lit by the gaps, no win
+    assert torch.equal(batched, before[0]) and torch.equal(gaps_t, before[1])
+    assert flat.row_dominance(batched[:0], gaps_t[:0]).shape == (0,)
+    assert rlat.row_dominance(np.zeros((3, 4), np.int64), np.zeros((4, 4), np.int64)) == 0.0  # nothing lit
+    assert rlat.gap_offsets(IMPROVED) == flat.gap_offsets(IMPROVED, torch.device("cpu")).tolist() == [-1.5, -0.5, 0.5, 1.5]
+
+
+def test_rows_across_the_view_are_not_ok_with_the_forward_setting() -> None:
+    """Issue 25: a field turned by 90° (its rows run across the image) whose comb is strong
+    enough for ``ok`` is not ``ok`` with the forward-camera setting: its rows do not outnumber
+    their gaps (11.4's dominance). The upright field stays ``ok``; both paths agree."""
+    params = Params(mode="improved", **FORWARD_CAMERA)
+    upright = _field(spacing=120.0, ks=range(-8, 9))
+    turned = np.ascontiguousarray(np.rot90(_field(h=320, w=240, spacing=120.0, ks=range(-8, 9))))  # 240 x 320 too
+    for img, rule_ok in ((upright, True), (turned, False)):
+        got = CropRowDetector(params)(_t([img])).results()[0]
+        _records_equal(detect(img, params), got)
+        dominance = rlat.improved_rows(img, 0, None, params).dominance
+        rows = flat.improved_rows(_t([img]), torch.zeros(1, dtype=torch.int64), None, None, params)
+        assert rows.dominance.tolist() == [dominance]
+        assert detect(img, params.replace(lattice_min_dominance=0.0)).status == "ok"  # contrast and rows pass
+        assert (dominance >= params.lattice_min_dominance) == rule_ok
+        assert got.status == ("ok" if rule_ok else "weak")
+    # without the rule (the default setting) the dominance is not computed, in either path
+    assert np.isnan(rlat.improved_rows(upright, 0, None, IMPROVED).dominance)
+    assert flat.improved_rows(_t([upright]), torch.zeros(1, dtype=torch.int64), None, None, IMPROVED).dominance.isnan().all()
 
 
 @pytest.mark.parametrize(("green", "comb"), [("row_mean", "contrast"), ("otsu", "uniform"), ("otsu", "contrast")])
@@ -683,8 +722,8 @@ def test_vp_search_finds_the_vanishing_point_of_a_clean_field(shift: float) -> N
 
 def test_searched_vp_replaces_a_wrong_section_6_vp() -> None:
     img = _field(spacing=70.0, shift=40.0)
-    good, _, fit_good, _ = rlat.improved_rows(img, 0, (200.0, -60.0), IMPROVED)
-    rows, _, fit, _ = rlat.improved_rows(img, 0, (40.0, -20.0), IMPROVED)  # section 6 far off
+    good, _, fit_good, *_ = rlat.improved_rows(img, 0, (200.0, -60.0), IMPROVED)
+    rows, _, fit, *_ = rlat.improved_rows(img, 0, (40.0, -20.0), IMPROVED)  # section 6 far off
     assert fit.vp == fit_good.vp == (200, -60) and rows == good
     old = IMPROVED.replace(lattice_vp="section6")
     assert rlat.improved_rows(img, 0, (40.0, -20.0), old)[2].vp == (40, -20)
@@ -742,8 +781,8 @@ def test_lattice_horizon_image_uses_rows_above_section_2_sky() -> None:
     got = flat.horizon_row(torch.tensor([sky, -1, 0]), IMPROVED)
     assert got.tolist() == [0, 0, 0] and got.dtype == torch.int64
     assert flat.horizon_row(torch.tensor([sky, -1]), old).tolist() == [sky, -1]
-    rows, _conf, fit, _ = rlat.improved_rows(img, sky, (160.0, -60.0), IMPROVED)
-    rows_sky, _conf_sky, fit_sky, _ = rlat.improved_rows(img, sky, (160.0, -60.0), old)
+    rows, _conf, fit, *_ = rlat.improved_rows(img, sky, (160.0, -60.0), IMPROVED)
+    rows_sky, _conf_sky, fit_sky, *_ = rlat.improved_rows(img, sky, (160.0, -60.0), old)
     assert fit.span == 240 and fit_sky.span == 240 - sky
     assert min(fit.support) > 240 - sky  # rows above section 2's horizon support the rows
     # the far rows keep their spacing: at the top row the fitted rows are as far apart as drawn

@@ -128,6 +128,7 @@ class Params:
     lattice_curve_gain: float = 0.02  # "auto": the curved refit must hold this fraction more inlier pixels
     lattice_min_contrast: float = 0.2  # status ok needs the comb's contrast per binned pixel at least this
     lattice_min_image_confidence: float = 0.0  # status ok needs the image confidence at least this
+    lattice_min_dominance: float = 0.0  # status ok needs rows -K..K to outnumber their gaps on this share of lit cells
     # --- section 11.7 (torchrow extension): the lattice tracker ------------------------------
     lattice_track_every: int = 10  # video: a full (unrestricted) search at least every this many frames
     lattice_track_vp_cols: int = 2  # video: a tracked sequence's full search: grid columns within this many of its last
@@ -433,6 +434,7 @@ _RULES: dict[str, Rule] = {
     "lattice_curve_gain": Rule("float", 0, 100, why="a fraction of the straight lattice's inlier pixels"),
     "lattice_min_contrast": Rule("float", 0, 1, why="a fraction of the comb's binned pixels"),
     "lattice_min_image_confidence": Rule("float", 0, 1, why="a fraction of the image rows"),
+    "lattice_min_dominance": Rule("float", 0, 1, why="a fraction of the rows' lit cells"),
     "lattice_min_spacing_px": _F0, "lattice_pivot_tol": Rule("float", 0, 1, why="a fraction of a pivot"),
     "lattice_min_confidence": Rule("float", 0, 1),
     "lattice_track_every": Rule("int", 1, 2**31 - 1),
@@ -456,9 +458,12 @@ def _tracking(params: Params) -> Params:
 #: the horizon, rows converging near the top edge or inside the image. ``--forward`` on the
 #: command line; ``Params(mode="improved", **FORWARD_CAMERA)`` in Python. Its
 #: ``lattice_min_confidence`` (11.4): a row seen on fewer than 2 % of the image rows is no row
-#: (with spacings up to 320 px a forward camera's lattice puts neighbours outside the image).
+#: (with spacings up to 320 px a forward camera's lattice puts neighbours outside the image); its
+#: ``lattice_min_dominance`` (11.4): ``ok`` needs the rows to outnumber the gaps beside them on
+#: 60 % of the image rows where either holds green (rows across the view, weeds, a wrong lattice).
 FORWARD_CAMERA: dict[str, Any] = {"lattice_model": "auto", "lattice_min_spacing": 16, "lattice_max_spacing": 320,
-                                  "lattice_vp_origin": "sky", "lattice_min_confidence": 0.02}
+                                  "lattice_vp_origin": "sky", "lattice_min_confidence": 0.02,
+                                  "lattice_min_dominance": 0.6}
 
 
 

@@ -38,7 +38,7 @@ __all__ = ["LatticeRows", "LatticePriorBatch", "spacing_near", "improved_batch",
            "vp_table", "vp_origin", "vp_search", "comb_table", "comb_search", "solve_normal", "prefix_sums",
            "centre_spacing", "row_cells", "monomial_tables", "normal_equations", "refine", "LatticeStartBatch",
            "lattice_start", "comb_start", "refit_lattice", "fit_lattice", "lattice_rows", "row_polynomials",
-           "visible_rows", "VisibleRows", "improved_rows", "improved_status", "LatticeFitBatch"]
+           "visible_rows", "VisibleRows", "row_dominance", "gap_offsets", "improved_rows", "improved_status", "LatticeFitBatch"]
 
 N_COEF = 7
 EXG_OFFSET = 510
@@ -51,7 +51,8 @@ class LatticeRows:
     a*y + b`` (float64), ``valid`` bool, ``confidence`` float64; ``image_confidence`` ``(B,)``
     float64; ``coef`` ``(B, 7)`` float64 (``c0, c1, c2, c3, d0, d1, d2``); ``spacing``/``phase``/
     ``found`` ``(B,)`` (the comb); ``vp`` ``(B, 2)`` int64 (the rounded VP it used); ``contrast``
-    ``(B,)`` float64 (the comb's best score per binned pixel) and ``curved`` ``(B,)`` bool (11.3.1);
+    ``(B,)`` float64 (the comb's best score per binned pixel), ``curved`` ``(B,)`` bool (11.3.1) and
+    ``dominance`` ``(B,)`` float64 (11.4, :func:`row_dominance`; NaN where ``lattice_min_dominance`` is 0);
     ``visible_*``: every visible row, the fields of :class:`VisibleRows` (a dataclass of tensors
     only, so that :func:`~torchrow.core.results.concat_batches` joins chunks); ``lit`` ``(B, H)``
     int64: per image row, the rows ``-K .. K`` with an inlier there (section 11.7's row end)."""
@@ -70,6 +71,7 @@ class LatticeRows:
     vp: torch.Tensor
     contrast: torch.Tensor
     curved: torch.Tensor
+    dominance: torch.Tensor
     visible_a: torch.Tensor
     visible_b: torch.Tensor
     visible_c: torch.Tensor
@@ -1124,19 +1126,51 @@ class VisibleRows(NamedTuple):
     present: torch.Tensor
 
 
+def gap_offsets(params: Params, device: torch.device) -> torch.Tensor:
+    """The ``2K+2`` gaps beside rows ``-K .. K``, ``k = -K-1/2 .. K+1/2`` as ``(2K+2,)`` float64
+    (section 11.4's dominance: gap ``j`` lies between rows ``j-1`` and ``j``)."""
+    half = params.lattice_half
+    return torch.arange(2 * half + 2, device=device, dtype=torch.float64) - (half + 0.5)
+
+
+def row_dominance(rows: torch.Tensor, gaps: torch.Tensor) -> torch.Tensor:
+    """Section 11.4 (:func:`torchrow.reference.lattice.row_dominance`): ``(B,)`` float64, the share
+    of lit cells where a row's inliers outnumber the fuller of its two gaps'.
+
+    ``rows (B, H, 2K+1)`` int64 are the cells of rows ``-K .. K`` (:func:`row_cells`), ``gaps (B, H,
+    2K+2)`` those of :func:`gap_offsets`. A cell ``(y, k)`` is lit where ``n + m > 0`` and wins where
+    ``n > m``, with ``n`` the row's count and ``m`` the larger of its gaps' on image row ``y``;
+    dominance = wins / max(lit, 1) (integers, one float64 division).
+    """
+    m = torch.maximum(gaps[:, :, :-1], gaps[:, :, 1:])
+    lit = ((rows + m) > 0).sum(dim=(1, 2))
+    wins = (rows > m).sum(dim=(1, 2))
+    return wins.to(torch.float64) / torch.clamp(lit, min=1).to(torch.float64)
+
+
 def visible_rows(mask: torch.Tensor, top: torch.Tensor, coef: torch.Tensor, found: torch.Tensor,
-                 params: Params) -> VisibleRows:
+                 params: Params) -> tuple[VisibleRows, torch.Tensor]:
     """Section 11.4 (:func:`torchrow.reference.lattice.visible_rows`): every row of the fitted
     lattices ``coef (B, 7)`` that its image shows, over the static bound ``K_v`` of
-    :meth:`Params.lattice_visible_half` with a mask. ``mask (B, H, W)`` bool is the green mask,
-    ``top (B,)`` the first image row. Memory: two ``(B, H, W+1)`` int64 prefix sums (the fit's are
-    gone by then) and ``(B, H, 2 K_v + 1)`` cells."""
+    :meth:`Params.lattice_visible_half` with a mask, and the dominance ``(B,)`` float64 of rows
+    ``-K .. K`` (:func:`row_dominance`; their gaps' cells join the same pass; NaN, not computed,
+    where ``lattice_min_dominance`` is 0). ``mask (B, H, W)`` bool is the
+    green mask, ``top (B,)`` the first image row. Memory: two ``(B, H, W+1)`` int64 prefix sums
+    (the fit's are gone by then) and ``(B, H, 2 K_v + 2 K + 3)`` cells."""
     _, h, w = mask.shape
     dev = mask.device
     kv = params.lattice_visible_half(w)
+    half = params.lattice_half
     ks = torch.arange(-kv, kv + 1, device=dev, dtype=torch.float64)
     below = torch.arange(h, device=dev).view(1, h) >= top.to(torch.int64).view(-1, 1)  # (B, H)
-    cnt, _ = row_cells(prefix_sums(mask & below.unsqueeze(2)), coef, params, ks)
+    gaps = params.lattice_min_dominance > 0  # only a status rule reads the dominance: not computed without one
+    cells, _ = row_cells(prefix_sums(mask & below.unsqueeze(2)), coef, params,
+                         torch.cat([ks, gap_offsets(params, dev)]) if gaps else ks)
+    cnt = cells[:, :, :2 * kv + 1]
+    if gaps:
+        dominance = row_dominance(cnt[:, :, kv - half:kv + half + 1], cells[:, :, 2 * kv + 1:])
+    else:
+        dominance = torch.full((mask.shape[0],), float("nan"), dtype=torch.float64, device=dev)
     t = (torch.arange(h, device=dev, dtype=torch.float64) - (h - 1)).view(1, h, 1)
     cc, dd = centre_spacing(t, coef)
     centre = cc + ks.view(1, 1, -1) * dd  # (B, H, R)
@@ -1146,7 +1180,7 @@ def visible_rows(mask: torch.Tensor, top: torch.Tensor, coef: torch.Tensor, foun
     support = (cnt > 0).sum(dim=1)
     conf = support.to(torch.float64) / _span(top, h).unsqueeze(1)
     present = found.unsqueeze(1) & inside & (support > 0) & (conf >= params.lattice_min_confidence)
-    return VisibleRows(*row_polynomials(coef, ks, h), conf, present)
+    return VisibleRows(*row_polynomials(coef, ks, h), conf, present), dominance
 
 
 class ImprovedStart(NamedTuple):
@@ -1211,16 +1245,20 @@ def lattice_rows(mask: torch.Tensor, top: torch.Tensor, fit: LatticeFitBatch, pa
     for i in range(1, conf.shape[1]):
         img_conf = img_conf + conf[:, i]
     img_conf = img_conf / float(conf.shape[1])
+    vis, dominance = visible_rows(mask, top, coef, found, params)
     return LatticeRows(a, b, c, e, valid, conf, img_conf, coef, spacing, phase, found, v, contrast, curved,
-                       *visible_rows(mask, top, coef, found, params), lit=(cnt > 0).sum(dim=2))
+                       dominance, *vis, lit=(cnt > 0).sum(dim=2))
 
 
 def improved_status(rows: LatticeRows, status: torch.Tensor, params: Params) -> torch.Tensor:
     """Section 11.4 (:func:`torchrow.reference.lattice.improved_status`): ``status`` codes
     ``(B,)`` from the row rule, with ``ok`` turned ``weak`` where the comb's contrast is below
-    ``lattice_min_contrast`` or the image confidence below ``lattice_min_image_confidence``."""
+    ``lattice_min_contrast``, the image confidence below ``lattice_min_image_confidence`` or the
+    rows' dominance below ``lattice_min_dominance``."""
     code = {s: i for i, s in enumerate(STATUSES)}
     strong = (rows.contrast >= params.lattice_min_contrast) & (rows.image_confidence >= params.lattice_min_image_confidence)
+    if params.lattice_min_dominance > 0:  # else the dominance is not computed (NaN)
+        strong = strong & (rows.dominance >= params.lattice_min_dominance)
     return torch.where((status == code["ok"]) & ~strong, torch.full_like(status, code["weak"]), status)
 
 

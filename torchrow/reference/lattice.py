@@ -33,7 +33,7 @@ __all__ = ["LatticeFit", "LatticePrior", "comb_near", "spacing_near",
            "vp_cells", "vp_origin", "vp_window", "vp_search", "comb_search",
            "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
            "normal_equations", "refine", "fit_lattice", "improved_status", "lattice_rows", "row_polynomial",
-           "visible_rows", "improved_rows", "ImprovedRows", "N_COEF", "improved_result"]
+           "visible_rows", "row_dominance", "gap_offsets", "improved_rows", "ImprovedRows", "N_COEF", "improved_result"]
 
 #: Coefficients ``(c0, c1, c2, c3, d0, d1, d2)`` of ``x = c(t) + k d(t)``, ``c(t) = c0 + c1 t + c2 t^2 +
 #: c3 t^3`` (``c3`` = 0 with ``lattice_center_degree`` 2), ``d(t) = d0 + d1 t + d2 t^2``.
@@ -621,8 +621,27 @@ def lattice_rows(fit: LatticeFit, height: int, params: Params) -> list[Row]:
     return rows
 
 
-def visible_rows(mask: np.ndarray, top: int, fit: LatticeFit, params: Params) -> list[LatticeRow]:
-    """Section 11.4: every row of the fitted lattice that the image shows, ``k`` ascending.
+def gap_offsets(params: Params) -> list[float]:
+    """The ``2K+2`` gaps beside rows ``-K .. K``: ``k = -K-1/2 .. K+1/2`` (gap ``j`` between rows
+    ``j-1`` and ``j``; section 11.4's dominance)."""
+    return [j - (params.lattice_half + 0.5) for j in range(2 * params.lattice_half + 2)]
+
+
+def row_dominance(rows: np.ndarray, gaps: np.ndarray) -> float:
+    """Section 11.4: the share of lit cells where a row's inliers outnumber the fuller of its two
+    gaps'. ``rows (2K+1, H)`` are the cells of rows ``-K .. K`` (:func:`row_cells`), ``gaps (2K+2,
+    H)`` those of :func:`gap_offsets`. Cell ``(k, y)`` is lit where ``n + m > 0`` and wins where
+    ``n > m`` (``m`` = the larger of its gaps' counts on image row ``y``); wins / max(lit, 1)
+    (float64)."""
+    m = np.maximum(gaps[:-1], gaps[1:])
+    lit = int(((rows + m) > 0).sum())
+    return float(np.float64(int((rows > m).sum())) / np.float64(max(lit, 1)))
+
+
+def visible_rows(mask: np.ndarray, top: int, fit: LatticeFit, params: Params) -> tuple[list[LatticeRow], float]:
+    """Section 11.4: every row of the fitted lattice that the image shows, ``k`` ascending, and
+    the dominance of rows ``-K .. K`` (:func:`row_dominance`, from the same cells; NaN, not
+    computed, where ``lattice_min_dominance`` is 0).
 
     Rows ``k = -K_v .. K_v`` (:meth:`Params.lattice_visible_half`) take their inliers by the cells
     of 11.3 (:func:`row_cells` on the green pixels of rows ``y >= top``); a row is reported when the
@@ -635,7 +654,11 @@ def visible_rows(mask: np.ndarray, top: int, fit: LatticeFit, params: Params) ->
     ks = range(-kv, kv + 1)
     below = np.arange(h) >= top
     coef = np.array(fit.coef, np.float64)
-    cnt, _ = row_cells(prefix_sums(mask & below[:, None]), coef, params, ks)
+    half = params.lattice_half
+    gaps = params.lattice_min_dominance > 0  # only a status rule reads the dominance: not computed without one
+    cells, _ = row_cells(prefix_sums(mask & below[:, None]), coef, params, [*ks, *gap_offsets(params)] if gaps else ks)
+    cnt = cells[:2 * kv + 1]
+    dominance = row_dominance(cnt[kv - half:kv + half + 1], cells[2 * kv + 1:]) if gaps else float("nan")
     cc, dd = centre_spacing(np.arange(h, dtype=np.float64) - np.float64(h - 1), coef)
     # a row counts as shown only where the rows are resolvable: near the VP they all converge inside the image
     defined = below & (dd >= np.float64(params.lattice_min_spacing))
@@ -649,27 +672,32 @@ def visible_rows(mask: np.ndarray, top: int, fit: LatticeFit, params: Params) ->
             conf = float(np.float64(support) / span)
             if fit.found and inside and support > 0 and conf >= params.lattice_min_confidence:
                 out.append(LatticeRow(k, *row_polynomial(fit.coef, k, h), conf))
-    return out
+    return out, dominance
 
 
-def improved_status(rows: list[Row], contrast: float, image_confidence: float, params: Params) -> str:
+def improved_status(rows: list[Row], contrast: float, image_confidence: float, params: Params,
+                    dominance: float) -> str:
     """Section 11.4: ``invalid`` if a row is invalid, else ``weak`` unless the comb's contrast is
-    ``>= lattice_min_contrast`` and the image confidence ``>= lattice_min_image_confidence``
-    (float64 comparisons), else ``ok``."""
+    ``>= lattice_min_contrast``, the image confidence ``>= lattice_min_image_confidence`` and the
+    rows' dominance (:func:`row_dominance`) ``>= lattice_min_dominance`` (float64 comparisons),
+    else ``ok``."""
     if not all(r.valid for r in rows):
         return "invalid"
-    strong = contrast >= params.lattice_min_contrast and image_confidence >= params.lattice_min_image_confidence
+    strong = (contrast >= params.lattice_min_contrast and image_confidence >= params.lattice_min_image_confidence
+              and (params.lattice_min_dominance <= 0 or dominance >= params.lattice_min_dominance))
     return "ok" if strong else "weak"
 
 
 class ImprovedRows(NamedTuple):
     """:func:`improved_rows`' result: the ``2K+1`` rows of :func:`lattice_rows`, the image
-    confidence (mean of theirs), the fit, and every visible row (:func:`visible_rows`)."""
+    confidence (mean of theirs), the fit, every visible row and the rows' dominance
+    (:func:`visible_rows`)."""
 
     rows: list[Row]
     image_confidence: float
     fit: LatticeFit
     visible: list[LatticeRow]
+    dominance: float
 
 
 def improved_rows(rgb: np.ndarray, sky: int, vp: tuple[float, float] | None, params: Params,
@@ -687,7 +715,7 @@ def improved_rows(rgb: np.ndarray, sky: int, vp: tuple[float, float] | None, par
     fit = fit_lattice(mask, top, vp, params, prior, origin)
     rows = lattice_rows(fit, rgb.shape[0], params)
     conf = sum(r.confidence for r in rows) / len(rows)  # in row order, as the tensor path
-    return ImprovedRows(rows, conf, fit, visible_rows(mask, top, fit, params))
+    return ImprovedRows(rows, conf, fit, *visible_rows(mask, top, fit, params))
 
 
 def improved_result(imp: ImprovedRows, width: int, height: int, top: int, params: Params,
@@ -695,7 +723,7 @@ def improved_result(imp: ImprovedRows, width: int, height: int, top: int, params
     """Section 11.4's record of one image from :func:`improved_rows` (the detector's and the
     lattice tracker's): status by :func:`improved_status`, sections 2-6's fields null."""
     return ImageResult(width=width, height=height,
-                       status=improved_status(imp.rows, imp.fit.contrast, imp.image_confidence, params),
+                       status=improved_status(imp.rows, imp.fit.contrast, imp.image_confidence, params, imp.dominance),
                        sky=top, veg_color=None, k=None, bushy=None,
                        n_rows=len(imp.rows),  # the rows asked: 2K + 1
                        hough=None, outliers=None, vp=None, rows=imp.rows, name=name,
