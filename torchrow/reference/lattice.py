@@ -453,7 +453,7 @@ def prefix_sums(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def row_cells(pre: tuple[np.ndarray, np.ndarray], coef: np.ndarray, params: Params,
-              ks: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+              ks: Sequence[float] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Section 11.3: inlier count and sum of x per lattice row and image row, two ``(2K+1, H)`` int64
     (rows ``k = -K .. K``; ``ks``: these rows instead, ``(len(ks), H)``).
 
