@@ -57,13 +57,13 @@ def main() -> None:
     crbd = CRBD(root)
     fields = [ds.image(i, None) for i in range(len(ds))]  # stored size: turned before the resize
     truths = [ds.ground_truth(i) for i in range(len(ds))]
-    crbd_train = [crbd.image(i) for i in crbd.indices(args.split)]
+    crbd_split = [crbd.image(i) for i in crbd.indices(args.split)]
     turned_crdld = [np.ascontiguousarray(np.rot90(fields[i], k)) for i in range(0, len(ds), args.turn_every) for k in (1, 3)]
-    turned_crbd = [np.ascontiguousarray(np.rot90(im, k)) for im in crbd_train for k in (1, 3)]
+    turned_crbd = [np.ascontiguousarray(np.rot90(im, k)) for im in crbd_split for k in (1, 3)]
     fake = rowless_scenes()
-    sets = {"crdld": fields, "crbd": crbd_train, "turned crdld": turned_crdld, "turned crbd": turned_crbd,
+    sets = {"crdld": fields, "crbd": crbd_split, "turned crdld": turned_crdld, "turned crbd": turned_crbd,
             "made up": list(fake.values())}
-    print(f"CRDLD {args.split} ({len(ds)}), CRBD {args.split} ({len(crbd_train)}), turned CRDLD ({len(turned_crdld)}), "
+    print(f"CRDLD {args.split} ({len(ds)}), CRBD {args.split} ({len(crbd_split)}), turned CRDLD ({len(turned_crdld)}), "
           f"turned CRBD ({len(turned_crbd)}), made up ({len(fake)}); forward-camera setting\n")
     lines = [f"| `{args.vary}` | CRDLD `ok` | of those below 0.2 | sigma 0.1 mean | turned CRBD `ok` | "
              f"turned CRDLD `ok` | CRBD {args.split} `ok` | made-up `ok` |", "|---|---|---|---|---|---|---|---|"]

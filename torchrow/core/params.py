@@ -177,6 +177,11 @@ class Params:
         ``lattice_horizon="sky"`` (ALGORITHM.md 11.1) or its VP grid below a horizon in view (11.2)."""
         return self.runs_section6() or self.lattice_horizon == "sky" or self.lattice_vp_sky_origin()
 
+    def reads_dominance(self) -> bool:
+        """Whether a status rule reads the rows' dominance (ALGORITHM.md 11.4): only then do the
+        gaps' cells run, in both paths (``lattice_min_dominance > 0``)."""
+        return self.lattice_min_dominance > 0
+
     def tracking(self) -> Params:
         """The parameters the lattice tracker (ALGORITHM.md 11.7) runs section 11 with, in both
         paths: ``lattice_iterations`` = ``lattice_track_iterations`` (built once per

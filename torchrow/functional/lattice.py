@@ -1163,7 +1163,7 @@ def visible_rows(mask: torch.Tensor, top: torch.Tensor, coef: torch.Tensor, foun
     half = params.lattice_half
     ks = torch.arange(-kv, kv + 1, device=dev, dtype=torch.float64)
     below = torch.arange(h, device=dev).view(1, h) >= top.to(torch.int64).view(-1, 1)  # (B, H)
-    gaps = params.lattice_min_dominance > 0  # only a status rule reads the dominance: not computed without one
+    gaps = params.reads_dominance()
     cells, _ = row_cells(prefix_sums(mask & below.unsqueeze(2)), coef, params,
                          torch.cat([ks, gap_offsets(params, dev)]) if gaps else ks)
     cnt = cells[:, :, :2 * kv + 1]
@@ -1257,7 +1257,7 @@ def improved_status(rows: LatticeRows, status: torch.Tensor, params: Params) -> 
     rows' dominance below ``lattice_min_dominance``."""
     code = {s: i for i, s in enumerate(STATUSES)}
     strong = (rows.contrast >= params.lattice_min_contrast) & (rows.image_confidence >= params.lattice_min_image_confidence)
-    if params.lattice_min_dominance > 0:  # else the dominance is not computed (NaN)
+    if params.reads_dominance():  # else it is not computed (NaN)
         strong = strong & (rows.dominance >= params.lattice_min_dominance)
     return torch.where((status == code["ok"]) & ~strong, torch.full_like(status, code["weak"]), status)
 

@@ -655,7 +655,7 @@ def visible_rows(mask: np.ndarray, top: int, fit: LatticeFit, params: Params) ->
     below = np.arange(h) >= top
     coef = np.array(fit.coef, np.float64)
     half = params.lattice_half
-    gaps = params.lattice_min_dominance > 0  # only a status rule reads the dominance: not computed without one
+    gaps = params.reads_dominance()
     cells, _ = row_cells(prefix_sums(mask & below[:, None]), coef, params, [*ks, *gap_offsets(params)] if gaps else ks)
     cnt = cells[:2 * kv + 1]
     dominance = row_dominance(cnt[kv - half:kv + half + 1], cells[2 * kv + 1:]) if gaps else float("nan")
@@ -684,7 +684,7 @@ def improved_status(rows: list[Row], contrast: float, image_confidence: float, p
     if not all(r.valid for r in rows):
         return "invalid"
     strong = (contrast >= params.lattice_min_contrast and image_confidence >= params.lattice_min_image_confidence
-              and (params.lattice_min_dominance <= 0 or dominance >= params.lattice_min_dominance))
+              and (not params.reads_dominance() or dominance >= params.lattice_min_dominance))
     return "ok" if strong else "weak"
 
 
