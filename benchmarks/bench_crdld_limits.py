@@ -43,13 +43,13 @@ WIDTH = 320
 ROLLS = np.linspace(-0.3, 0.3, 121)
 
 
-def label_points(truth: CRDLDTruth, width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every kept labelled point at the working size: ``t = y - (H-1)``, ``x`` and the line's
-    index ``k`` from the central line (float64, one entry per point)."""
-    sx, sy = width / truth.width, height / truth.height
-    t = np.concatenate([ln[:, 0] * sy - (height - 1) for ln in truth.lines])
-    x = np.concatenate([ln[:, 1] * sx for ln in truth.lines])
-    k = np.concatenate([np.full(len(ln), j - truth.central, np.float64) for j, ln in enumerate(truth.lines)])
+def label_points(fits: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+                 central: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The points of :func:`own_lines` in one list: ``t``, ``x`` and the line's index ``k`` from the
+    central line (float64, one entry per point)."""
+    t = np.concatenate([f[0] for f in fits])
+    x = np.concatenate([f[1] for f in fits])
+    k = np.concatenate([np.full(len(f[0]), j - central, np.float64) for j, f in enumerate(fits)])
     return t, x, k
 
 
@@ -60,8 +60,9 @@ def straight_rows(lines: list[tuple[float, float]], height: int) -> list[dict]:
 
 
 def lattice_lines(coef: np.ndarray, roll: float = 0.0, kmax: int = 8) -> list[tuple[float, float]]:
-    """``(x at the bottom, slope)`` of rows ``-kmax .. kmax`` of ``(c0, c1, d0, d1)`` with roll ``g``."""
-    c0, c1, d0, d1 = coef
+    """``(x at the bottom, slope)`` of rows ``-kmax .. kmax`` of ``(c0, c1, d0, d1)`` with roll ``g``
+    (or of 11.3's seven coefficients, straight: their ``c0, c1, d0, d1``)."""
+    c0, c1, d0, d1 = coef[[0, 1, 4, 5]] if len(coef) == 7 else coef
     return [((c0 + k * d0) / (1 + roll * k), (c1 + k * d1) / (1 + roll * k))
             for k in range(-kmax, kmax + 1) if 1 + roll * k > 0]
 
@@ -75,13 +76,20 @@ def fit_lattice(t: np.ndarray, x: np.ndarray, k: np.ndarray, roll: float) -> tup
     return coef, float(((pred - x) ** 2).sum())
 
 
-def pencil_lines(truth: CRDLDTruth, width: int, height: int) -> list[tuple[float, float]]:
-    """Each labelled line through the labels' least-squares VP, its bottom x fitted alone."""
-    fits = []
+def own_lines(truth: CRDLDTruth, width: int, height: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per labelled line its points at the working size, ``t = y - (H-1)`` and ``x``, and its
+    straight least-squares fit ``(slope, x at the bottom)``."""
+    out = []
     for ln in truth.lines:
-        ty = ln[:, 0] * (height / truth.height) - (height - 1)
-        fits.append((ty, ln[:, 1] * (width / truth.width), np.polyfit(ty, ln[:, 1] * (width / truth.width), 1)))
-    # VP (tv, xv) nearest in x to every line x = b + a t: xv - a tv = b
+        t = ln[:, 0] * (height / truth.height) - (height - 1)
+        x = ln[:, 1] * (width / truth.width)
+        out.append((t, x, np.polyfit(t, x, 1)))
+    return out
+
+
+def pencil_lines(fits: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> list[tuple[float, float]]:
+    """Each line of :func:`own_lines` through the labels' least-squares VP, its bottom x fitted alone."""
+    # VP (tv, xv) nearest in x to every line x = x0 + s t: xv - s tv = x0
     a = np.array([[1.0, -f[2][0]] for f in fits])
     xv, tv = np.linalg.lstsq(a, np.array([f[2][1] for f in fits]), rcond=None)[0]
     out = []
@@ -107,11 +115,10 @@ def image_scores(truth: CRDLDTruth, rgb: np.ndarray, params: Params, det) -> dic
     def put(name: str, rows: list[dict], status: str = "ok") -> None:
         out[name] = score_image(rows, status, truth, 0.1, (w, h))
 
-    t, x, k = label_points(truth, w, h)
-    own = [np.polyfit(ln[:, 0] * (h / truth.height) - (h - 1), ln[:, 1] * (w / truth.width), 1)
-           for ln in truth.lines]
-    put("own lines", straight_rows([(b, a) for a, b in own], h))
-    put("pencil", straight_rows(pencil_lines(truth, w, h), h))
+    fits = own_lines(truth, w, h)
+    t, x, k = label_points(fits, truth.central)
+    put("own lines", straight_rows([(x0, slope) for _, _, (slope, x0) in fits], h))
+    put("pencil", straight_rows(pencil_lines(fits), h))
     coef, _ = fit_lattice(t, x, k, 0.0)
     put("lattice", straight_rows(lattice_lines(coef), h))
     rolls = [r for r in ROLLS if (1 + r * k).min() > 0.25]  # keep every labelled line's denominator away from 0
@@ -123,7 +130,7 @@ def image_scores(truth: CRDLDTruth, rgb: np.ndarray, params: Params, det) -> dic
     start = np.array([coef[0], coef[1], 0.0, 0.0, coef[2], coef[3], 0.0])
     for n in (1, 3, 20):
         c7 = rl.refine(pre, start, h, dataclasses.replace(fp, lattice_iterations=n), straight=True)
-        put(f"lattice + {n} refit" + ("s" if n > 1 else ""), straight_rows(lattice_lines(c7[[0, 1, 4, 5]]), h))
+        put(f"lattice + {n} refit" + ("s" if n > 1 else ""), straight_rows(lattice_lines(c7), h))
     # the labels' lattice VP: where d(t) = 0
     tv = -coef[2] / coef[3] if coef[3] != 0 else -10.0 * h
     vp = (int(round(coef[0] + coef[1] * tv)), int(round(tv + (h - 1))))
@@ -131,9 +138,9 @@ def image_scores(truth: CRDLDTruth, rgb: np.ndarray, params: Params, det) -> dic
     if found and vp[1] < h - 1:
         s = (h - 1) - vp[1]
         c7 = np.array([phase, (phase - vp[0]) / s, 0.0, 0.0, d, d / s, 0.0])
-        put("comb at the labels' VP", straight_rows(lattice_lines(c7[[0, 1, 4, 5]]), h))
+        put("comb at the labels' VP", straight_rows(lattice_lines(c7), h))
         c7 = rl.refine(pre, c7, h, fp, straight=True)
-        put("comb at the labels' VP + 20 refits", straight_rows(lattice_lines(c7[[0, 1, 4, 5]]), h))
+        put("comb at the labels' VP + 20 refits", straight_rows(lattice_lines(c7), h))
     else:
         put("comb at the labels' VP", [], "invalid")
         put("comb at the labels' VP + 20 refits", [], "invalid")
