@@ -22,7 +22,8 @@ import numpy as np
 __all__ = ["ImageError", "IMAGE_EXTENSIONS", "MAX_DECODE_PIXELS", "MAX_FILE_BYTES", "to_rgb8", "resize_to_width",
            "load_image", "decode_image", "check_file_size", "working_size", "check_working_size", "lattice_params",
            "check_lattice_size",
-           "check_color", "check_color_used", "header_size", "majority_working_size"]
+           "check_color", "check_color_used", "header_size", "majority_working_size", "evidence_mask",
+           "check_evidence_used"]
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 
@@ -294,6 +295,46 @@ def check_color_used(color: object, params: Any) -> None:
         raise ValueError(f"veg_color is only used where section 2 runs (mode 'faithful', or 'improved' with "
                          f"lattice_vp 'section6'); got a colour with mode {params.mode!r} and lattice_vp "
                          f"{params.lattice_vp!r}")
+
+
+def evidence_mask(evidence: np.ndarray, width: int, height: int) -> np.ndarray:
+    """A caller's row evidence (ALGORITHM.md 11.1.1) at the working size: ``(height, width)`` bool.
+
+    ``evidence`` is ``(H0, W0)`` or ``(H0, W0, 1)``, bool or any integer or float dtype, non-zero
+    (and not NaN) where a crop row is: e.g. a segmentation network's row mask at the input
+    image's size. Resized by nearest neighbour in integers, working pixel ``(i, j)`` taking source
+    pixel ``((2i + 1) H0 // (2 height), (2j + 1) W0 // (2 width))`` (the source pixel under its
+    centre), so both paths and every platform agree. Never modifies ``evidence``.
+
+    Raises
+    ------
+    TypeError
+        If ``evidence`` is not a numpy array.
+    ValueError
+        If it is not 2-D (or 3-D with one channel) with both sides at least 1.
+    """
+    if not isinstance(evidence, np.ndarray):
+        raise TypeError(f"evidence: expected a numpy array (H, W), got {type(evidence).__name__}")
+    ev = evidence[..., 0] if evidence.ndim == 3 and evidence.shape[2] == 1 else evidence
+    if ev.ndim != 2 or ev.shape[0] < 1 or ev.shape[1] < 1:
+        raise ValueError(f"evidence: expected shape (H, W) or (H, W, 1) with H, W >= 1, got {evidence.shape}")
+    if ev.dtype.kind not in "biuf":
+        raise ValueError(f"evidence: expected a bool, integer or float array, got dtype {ev.dtype}")
+    h0, w0 = ev.shape
+    rows = (np.arange(height, dtype=np.int64) * 2 + 1) * h0 // (2 * height)
+    cols = (np.arange(width, dtype=np.int64) * 2 + 1) * w0 // (2 * width)
+    picked = ev[rows[:, None], cols[None, :]]
+    if picked.dtype.kind == "f":
+        return (picked != 0) & ~np.isnan(picked)
+    return picked != 0
+
+
+def check_evidence_used(evidence: object, params: Any) -> None:
+    """Given row evidence must have a use: ``ValueError`` when ``evidence`` is not ``None`` but
+    the mode is not ``"improved"`` (only section 11 reads it, ALGORITHM.md 11.1.1). One rule for
+    both paths."""
+    if evidence is not None and params.mode != "improved":
+        raise ValueError(f"evidence (a row mask) is only used by mode 'improved'; got mode {params.mode!r}")
 
 
 def majority_working_size(frames: Iterable[tuple[Callable[[], tuple[int, int] | None], Callable[[], np.ndarray]]],

@@ -19,7 +19,15 @@ import torch
 from torch import nn
 
 from torchrow.core.batch import BatchResult
-from torchrow.core.io import check_color_used, check_working_size, load_image, resize_to_width, to_rgb8
+from torchrow.core.io import (
+    check_color_used,
+    check_evidence_used,
+    check_working_size,
+    evidence_mask,
+    load_image,
+    resize_to_width,
+    to_rgb8,
+)
 from torchrow.core.params import Params
 from torchrow.core.results import STATUSES, concat_batches
 from torchrow.functional import color as fcolor
@@ -78,7 +86,7 @@ class CropRowDetector(nn.Module):
 
     @torch.no_grad()
     def forward(self, images: torch.Tensor, profile: bool = False,
-                veg_color: torch.Tensor | None = None) -> BatchResult:
+                veg_color: torch.Tensor | None = None, evidence: torch.Tensor | None = None) -> BatchResult:
         """Detect rows in ``uint8 (B, 3, H, W)`` RGB images already at working size.
 
         With ``profile=True`` the result's ``timings`` holds seconds per stage (this adds a
@@ -87,6 +95,8 @@ class CropRowDetector(nn.Module):
         integer dtype, an array or a list) replaces section 2's per-image colour
         clustering, e.g. a colour calibrated once for a field, or the frame-0 colour of a
         video; only where section 2 runs (:func:`torchrow.core.io.check_color_used`).
+        ``evidence`` (``bool (B, H, W)`` at the working size; improved mode only): the caller's
+        row mask in place of the green mask (ALGORITHM.md 11.1.1), e.g. a segmentation network's.
 
         On a CPU with ``workers > 1`` and more than one chunk, chunks of ``chunk`` images run
         in a thread pool with one torch thread each (the global intra-op thread count is
@@ -97,11 +107,12 @@ class CropRowDetector(nn.Module):
         check_images(images)
         check_working_size(images.shape[3], images.shape[2], self.params.max_pixels)
         check_color_used(veg_color, self.params)
+        check_evidence_used(evidence, self.params)
         bsz = images.shape[0]
         color = None if veg_color is None else fcolor.color_override(veg_color, bsz, self.device)
         step = self.chunk or max(bsz, 1)
         if profile or self.workers <= 1 or bsz <= step or self.device.type != "cpu":
-            return self._forward(images, profile, color)
+            return self._forward(images, profile, color, evidence)
         self._warm(images.shape[2], images.shape[3])
         starts = range(0, bsz, step)
         threads = torch.get_num_threads()
@@ -109,7 +120,8 @@ class CropRowDetector(nn.Module):
         try:
             with ThreadPoolExecutor(max_workers=min(self.workers, len(starts))) as pool:
                 parts = list(pool.map(lambda s0: self._worker(
-                    images[s0:s0 + step], None if color is None else color[s0:s0 + step]), starts))
+                    images[s0:s0 + step], None if color is None else color[s0:s0 + step],
+                    None if evidence is None else evidence[s0:s0 + step]), starts))
         finally:
             torch.set_num_threads(threads)
         return concat_batches(parts)
@@ -125,13 +137,15 @@ class CropRowDetector(nn.Module):
         if self.params.mode == "improved" and self.params.lattice_vp == "search":
             flattice.vp_table(height, width, self.params, self.device)
 
-    def _worker(self, images: torch.Tensor, veg_color: torch.Tensor | None) -> BatchResult:
+    def _worker(self, images: torch.Tensor, veg_color: torch.Tensor | None,
+                evidence: torch.Tensor | None) -> BatchResult:
         # Thread count (OpenMP's is per thread) and grad mode are thread-local settings.
         torch.set_num_threads(1)
         with torch.no_grad():
-            return self._forward(images, False, veg_color)
+            return self._forward(images, False, veg_color, evidence)
 
-    def _forward(self, images: torch.Tensor, profile: bool, veg_color: torch.Tensor | None) -> BatchResult:
+    def _forward(self, images: torch.Tensor, profile: bool, veg_color: torch.Tensor | None,
+                 evidence: torch.Tensor | None = None) -> BatchResult:
         p = self.params
         x = images.to(self.device)
         bsz, _, h, w = x.shape
@@ -147,7 +161,7 @@ class CropRowDetector(nn.Module):
                 clock[0] = now
 
         if p.mode == "improved":
-            return self._improved(x, veg_color, lap, timings)
+            return self._improved(x, veg_color, lap, timings, evidence)
         sky = fsky.sky_row(x, p)
         lap("sky")
         veg, has_veg, hin, bushy, color, k = self._vegetation(x, sky, veg_color, lap)
@@ -185,7 +199,8 @@ class CropRowDetector(nn.Module):
         lap("vegetation")
         return veg, has_veg, hin, bushy, color, k
 
-    def _improved(self, x: torch.Tensor, veg_color: torch.Tensor | None, lap, timings: dict[str, float]) -> BatchResult:
+    def _improved(self, x: torch.Tensor, veg_color: torch.Tensor | None, lap, timings: dict[str, float],
+                  evidence: torch.Tensor | None = None) -> BatchResult:
         """Section 11 in place of section 7, running only the earlier stages it uses
         (:meth:`Params.runs_sky`, :meth:`Params.runs_section6`); their outputs stay out of the result."""
         p = self.params
@@ -203,7 +218,8 @@ class CropRowDetector(nn.Module):
             if hin is not None and has_veg is not None:
                 ls = fvan.find_lines(hin[sl], p)
                 vp, has_vp = ls.vp, ls.has_vp & has_veg[sl]
-            parts.append(flattice.improved_rows(x[sl], sky[sl], vp, has_vp, p))
+            parts.append(flattice.improved_rows(x[sl], sky[sl], vp, has_vp, p,
+                                                evidence=None if evidence is None else evidence[sl].to(x.device)))
         curved = concat_batches(parts)
         lap("lattice")
         status = flattice.improved_status(curved, fransac.image_status(flattice.as_row_fits(curved)), p)
@@ -217,17 +233,32 @@ class CropRowDetector(nn.Module):
             raise TypeError(f"expected a path or a numpy array (H, W, 3), got {type(image).__name__}")
         return resize_to_width(to_rgb8(image), self.params.image_width, self.params.max_pixels)
 
-    def detect(self, images: torch.Tensor | Sequence[np.ndarray | str | Path]) -> BatchResult:
+    def detect(self, images: torch.Tensor | Sequence[np.ndarray | str | Path],
+               evidence: torch.Tensor | Sequence[np.ndarray] | None = None) -> BatchResult:
         """Detect rows in a ``uint8 (B, 3, H, W)`` tensor, or a list of same-sized arrays or paths.
 
         Lists are converted and resized as :func:`torchrow.reference.detect` does. Inputs of
         different working sizes go through :func:`torchrow.engines.runner.run`, which groups them.
+        ``evidence`` (improved mode only, ALGORITHM.md 11.1.1): the caller's row masks, with a
+        tensor ``bool (B, H, W)`` at the working size, with a list one array per image at that
+        image's own size (:func:`torchrow.core.io.evidence_mask` resizes it).
         """
+        check_evidence_used(evidence, self.params)
         if isinstance(images, torch.Tensor):
-            return self(images)
+            if evidence is not None and not isinstance(evidence, torch.Tensor):
+                raise TypeError(f"evidence: with a tensor of images expected a bool tensor (B, H, W), "
+                                f"got {type(evidence).__name__}")
+            return self(images, evidence=evidence)
         arrays = [self.prepare(im) for im in images]
         if len({a.shape for a in arrays}) > 1:
             raise ValueError("images of different working sizes: use torchrow.engines.runner.run, which groups them")
         if not arrays:
             raise ValueError("detect got an empty list")
-        return self(torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).contiguous())
+        masks = None
+        if evidence is not None:
+            if isinstance(evidence, torch.Tensor) or len(evidence) != len(arrays):
+                got = "a tensor" if isinstance(evidence, torch.Tensor) else f"{len(evidence)} arrays"
+                raise ValueError(f"evidence: expected a list of {len(arrays)} arrays (one per image), got {got}")
+            h, w = arrays[0].shape[:2]
+            masks = torch.from_numpy(np.stack([evidence_mask(e, w, h) for e in evidence]))
+        return self(torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).contiguous(), evidence=masks)

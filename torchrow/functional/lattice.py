@@ -35,7 +35,7 @@ from torchrow.functional._flow import branch, int_max, repeat
 
 __all__ = ["LatticeRows", "LatticePriorBatch", "spacing_near", "improved_batch", "horizon_row", "excess_green", "ImprovedStart",
            "improved_start", "improved_finish", "vp_gather_table", "vp_window", "otsu_threshold", "green_mask", "init_vp",
-           "vp_table", "vp_origin", "vp_search", "comb_table", "comb_search", "solve_normal", "prefix_sums",
+           "row_evidence", "vp_table", "vp_origin", "vp_search", "comb_table", "comb_search", "solve_normal", "prefix_sums",
            "centre_spacing", "row_cells", "monomial_tables", "normal_equations", "refine", "LatticeStartBatch",
            "lattice_start", "comb_start", "refit_lattice", "fit_lattice", "lattice_rows", "row_polynomials",
            "visible_rows", "VisibleRows", "row_dominance", "gap_offsets", "improved_rows", "improved_status", "LatticeFitBatch"]
@@ -1194,14 +1194,32 @@ class ImprovedStart(NamedTuple):
     start: LatticeStartBatch
 
 
+def row_evidence(images: torch.Tensor, sky: torch.Tensor, params: Params,
+                 evidence: torch.Tensor | None = None) -> torch.Tensor:
+    """The mask section 11 fits, ``bool (B, H, W)``: :func:`green_mask` (11.1), or the caller's
+    ``evidence`` (11.1.1: ``bool (B, H, W)`` at the working size, on the images' device) with
+    the rows above ``sky (B,)`` cleared. Never modifies ``evidence``.
+
+    Raises ``ValueError`` if ``evidence`` is not a bool tensor of the images' ``(B, H, W)``.
+    """
+    if evidence is None:
+        return green_mask(images, sky, params)
+    want = (images.shape[0], images.shape[2], images.shape[3])
+    if not isinstance(evidence, torch.Tensor) or evidence.dtype != torch.bool or tuple(evidence.shape) != want:
+        got = f"{evidence.dtype} {tuple(evidence.shape)}" if isinstance(evidence, torch.Tensor) else type(evidence).__name__
+        raise ValueError(f"evidence: expected a bool tensor of the images' (B, H, W) {want}, got {got}")
+    rows = torch.arange(want[1], device=images.device).view(1, -1, 1)
+    return evidence.to(images.device) & (rows >= sky.view(-1, 1, 1))
+
+
 def improved_start(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Tensor | None,
                    params: Params, prior: LatticePriorBatch | None = None, flow: str = "sync",
-                   grid_sky: torch.Tensor | None = None) -> ImprovedStart:
-    """The first half of :func:`improved_rows` (sections 11.1-11.2): the green mask and
-    :func:`lattice_start`. Arguments as :func:`improved_rows`."""
+                   grid_sky: torch.Tensor | None = None, evidence: torch.Tensor | None = None) -> ImprovedStart:
+    """The first half of :func:`improved_rows` (sections 11.1-11.2): the mask (:func:`row_evidence`)
+    and :func:`lattice_start`. Arguments as :func:`improved_rows`."""
     h, w = images.shape[2], images.shape[3]
     top = horizon_row(sky, params)
-    mask = green_mask(images, top, params)
+    mask = row_evidence(images, top, params, evidence)
     fparams = lattice_params(w, h, params)  # cubic where the int64 sums allow it, else quadratic
     origin = vp_origin(sky if grid_sky is None else grid_sky, h, params)
     return ImprovedStart(mask, top, fparams, lattice_start(mask, vp, has_vp, fparams, prior, flow, origin))
@@ -1217,7 +1235,7 @@ def improved_finish(begun: ImprovedStart, params: Params, prior: LatticePriorBat
 
 def improved_rows(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Tensor | None,
                   params: Params, prior: LatticePriorBatch | None = None, flow: str = "sync",
-                  grid_sky: torch.Tensor | None = None) -> LatticeRows:
+                  grid_sky: torch.Tensor | None = None, evidence: torch.Tensor | None = None) -> LatticeRows:
     """Section 11 on ``uint8 (B, 3, H, W)`` working images; ``vp (B, 2)`` float64 with ``has_vp``:
     section 6's, for ``lattice_vp="section6"`` (``None`` otherwise).
 
@@ -1225,9 +1243,11 @@ def improved_rows(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | No
     the lattice starts at :func:`horizon_row` and the VP grid at :func:`vp_origin` of
     ``grid_sky`` (``None``: ``sky``; the lattice tracker passes zero ``sky`` and its full
     searches' rows). ``prior``: section 11.7's (the lattice tracker); ``flow``: :func:`fit_lattice`'s.
+    ``evidence``: the caller's row mask, ``bool (B, H, W)``, in place of the green mask (11.1.1).
     :func:`improved_start`, then :func:`improved_finish` (the lattice tracker acts between them).
     """
-    return improved_finish(improved_start(images, sky, vp, has_vp, params, prior, flow, grid_sky), params, prior, flow)
+    return improved_finish(improved_start(images, sky, vp, has_vp, params, prior, flow, grid_sky, evidence),
+                           params, prior, flow)
 
 
 def lattice_rows(mask: torch.Tensor, top: torch.Tensor, fit: LatticeFitBatch, params: Params) -> LatticeRows:

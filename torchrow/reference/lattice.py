@@ -3,7 +3,8 @@
 Replaces section 7 when ``Params.mode == "improved"``. Three stages, named as in
 :mod:`torchrow.functional.lattice`:
 
-* :func:`green_mask`: excess green ``2G - R - B`` above its Otsu threshold (11.1);
+* :func:`green_mask`: excess green ``2G - R - B`` above its Otsu threshold (11.1), or the
+  caller's row mask in its place (:func:`row_evidence`, 11.1.1);
 * :func:`comb_search`: equally spaced straight rows through the (rounded) vanishing point,
   found by a comb on the pixels projected onto the bottom image row (11.2);
 * :func:`fit_lattice`: rows ``x = c(t) + k*d(t)``, ``c`` cubic (or quadratic) and ``d``
@@ -29,7 +30,7 @@ from torchrow.core.params import VP_SLICE, Params
 from torchrow.core.results import ImageResult, LatticeRow, Row
 
 __all__ = ["LatticeFit", "LatticePrior", "comb_near", "spacing_near",
-           "horizon_row", "excess_green", "otsu_threshold", "green_mask", "init_vp", "vp_grid",
+           "horizon_row", "excess_green", "otsu_threshold", "green_mask", "row_evidence", "init_vp", "vp_grid",
            "vp_cells", "vp_origin", "vp_window", "vp_search", "comb_search",
            "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
            "normal_equations", "refine", "fit_lattice", "improved_status", "lattice_rows", "row_polynomial",
@@ -158,6 +159,22 @@ def green_mask(rgb: np.ndarray, sky: int, params: Params) -> np.ndarray:
     mask = exg > otsu_threshold(exg, sky, params)
     if params.lattice_green == "row_mean":
         mask &= np.int64(exg.shape[1]) * exg > exg.sum(axis=1, keepdims=True)
+    mask[:sky] = False
+    return mask
+
+
+def row_evidence(rgb: np.ndarray, sky: int, params: Params, evidence: np.ndarray | None = None) -> np.ndarray:
+    """The mask section 11 fits, ``(H, W)`` bool: :func:`green_mask` (11.1), or the caller's
+    ``evidence`` (11.1.1: ``(H, W)`` bool at the working size) with the rows above ``sky`` cleared.
+
+    Raises ``ValueError`` if ``evidence`` is not a bool array of the image's size.
+    """
+    if evidence is None:
+        return green_mask(rgb, sky, params)
+    if not isinstance(evidence, np.ndarray) or evidence.dtype != np.bool_ or evidence.shape != rgb.shape[:2]:
+        got = f"{evidence.dtype} {evidence.shape}" if isinstance(evidence, np.ndarray) else type(evidence).__name__
+        raise ValueError(f"evidence: expected a bool array of the working size {rgb.shape[:2]}, got {got}")
+    mask = evidence.copy()
     mask[:sky] = False
     return mask
 
@@ -701,16 +718,19 @@ class ImprovedRows(NamedTuple):
 
 
 def improved_rows(rgb: np.ndarray, sky: int, vp: tuple[float, float] | None, params: Params,
-                  prior: LatticePrior | None = None, grid_sky: int | None = None) -> ImprovedRows:
+                  prior: LatticePrior | None = None, grid_sky: int | None = None,
+                  evidence: np.ndarray | None = None) -> ImprovedRows:
     """Section 11 on one working image.
 
     ``sky`` is section 1's row (0 where :meth:`Params.runs_sky` is false: not used); the
     lattice starts at :func:`horizon_row` and the VP grid at :func:`vp_origin` of ``grid_sky``
     (``None``: ``sky``; the lattice tracker passes ``sky = 0`` and its full searches' row).
     ``vp``: section 6's, for ``lattice_vp="section6"``. ``prior``: section 11.7's.
+    ``evidence``: the caller's row mask, ``(H, W)`` bool at the working size, in place of the
+    green mask (11.1.1; :func:`row_evidence`).
     """
     top = horizon_row(sky, params)
-    mask = green_mask(rgb, top, params)
+    mask = row_evidence(rgb, top, params, evidence)
     origin = vp_origin(sky if grid_sky is None else grid_sky, rgb.shape[0], params)
     fit = fit_lattice(mask, top, vp, params, prior, origin)
     rows = lattice_rows(fit, rgb.shape[0], params)

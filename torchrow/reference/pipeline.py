@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from torchrow.core.io import check_color, check_color_used, resize_to_width, to_rgb8
+from torchrow.core.io import check_color, check_color_used, check_evidence_used, evidence_mask, resize_to_width, to_rgb8
 from torchrow.core.params import Params
 from torchrow.core.results import ImageResult
 from torchrow.reference.color import vegetation_color
@@ -34,7 +34,7 @@ def prepare(image: np.ndarray, params: Params) -> np.ndarray:
 
 
 def detect(image: np.ndarray, params: Params | None = None, name: str | None = None,
-           veg_color: tuple[int, int, int] | None = None) -> ImageResult:
+           veg_color: tuple[int, int, int] | None = None, evidence: np.ndarray | None = None) -> ImageResult:
     """Detect crop rows in one RGB image, the plain per-image way.
 
     Parameters
@@ -52,6 +52,11 @@ def detect(image: np.ndarray, params: Params | None = None, name: str | None = N
         :func:`torchrow.core.io.check_color` as in the tensor path (floats raise ``TypeError``).
         Only where section 2 runs (:func:`torchrow.core.io.check_color_used`: not in the improved
         mode with ``lattice_vp="search"``, whose green mask is excess green).
+    evidence : numpy.ndarray, optional
+        Improved mode only (ALGORITHM.md 11.1.1): the caller's row mask ``(H, W)`` at the
+        image's own size, non-zero on crop rows (e.g. a segmentation network's output), used in
+        place of the green mask; resized to the working size by
+        :func:`torchrow.core.io.evidence_mask`.
 
     Returns
     -------
@@ -61,10 +66,11 @@ def detect(image: np.ndarray, params: Params | None = None, name: str | None = N
     """
     params = params or Params()
     check_color_used(veg_color, params)
+    check_evidence_used(evidence, params)
     rgb = prepare(image, params)
     h, w = rgb.shape[:2]
     if params.mode == "improved":
-        return _improved(rgb, params, name, veg_color)
+        return _improved(rgb, params, name, veg_color, None if evidence is None else evidence_mask(evidence, w, h))
     sky = sky_row(rgb, params)
     color = _color(rgb, params, veg_color)
     k = params.veg_tol
@@ -95,7 +101,7 @@ def _color(rgb: np.ndarray, params: Params, veg_color: tuple[int, int, int] | No
 
 
 def _improved(rgb: np.ndarray, params: Params, name: str | None,
-              veg_color: tuple[int, int, int] | None) -> ImageResult:
+              veg_color: tuple[int, int, int] | None, evidence: np.ndarray | None = None) -> ImageResult:
     """Section 11 in place of section 7, running only the earlier stages it uses
     (:meth:`Params.runs_sky`, :meth:`Params.runs_section6`); their outputs stay out of the record."""
     h, w = rgb.shape[:2]
@@ -105,4 +111,5 @@ def _improved(rgb: np.ndarray, params: Params, name: str | None,
         veg = remove_bushy(raw_mask(rgb, _color(rgb, params, veg_color), params.veg_tol, sky), sky, params)
         if veg.any():
             vp = find_lines(hough_input(veg, sky, params)[0], params).vp
-    return improved_result(improved_rows(rgb, sky, vp, params), w, h, horizon_row(sky, params), params, name)
+    return improved_result(improved_rows(rgb, sky, vp, params, evidence=evidence), w, h, horizon_row(sky, params),
+                           params, name)

@@ -1,0 +1,157 @@
+"""Row evidence given by the caller (ALGORITHM.md 11.1.1, torchrow's own): the resize rule, the
+mask on both paths, and the errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from torchrow.core.io import evidence_mask, lattice_params
+from torchrow.core.params import FORWARD_CAMERA, Params
+from torchrow.core.results import record_differences
+from torchrow.engines.detector import CropRowDetector
+from torchrow.functional import lattice as flat
+from torchrow.reference import detect
+from torchrow.reference import lattice as rlat
+
+IMPROVED = Params(mode="improved")
+FORWARD = Params(mode="improved", **FORWARD_CAMERA)
+
+
+def _t(images: list[np.ndarray]) -> torch.Tensor:
+    return torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2).contiguous()
+
+
+def _stripes(h: int = 240, w: int = 320, spacing: float = 70.0, shift: float = 0.0, yv: float = -80.0) -> np.ndarray:
+    """A row mask ``bool (H, W)``: straight rows 5 px wide at the bottom through ``(W/2 + shift, yv)``."""
+    ys, xs = np.mgrid[0:h, 0:w]
+    scale = (ys - yv) / (h - 1 - yv)
+    u = (xs - (w / 2 + shift)) / scale / spacing
+    return np.abs(u - np.round(u)) * spacing < 2.5
+
+
+def _grey(h: int = 240, w: int = 320, seed: int = 0) -> np.ndarray:
+    """Grey noise without any green: the green mask finds nothing in it."""
+    rng = np.random.default_rng(seed)
+    return np.repeat(rng.integers(90, 140, (h, w, 1), dtype=np.uint8), 3, axis=2)
+
+
+# --- the resize rule ----------------------------------------------------------------------
+
+@settings(max_examples=30, deadline=None)
+@given(h0=st.integers(1, 40), w0=st.integers(1, 40), h=st.integers(1, 40), w=st.integers(1, 40), seed=st.integers(0, 99))
+def test_evidence_mask_takes_the_source_pixel_under_each_centre(h0, w0, h, w, seed) -> None:
+    src = np.random.default_rng(seed).integers(0, 3, (h0, w0)).astype(np.uint8)
+    before = src.copy()
+    got = evidence_mask(src, w, h)
+    assert got.dtype == np.bool_ and got.shape == (h, w)
+    for i in range(h):
+        for j in range(w):
+            y0 = int(np.floor((i + 0.5) * h0 / h))
+            x0 = int(np.floor((j + 0.5) * w0 / w))
+            assert got[i, j] == (src[y0, x0] != 0)
+    np.testing.assert_array_equal(src, before)
+
+
+def test_evidence_mask_dtypes_and_layouts() -> None:
+    m = np.zeros((4, 6), bool)
+    m[1, 2] = True
+    same = evidence_mask(m, 6, 4)
+    np.testing.assert_array_equal(same, m)
+    same[0, 0] = True
+    assert not m[0, 0]  # a copy, never a view of the caller's array
+    f = np.array([[0.0, np.nan], [0.5, -1.0]])
+    np.testing.assert_array_equal(evidence_mask(f, 2, 2), [[False, False], [True, True]])
+    np.testing.assert_array_equal(evidence_mask(m[..., None].astype(np.uint8) * 255, 6, 4), m)
+
+
+@pytest.mark.parametrize(("bad", "kind"), [([[1, 0]], TypeError), (np.zeros((2, 2, 3)), ValueError),
+                                       (np.zeros((0, 4)), ValueError), (np.zeros(5), ValueError),
+                                       (np.array([["a", "b"]]), ValueError)])
+def test_evidence_mask_refuses_what_is_no_mask(bad, kind) -> None:
+    with pytest.raises(kind, match="evidence"):
+        evidence_mask(bad, 4, 4)
+
+
+# --- both paths -----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("params", [IMPROVED, FORWARD], ids=["default", "forward"])
+def test_the_green_mask_given_as_evidence_changes_nothing(params) -> None:
+    from tests.test_improved import _field
+    images = [_field(seed=1), _field(spacing=60.0, shift=20.0, seed=2)]
+    masks = [rlat.green_mask(im, rlat.horizon_row(0, params), params) for im in images]
+    det = CropRowDetector(params)
+    plain = det(_t(images)).results()
+    given_ = det(_t(images), evidence=torch.from_numpy(np.stack(masks))).results()
+    for a, b, im, m in zip(plain, given_, images, masks):
+        assert not record_differences(a.to_record(), b.to_record())
+        assert not record_differences(detect(im, params).to_record(), detect(im, params, evidence=m).to_record())
+
+
+def test_rows_follow_the_evidence_and_both_paths_agree() -> None:
+    # no green at all: only the given mask can show rows; batched with an empty mask and noise
+    images = [_grey(seed=s) for s in range(3)]
+    rng = np.random.default_rng(5)
+    masks = [_stripes(shift=12.0), np.zeros((240, 320), bool), rng.random((240, 320)) < 0.05]
+    before = [m.copy() for m in masks]
+    ev = torch.from_numpy(np.stack(masks))
+    got = CropRowDetector(FORWARD)(_t(images), evidence=ev).results()
+    for im, m, b, g in zip(images, masks, before, got):
+        ref = detect(im, FORWARD, evidence=m)
+        assert not record_differences(ref.to_record(), g.to_record())
+        np.testing.assert_array_equal(m, b)
+    assert detect(images[0], FORWARD).status != "ok"  # the green mask sees nothing there
+    rows = [r for r in got[0].rows if r.valid]
+    assert got[0].status == "ok" and len(rows) == 3
+    ys = np.array([120.0, 239.0])
+    truth = [(320 / 2 + 12.0 + k * 70.0 * (ys - -80.0) / (239 + 80.0)) for k in (-1, 0, 1)]
+    for r, x in zip(sorted(rows, key=lambda r: r.a * 239 + r.b), truth):
+        assert np.abs(r.a * ys + r.b - x).max() < 3.0
+    assert got[1].status != "ok" and got[2].status != "ok"
+
+
+def test_a_list_of_masks_at_the_images_own_size_is_resized_alike() -> None:
+    big = _grey(480, 640)
+    mask = _stripes(480, 640, spacing=140.0).astype(np.uint8) * 255
+    det = CropRowDetector(FORWARD)
+    got = det.detect([big], evidence=[mask]).results()[0]
+    ref = detect(big, FORWARD, evidence=mask)
+    assert not record_differences(ref.to_record(), got.to_record())
+    assert got.status == "ok"
+
+
+def test_evidence_clears_the_rows_above_the_horizon_on_both_paths() -> None:
+    rng = np.random.default_rng(3)
+    ev = rng.random((3, 20, 16)) < 0.5
+    sky = np.array([0, 7, 20])
+    images = torch.zeros((3, 3, 20, 16), dtype=torch.uint8)
+    got = flat.row_evidence(images, torch.from_numpy(sky), IMPROVED, torch.from_numpy(ev))
+    for b in range(3):
+        rgb = np.zeros((20, 16, 3), np.uint8)
+        np.testing.assert_array_equal(got[b].numpy(), rlat.row_evidence(rgb, int(sky[b]), IMPROVED, ev[b]))
+        assert not got[b, :sky[b]].any()
+    assert ev[2].any()  # the caller's mask is left as it was
+
+
+def test_evidence_is_refused_where_it_has_no_use_or_no_fit() -> None:
+    img = _grey()
+    m = _stripes()
+    faithful = Params()
+    with pytest.raises(ValueError, match="only used by mode 'improved'"):
+        detect(img, faithful, evidence=m)
+    with pytest.raises(ValueError, match="only used by mode 'improved'"):
+        CropRowDetector(faithful)(_t([img]), evidence=torch.from_numpy(m[None]))
+    det = CropRowDetector(FORWARD)
+    with pytest.raises(ValueError, match=r"evidence: expected a bool tensor of the images' \(B, H, W\)"):
+        det(_t([img]), evidence=torch.from_numpy(m[None, :, :100]))
+    with pytest.raises(ValueError, match="evidence: expected a bool tensor"):
+        det(_t([img]), evidence=torch.from_numpy(m[None]).to(torch.uint8))
+    with pytest.raises(ValueError, match="expected a list of 2 arrays"):
+        det.detect([img, img], evidence=[m])
+    with pytest.raises(TypeError, match="with a tensor of images expected a bool tensor"):
+        det.detect(_t([img]), evidence=[m])
+    with pytest.raises(ValueError, match="evidence: expected a bool array of the working size"):
+        rlat.improved_rows(img, 0, None, lattice_params(320, 240, FORWARD), evidence=m[:, :10])
