@@ -149,6 +149,9 @@ def test_evidence_is_refused_where_it_has_no_use_or_no_fit() -> None:
         det(_t([img]), evidence=torch.from_numpy(m[None, :, :100]))
     with pytest.raises(ValueError, match="evidence: expected a bool tensor"):
         det(_t([img]), evidence=torch.from_numpy(m[None]).to(torch.uint8))
+    many = CropRowDetector(FORWARD, chunk=1, workers=2)  # the chunks must not drop a surplus mask
+    with pytest.raises(ValueError, match=r"\(2, 240, 320\), got torch.bool \(3, 240, 320\)"):
+        many(_t([img, img]), evidence=torch.from_numpy(np.stack([m, m, m])))
     with pytest.raises(ValueError, match="expected a list of 2 arrays"):
         det.detect([img, img], evidence=[m])
     with pytest.raises(TypeError, match="with a tensor of images expected a bool tensor"):

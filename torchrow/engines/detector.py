@@ -108,6 +108,8 @@ class CropRowDetector(nn.Module):
         check_working_size(images.shape[3], images.shape[2], self.params.max_pixels)
         check_color_used(veg_color, self.params)
         check_evidence_used(evidence, self.params)
+        if evidence is not None:
+            flattice.check_evidence(images, evidence)  # before the chunks slice it
         bsz = images.shape[0]
         color = None if veg_color is None else fcolor.color_override(veg_color, bsz, self.device)
         step = self.chunk or max(bsz, 1)

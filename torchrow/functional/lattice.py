@@ -35,7 +35,8 @@ from torchrow.functional._flow import branch, int_max, repeat
 
 __all__ = ["LatticeRows", "LatticePriorBatch", "spacing_near", "improved_batch", "horizon_row", "excess_green", "ImprovedStart",
            "improved_start", "improved_finish", "vp_gather_table", "vp_window", "otsu_threshold", "green_mask", "init_vp",
-           "row_evidence", "vp_table", "vp_origin", "vp_search", "comb_table", "comb_search", "solve_normal", "prefix_sums",
+           "row_evidence", "check_evidence", "vp_table", "vp_origin", "vp_search", "comb_table", "comb_search",
+           "solve_normal", "prefix_sums",
            "centre_spacing", "row_cells", "monomial_tables", "normal_equations", "refine", "LatticeStartBatch",
            "lattice_start", "comb_start", "refit_lattice", "fit_lattice", "lattice_rows", "row_polynomials",
            "visible_rows", "VisibleRows", "row_dominance", "gap_offsets", "improved_rows", "improved_status", "LatticeFitBatch"]
@@ -1204,12 +1205,17 @@ def row_evidence(images: torch.Tensor, sky: torch.Tensor, params: Params,
     """
     if evidence is None:
         return green_mask(images, sky, params)
+    check_evidence(images, evidence)
+    rows = torch.arange(images.shape[2], device=images.device).view(1, -1, 1)
+    return evidence.to(images.device) & (rows >= sky.view(-1, 1, 1))
+
+
+def check_evidence(images: torch.Tensor, evidence: torch.Tensor) -> None:
+    """Require ``evidence`` to be a bool tensor of the images' ``(B, H, W)`` (11.1.1), else ``ValueError``."""
     want = (images.shape[0], images.shape[2], images.shape[3])
     if not isinstance(evidence, torch.Tensor) or evidence.dtype != torch.bool or tuple(evidence.shape) != want:
         got = f"{evidence.dtype} {tuple(evidence.shape)}" if isinstance(evidence, torch.Tensor) else type(evidence).__name__
         raise ValueError(f"evidence: expected a bool tensor of the images' (B, H, W) {want}, got {got}")
-    rows = torch.arange(want[1], device=images.device).view(1, -1, 1)
-    return evidence.to(images.device) & (rows >= sky.view(-1, 1, 1))
 
 
 def improved_start(images: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Tensor | None,
