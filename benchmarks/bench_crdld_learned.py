@@ -27,7 +27,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from torchrow.core.params import FORWARD_CAMERA, Params
-from torchrow.evaluation.crdld import score_image
+from torchrow.evaluation.crdld import label_mask, score_image
 from torchrow.evaluation.datasets import CRDLD
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -66,7 +66,7 @@ def load(ds: CRDLD, idx: list[int], params: Params) -> tuple[np.ndarray, np.ndar
         rgb = prepare(ds.image(i, None), params)
         h, w = rgb.shape[:2]
         xs.append(rgb)
-        ys.append(cv2.resize(cv2.imread(str(ds.label_path(i)), cv2.IMREAD_GRAYSCALE), (w, h)) > 127)
+        ys.append(label_mask(cv2.imread(str(ds.label_path(i)), cv2.IMREAD_GRAYSCALE), w, h))
     return np.stack(xs), np.stack(ys)
 
 

@@ -80,8 +80,9 @@ def test_evidence_mask_refuses_what_is_no_mask(bad, kind) -> None:
 
 @pytest.mark.parametrize("params", [IMPROVED, FORWARD], ids=["default", "forward"])
 def test_the_green_mask_given_as_evidence_changes_nothing(params) -> None:
-    from tests.test_improved import _field
-    images = [_field(seed=1), _field(spacing=60.0, shift=20.0, seed=2)]
+    images = [_grey(seed=s) for s in (1, 2)]
+    for im, rows in zip(images, [_stripes(), _stripes(spacing=60.0, shift=20.0)]):
+        im[rows] = (40, 170, 40)  # green rows on grey soil
     masks = [rlat.green_mask(im, rlat.horizon_row(0, params), params) for im in images]
     det = CropRowDetector(params)
     plain = det(_t(images)).results()

@@ -221,7 +221,7 @@ class CropRowDetector(nn.Module):
                 ls = fvan.find_lines(hin[sl], p)
                 vp, has_vp = ls.vp, ls.has_vp & has_veg[sl]
             parts.append(flattice.improved_rows(x[sl], sky[sl], vp, has_vp, p,
-                                                evidence=None if evidence is None else evidence[sl].to(x.device)))
+                                                evidence=None if evidence is None else evidence[sl]))
         curved = concat_batches(parts)
         lap("lattice")
         status = flattice.improved_status(curved, fransac.image_status(flattice.as_row_fits(curved)), p)

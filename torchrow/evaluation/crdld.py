@@ -40,7 +40,7 @@ import cv2
 import numpy as np
 
 __all__ = ["CUT_PX", "LINK_PX", "MAX_GAP", "MIN_ROWS", "SIGMAS", "CRDLDTruth", "CRDLDScore",
-           "truth_from_mask", "extract_lines", "detected_x", "score_image", "central_mae", "score",
+           "label_mask", "truth_from_mask", "extract_lines", "detected_x", "score_image", "central_mae", "score",
            "LOW_SCORE", "CRDLDSummary", "summarize", "format_table", "match_records"]
 
 #: Adjacent labelled lines closer than this (px) on a row: that row and all above are ignored.
@@ -232,6 +232,28 @@ def _neighbour_gaps(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return left, right
 
 
+def label_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
+    """The labelled rows' pixels, ``(height, width)`` bool: the label mask (``(h, w)`` or ``(h, w,
+    3)`` uint8, any size; a colour mask's brightest channel) resized to the image (bilinear) and
+    thresholded ``> 127`` (ALGORITHM.md 10.1).
+
+    Raises
+    ------
+    ValueError
+        If the mask is not a 2-D (or 3-channel) array or the size is not positive.
+    """
+    m = np.asarray(mask)
+    if m.ndim == 3 and m.shape[2] in (3, 4):
+        m = m[..., :3].max(axis=2)  # white on black: any channel tells
+    if m.ndim != 2 or m.size == 0:
+        raise ValueError(f"label mask must be (h, w) or (h, w, 3), got shape {m.shape}")
+    if width < 1 or height < 1:
+        raise ValueError(f"image size must be positive, got {width}x{height}")
+    if m.shape != (height, width):
+        m = cv2.resize(m.astype(np.uint8), (int(width), int(height)), interpolation=cv2.INTER_LINEAR)
+    return m > 127
+
+
 def truth_from_mask(mask: np.ndarray, width: int, height: int) -> CRDLDTruth:
     """Ground truth of one image from its label mask.
 
@@ -252,16 +274,7 @@ def truth_from_mask(mask: np.ndarray, width: int, height: int) -> CRDLDTruth:
     ValueError
         If the mask is not a 2-D (or 3-channel) array or the size is not positive.
     """
-    m = np.asarray(mask)
-    if m.ndim == 3 and m.shape[2] in (3, 4):
-        m = m[..., :3].max(axis=2)  # white on black: any channel tells
-    if m.ndim != 2 or m.size == 0:
-        raise ValueError(f"label mask must be (h, w) or (h, w, 3), got shape {m.shape}")
-    if width < 1 or height < 1:
-        raise ValueError(f"image size must be positive, got {width}x{height}")
-    if m.shape != (height, width):
-        m = cv2.resize(m.astype(np.uint8), (int(width), int(height)), interpolation=cv2.INTER_LINEAR)
-    tracks, meets = _link(m > 127)
+    tracks, meets = _link(label_mask(mask, width, height))
     keep = [t for t, tr in enumerate(tracks) if len(tr) >= MIN_ROWS]
     x = np.stack([_dense(tracks[t], height) for t in keep]) if keep else np.empty((0, height))
     order = _order(x)
