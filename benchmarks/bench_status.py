@@ -3,10 +3,12 @@ against one of its status thresholds (ALGORITHM.md 11.4: ``lattice_min_dominance
 under *Rows across the view*; ``lattice_min_confidence``, under *Rows the image does not show*).
 
     python benchmarks/bench_status.py [--data DIR] [--split train] [--vary lattice_min_dominance]
-        [--thresholds 0 0.5 0.55 0.6 0.65 0.7]
+        [--thresholds 0 0.5 0.55 0.6 0.65 0.7] [--setting forward|default] [--set FIELD=VALUE ...]
 
-Detects (tensor path, ``Params(mode="improved", **FORWARD_CAMERA)`` with each threshold as the
-``--vary`` field) a CRDLD split, the CRBD images of the same split, both turned by 90° each way
+Detects (tensor path, ``Params(mode="improved", **FORWARD_CAMERA)``, or the improved mode's
+default setting with ``--setting default`` (the table under *The default setting's status on a
+forward camera*), the ``--set`` fields fixed, each threshold as the ``--vary`` field) a CRDLD
+split, the CRBD images of the same split, both turned by 90° each way
 (CRDLD: every ``--turn-every``-th image), and ten made-up images without crop rows
 (:func:`torchrow.evaluation.synthetic.rowless_scenes`). The thresholds never change the fit;
 below ``lattice_min_confidence`` a row is invalid (``no_support``) and no longer scored (10.1).
@@ -50,9 +52,14 @@ def main() -> None:
                     choices=("lattice_min_dominance", "lattice_min_confidence", "lattice_min_contrast"))
     ap.add_argument("--thresholds", type=float, nargs="+", default=[0.0, 0.5, 0.55, 0.6, 0.65, 0.7])
     ap.add_argument("--turn-every", type=int, default=10, help="turn every N-th CRDLD image (default 10)")
+    ap.add_argument("--setting", default="forward", choices=("forward", "default"),
+                    help="the forward-camera setting (default) or the improved mode's default one")
+    ap.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                    help="further Params fields held fixed, e.g. lattice_min_confidence=0.02")
     args = ap.parse_args()
     root = data_root(args.data)
-    params = Params(mode="improved", **FORWARD_CAMERA)
+    fixed = {k: float(v) for k, v in (item.split("=", 1) for item in args.set)}
+    params = Params(mode="improved", **{**(FORWARD_CAMERA if args.setting == "forward" else {}), **fixed})
     ds = CRDLD(root / "crdld_dev", args.split)
     crbd = CRBD(root)
     fields = [ds.image(i, None) for i in range(len(ds))]  # stored size: turned before the resize
@@ -64,7 +71,7 @@ def main() -> None:
     sets = {"crdld": fields, "crbd": crbd_split, "turned crdld": turned_crdld, "turned crbd": turned_crbd,
             "made up": list(fake.values())}
     print(f"CRDLD {args.split} ({len(ds)}), CRBD {args.split} ({len(crbd_split)}), turned CRDLD ({len(turned_crdld)}), "
-          f"turned CRBD ({len(turned_crbd)}), made up ({len(fake)}); forward-camera setting\n")
+          f"turned CRBD ({len(turned_crbd)}), made up ({len(fake)}); {args.setting} setting {fixed or ''}\n")
     lines = [f"| `{args.vary}` | CRDLD `ok` | of those below 0.2 | sigma 0.1 mean | turned CRBD `ok` | "
              f"turned CRDLD `ok` | CRBD {args.split} `ok` | made-up `ok` |", "|---|---|---|---|---|---|---|---|"]
     for th in args.thresholds:

@@ -159,3 +159,65 @@ def test_evidence_is_refused_where_it_has_no_use_or_no_fit() -> None:
         det.detect(_t([img]), evidence=[m])
     with pytest.raises(ValueError, match="evidence: expected a bool array of the working size"):
         rlat.improved_rows(img, 0, None, lattice_params(320, 240, FORWARD), evidence=m[:, :10])
+
+
+# --- the lattice tracker (11.7) ---------------------------------------------------------------
+
+TRACK = Params(mode="improved", video_width=320)
+
+
+def _bottom_x(rec: dict, y: float = 239.0) -> float:
+    row = rec["rows"][len(rec["rows"]) // 2]  # the central row
+    return row["e"] * y ** 3 + row["c"] * y ** 2 + row["a"] * y + row["b"]
+
+
+def test_the_tracker_follows_the_evidence_on_both_paths() -> None:
+    from torchrow.engines.tracker import Tracker
+    from torchrow.reference import Tracker as RefTracker
+
+    # two green-less sequences in lock-step, their rows only in the masks: one drifts 3 px per
+    # frame, the other 4 px the other way, its mask moved by half a spacing on frame 3
+    frames = [_grey(seed=i) for i in range(5)]
+    drift = [_stripes(shift=3.0 * i) for i in range(5)]
+    lost = [_stripes(spacing=90.0, shift=-4.0 * i + (45.0 if i == 3 else 0.0)) for i in range(5)]
+    before = [m.copy() for m in drift]
+    tracker, state, got = Tracker(TRACK), None, []
+    for i in range(5):
+        recs, state = tracker.step([frames[i], frames[i]], state, evidence=[drift[i], lost[i]])
+        got.append([r.to_record() for r in recs])
+    for seq, masks in ((0, drift), (1, lost)):
+        ref, rstate = RefTracker(TRACK), None
+        for i in range(5):
+            r, rstate = ref.step(frames[i], rstate, evidence=masks[i])
+            assert not record_differences(r.to_record(), got[i][seq]), f"sequence {seq}, frame {i}"
+    assert all(m is not b and np.array_equal(m, b) for m, b in zip(drift, before))
+    a = [g[0] for g in got]
+    assert all(r["status"] == "ok" for r in a)
+    assert [r["state"] for r in a][2:] == ["in_row"] * 3
+    # the central row moves with the mask (3 px per frame at the bottom)
+    assert [round(_bottom_x(r) - 160.0) for r in a] == [0, 3, 6, 9, 12]
+    b = [g[1] for g in got]
+    # frame 3: the tracked pass fails on the mask moved by half a spacing, the full search finds it
+    assert [r["hough_redo"] for r in b] == [False, False, False, True, False]
+    assert b[3]["status"] == "ok" and round(_bottom_x(b[3])) == 160 - 12 + 45
+    # without the masks these frames hold no green: nothing to track
+    plain, _ = Tracker(TRACK).step([frames[0]])
+    assert plain[0].status == "invalid"
+
+
+def test_the_tracker_refuses_evidence_it_cannot_use() -> None:
+    from torchrow.engines.tracker import Tracker
+    from torchrow.reference import Tracker as RefTracker
+
+    frame, mask = _grey(), _stripes()
+    faithful = Params(video_width=320)
+    with pytest.raises(ValueError, match="only used by mode 'improved'"):
+        Tracker(faithful).step([frame], evidence=[mask])
+    with pytest.raises(ValueError, match="only used by mode 'improved'"):
+        RefTracker(faithful).step(frame, evidence=mask)
+    with pytest.raises(ValueError, match="one per image"):
+        Tracker(TRACK).step([frame, frame], evidence=[mask])
+    with pytest.raises(TypeError, match="bool tensor"):
+        Tracker(TRACK).step(_t([frame]), evidence=[mask])
+    with pytest.raises(ValueError, match=r"\(B, H, W\)"):
+        Tracker(TRACK)(_t([frame]), evidence=torch.from_numpy(mask)[None, :-1])

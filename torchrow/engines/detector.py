@@ -43,6 +43,38 @@ __all__ = ["BatchResult", "CropRowDetector", "STATUS_CODES"]
 STATUS_CODES = {s: i for i, s in enumerate(STATUSES)}
 
 
+def evidence_batch(evidence: torch.Tensor | Sequence[np.ndarray] | None,
+                   arrays: Sequence[np.ndarray] | None) -> torch.Tensor | None:
+    """The caller's row evidence (ALGORITHM.md 11.1.1) in the form the engines' ``forward`` takes.
+
+    With ``arrays`` ``None`` (the images came as a ``(B, 3, H, W)`` tensor) ``evidence`` must be
+    a tensor too (``bool (B, H, W)`` at the working size, checked by ``forward``) and is returned
+    as it is; with ``arrays`` (the working images, ``(H, W, 3)`` each, of one size) it must be a
+    list of as many masks, each at its own image's size, resized by
+    :func:`torchrow.core.io.evidence_mask` and stacked into ``bool (B, H, W)``. One rule for
+    :meth:`CropRowDetector.detect` and :meth:`torchrow.engines.tracker.Tracker.step`.
+
+    Raises
+    ------
+    TypeError
+        If the images are a tensor and ``evidence`` is not.
+    ValueError
+        If the images are arrays and ``evidence`` is not a list of one mask per image.
+    """
+    if evidence is None:
+        return None
+    if arrays is None:
+        if not isinstance(evidence, torch.Tensor):
+            raise TypeError(f"evidence: with a tensor of images expected a bool tensor (B, H, W), "
+                            f"got {type(evidence).__name__}")
+        return evidence
+    if isinstance(evidence, torch.Tensor) or len(evidence) != len(arrays):
+        got = "a tensor" if isinstance(evidence, torch.Tensor) else f"{len(evidence)} arrays"
+        raise ValueError(f"evidence: expected a list of {len(arrays)} arrays (one per image), got {got}")
+    h, w = arrays[0].shape[:2]
+    return torch.from_numpy(np.stack([evidence_mask(e, w, h) for e in evidence]))
+
+
 class CropRowDetector(nn.Module):
     """Batched crop-row detector (ALGORITHM.md, image mode), identical to the reference.
 
@@ -247,20 +279,11 @@ class CropRowDetector(nn.Module):
         """
         check_evidence_used(evidence, self.params)
         if isinstance(images, torch.Tensor):
-            if evidence is not None and not isinstance(evidence, torch.Tensor):
-                raise TypeError(f"evidence: with a tensor of images expected a bool tensor (B, H, W), "
-                                f"got {type(evidence).__name__}")
-            return self(images, evidence=evidence)
+            return self(images, evidence=evidence_batch(evidence, None))
         arrays = [self.prepare(im) for im in images]
         if len({a.shape for a in arrays}) > 1:
             raise ValueError("images of different working sizes: use torchrow.engines.runner.run, which groups them")
         if not arrays:
             raise ValueError("detect got an empty list")
-        masks = None
-        if evidence is not None:
-            if isinstance(evidence, torch.Tensor) or len(evidence) != len(arrays):
-                got = "a tensor" if isinstance(evidence, torch.Tensor) else f"{len(evidence)} arrays"
-                raise ValueError(f"evidence: expected a list of {len(arrays)} arrays (one per image), got {got}")
-            h, w = arrays[0].shape[:2]
-            masks = torch.from_numpy(np.stack([evidence_mask(e, w, h) for e in evidence]))
+        masks = evidence_batch(evidence, arrays)
         return self(torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).contiguous(), evidence=masks)

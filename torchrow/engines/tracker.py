@@ -21,13 +21,15 @@ from torch import nn
 
 from torchrow.core.camera import CameraModel
 from torchrow.core.frames import prepare_frame
-from torchrow.core.io import check_working_size
+from torchrow.core.io import check_evidence_used, check_working_size
 from torchrow.core.params import Params, tracker_params
 from torchrow.core.results import concat_batches
 from torchrow.core.steering import FrameResult, check_optics
+from torchrow.engines.detector import evidence_batch
 from torchrow.functional import lattice_tracking as flt
 from torchrow.functional import tracking as ftrack
 from torchrow.functional._checks import check_device, check_images
+from torchrow.functional.lattice import check_evidence
 from torchrow.functional.lattice_tracking import LatticeStep, LatticeTrackerState
 from torchrow.functional.tracking import TrackerState, TrackStep
 from torchrow.reference.lattice_tracking import check_lattice_tracker
@@ -105,7 +107,7 @@ class Tracker(nn.Module):
     # -- tensors in, tensors out ----------------------------------------------------------
     @torch.no_grad()
     def forward(self, frames: torch.Tensor, state: Any = None,
-                active: torch.Tensor | None = None) -> tuple[Any, Any]:
+                active: torch.Tensor | None = None, evidence: torch.Tensor | None = None) -> tuple[Any, Any]:
         """One lock-step frame of ``B`` sequences.
 
         Parameters
@@ -118,6 +120,9 @@ class Tracker(nn.Module):
             ``bool (B,)``: sequences that have a frame now (default all); the others keep
             their state. An active sequence that has not seen a frame yet takes this one
             as its frame 0.
+        evidence : torch.Tensor, optional
+            Improved mode only: ``bool (B, H, W)``, the caller's row masks at the working size,
+            read in place of the green mask (ALGORITHM.md 11.1.1, 11.7).
 
         Returns
         -------
@@ -127,6 +132,9 @@ class Tracker(nn.Module):
             sky row and rows of the state belong to that size.
         """
         check_images(frames, "frames")
+        check_evidence_used(evidence, self.params)
+        if evidence is not None:
+            check_evidence(frames, evidence)
         h, w = frames.shape[2], frames.shape[3]
         check_working_size(w, h, self.params.max_pixels)
         size = getattr(state, _SIZE, None)
@@ -139,7 +147,8 @@ class Tracker(nn.Module):
             if len(lstate) != bsz:
                 raise ValueError(f"state holds {len(lstate)} sequences, frames {bsz}")
             act = torch.ones(bsz, dtype=torch.bool, device=self.device) if active is None else active.to(self.device)
-            lstep, lnew = flt.lattice_advance(x, act, lstate, self.params)
+            lstep, lnew = flt.lattice_advance(x, act, lstate, self.params,
+                                              evidence=None if evidence is None else evidence.to(self.device))
             setattr(lnew, _SIZE, (h, w))
             return lstep, lnew
         if state is None:
@@ -235,20 +244,27 @@ class Tracker(nn.Module):
         return prepare_frame(frame, self.params.video_width, self.params.max_pixels)
 
     def step(self, frames: Sequence[np.ndarray] | torch.Tensor, state: TrackerState | None = None,
-             names: Sequence[str | None] | None = None) -> tuple[list[FrameResult], TrackerState]:
+             names: Sequence[str | None] | None = None,
+             evidence: Sequence[np.ndarray] | torch.Tensor | None = None) -> tuple[list[FrameResult], TrackerState]:
         """One frame of each of ``B`` sequences (the robot's loop): records and the new state.
 
         ``frames``: ``B`` RGB arrays (any size, resized to the working width, all of one
         working size) or a ``uint8 (B, 3, H, W)`` tensor already at working size.
+        ``evidence`` (improved mode only, ALGORITHM.md 11.1.1): the caller's row masks, with
+        arrays one per frame at that frame's own size (resized by
+        :func:`torchrow.core.io.evidence_mask`, as :meth:`torchrow.reference.Tracker.step` does),
+        with a tensor ``bool (B, H, W)`` at the working size.
         """
+        check_evidence_used(evidence, self.params)
         if isinstance(frames, torch.Tensor):
-            x = frames
+            x, masks = frames, evidence_batch(evidence, None)
         else:
             arrays = [self.prepare(f) for f in frames]
             if len({a.shape for a in arrays}) != 1:
                 raise ValueError(f"frames of different working sizes: {sorted({a.shape for a in arrays})}")
             x = torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).contiguous()
-        stepped, new = self(x, state)
+            masks = evidence_batch(evidence, arrays)
+        stepped, new = self(x, state, evidence=masks)
         res = self.results(stepped, new, x.shape[3], x.shape[2], names)
         return [r for r in res if r is not None], new
 

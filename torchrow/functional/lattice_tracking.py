@@ -179,10 +179,11 @@ def grid_sky(images: torch.Tensor, search: torch.Tensor, params: Params, flow: s
 
 
 def _lattice(images: torch.Tensor, active: torch.Tensor, prior: LatticePriorBatch, params: Params, flow: str,
-             sky: torch.Tensor, have_sky: bool, switch: bool = True) -> tuple[LatticeRows, torch.Tensor, torch.Tensor]:
+             sky: torch.Tensor, have_sky: bool, switch: bool = True,
+             evidence: torch.Tensor | None = None) -> tuple[LatticeRows, torch.Tensor, torch.Tensor]:
     """Section 11 with the prior and the VP grid's ``sky`` rows (computed here where needed
     unless ``have_sky``): rows, status codes (as the detector's improved mode) and ``switched``
-    ``(B,)`` bool.
+    ``(B,)`` bool. ``evidence``: the caller's row masks in place of the green mask (11.1.1).
 
     A tracked image of an ``active`` sequence whose restricted comb is too weak for ``ok`` (``contrast <
     lattice_min_contrast``) would be redone in full whatever its refits give (11.7); it is
@@ -193,7 +194,7 @@ def _lattice(images: torch.Tensor, active: torch.Tensor, prior: LatticePriorBatc
     with nothing restricted)."""
     bsz, _, h = images.shape[:3]
     begun = flattice.improved_start(images, torch.zeros(bsz, dtype=torch.int64, device=images.device), None, None,
-                                    params, prior, flow, grid_sky=sky)
+                                    params, prior, flow, grid_sky=sky, evidence=evidence)
     mask, start, fparams = begun.mask, begun.start, begun.fit_params
     counted = params.lattice_vp_sky_origin()
     weak = active & prior.restrict & (start.contrast < params.lattice_min_contrast)
@@ -221,7 +222,8 @@ def _lattice(images: torch.Tensor, active: torch.Tensor, prior: LatticePriorBatc
 
 
 def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTrackerState,
-                    params: Params, flow: str = "sync") -> tuple[LatticeStep, LatticeTrackerState]:
+                    params: Params, flow: str = "sync",
+                    evidence: torch.Tensor | None = None) -> tuple[LatticeStep, LatticeTrackerState]:
     """One lock-step frame of ``B`` sequences (11.7); ``images`` ``uint8 (B, 3, H, W)`` at working
     size, ``active`` bool ``(B,)``: the sequences with a frame now (the others keep their state;
     their step entries are meaningless).
@@ -232,7 +234,10 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
     (``"loop"``, :class:`torchrow.onnx.graphs.StaticLatticeStep`) the redo pass and the grid
     search are ONNX ``If`` nodes and the refits ONNX ``Loop`` nodes; ``"always"`` runs all of
     them to their static bounds, masked. Results never depend on it. Section 11 runs with
-    :meth:`Params.tracking` (the refits' bound ``lattice_track_iterations``)."""
+    :meth:`Params.tracking` (the refits' bound ``lattice_track_iterations``). ``evidence``: the
+    caller's row masks, ``bool (B, H, W)`` at the working size, read in place of the green mask
+    by every section 11 pass of the frame, a redo's too (11.1.1; the exported step,
+    :class:`torchrow.onnx.graphs.StaticLatticeStep`, has no such input)."""
     params = params.tracking()
     h, w = images.shape[2], images.shape[3]
     tracked = state.ready & state.has_centre
@@ -247,7 +252,7 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
     # computed there unless it is known here to have run: eagerly, or in the unbranched graph)
     sky = grid_sky(images, full, params, flow)
     have_sky = not params.lattice_vp_sky_origin() or flow == "always" or (flow == "sync" and bool(full.any()))
-    rows, status, switched = _lattice(images, active, prior, params, flow, sky, have_sky)
+    rows, status, switched = _lattice(images, active, prior, params, flow, sky, have_sky, evidence=evidence)
     # a tracked frame that still fails is redone in full (switched frames were searched in full)
     redo = active & ~full & ~switched & (status != _OK)
     n_rows = len(dataclasses.fields(LatticeRows))
@@ -257,7 +262,7 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
         # redone frames are tracked: the grid near their last grid VP (the others' results are not kept)
         wide, wide_status, _ = _lattice(images, redo, LatticePriorBatch(centre, torch.zeros_like(redo), vp, spacing,
                                                                         torch.ones_like(redo), near),
-                                        params, flow, sky, True, switch=False)
+                                        params, flow, sky, True, switch=False, evidence=evidence)
         picked = _where(redo, wide, LatticeRows(*now[:n_rows]))
         return _fields(picked) + (torch.where(redo, wide_status, now[n_rows]),)
 

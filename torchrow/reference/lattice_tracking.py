@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from torchrow.core.camera import CameraModel
-from torchrow.core.io import resize_to_width, to_rgb8
+from torchrow.core.io import evidence_mask, resize_to_width, to_rgb8
 from torchrow.core.params import Params
 from torchrow.core.steering import FrameResult, LatticeTrack, check_optics
 from torchrow.reference.lattice import LatticePrior, centre_spacing, horizon_row, improved_result, improved_rows, spacing_near
@@ -155,10 +155,16 @@ class LatticeTracker:
         return resize_to_width(to_rgb8(frame), self.params.video_width, self.params.max_pixels)
 
     def step(self, frame: np.ndarray, state: LatticeSequenceState | None = None, *, name: str | None = None,
-             source: str | None = None, index: int | None = None) -> tuple[FrameResult, LatticeSequenceState]:
-        """One frame (any size, resized): its record and the new state (``None`` starts a sequence)."""
+             source: str | None = None, index: int | None = None,
+             evidence: np.ndarray | None = None) -> tuple[FrameResult, LatticeSequenceState]:
+        """One frame (any size, resized): its record and the new state (``None`` starts a sequence).
+
+        ``evidence``: the caller's row mask at the frame's own size (11.1.1), resized by
+        :func:`torchrow.core.io.evidence_mask` and read in place of the green mask by every
+        section 11 pass of this frame (the tracked pass and a redo)."""
         rgb = self.prepare(frame)
         h, w = rgb.shape[:2]
+        mask = None if evidence is None else evidence_mask(evidence, w, h)
         if state is None:
             state = LatticeSequenceState(width=w, height=h)
         elif (h, w) != (state.height, state.width):
@@ -178,12 +184,12 @@ class LatticeTracker:
             return sky_row(rgb, p) if p.lattice_vp_sky_origin() else 0
 
         imp = improved_rows(rgb, 0, None, p, wide if full else LatticePrior(float(centre), state.vp, state.spacing),
-                            grid_sky() if full else 0)
+                            grid_sky() if full else 0, mask)
         res = improved_result(imp, w, h, top, p, name)
         redo = False
         if not full and res.status != "ok":  # a tracked frame that fails is searched again in full
             redo = True
-            imp = improved_rows(rgb, 0, None, p, wide, grid_sky())
+            imp = improved_rows(rgb, 0, None, p, wide, grid_sky(), mask)
             res = improved_result(imp, w, h, top, p, name)
         fit = imp.fit
         ok = res.status == "ok"

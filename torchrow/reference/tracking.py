@@ -36,7 +36,7 @@ import numpy as np
 
 from torchrow.core.camera import CameraModel
 from torchrow.core.frames import load_items
-from torchrow.core.io import resize_to_width, to_rgb8
+from torchrow.core.io import check_evidence_used, resize_to_width, to_rgb8
 from torchrow.core.params import Params, tracker_params
 from torchrow.core.results import ImageResult
 from torchrow.core.steering import FrameResult, check_optics, confidence
@@ -142,8 +142,8 @@ class Tracker:
 
     # -- one frame ------------------------------------------------------------------------
     def step(self, frame: np.ndarray, state: SequenceState | LatticeSequenceState | None = None, *,
-             name: str | None = None, source: str | None = None,
-             index: int | None = None) -> tuple[FrameResult, SequenceState | LatticeSequenceState]:
+             name: str | None = None, source: str | None = None, index: int | None = None,
+             evidence: np.ndarray | None = None) -> tuple[FrameResult, SequenceState | LatticeSequenceState]:
         """Process one frame.
 
         Parameters
@@ -156,16 +156,21 @@ class Tracker:
         name, source, index : optional
             Stored in the result (file name, sequence name, frame index; the index defaults
             to the number of frames processed before this one).
+        evidence : numpy.ndarray, optional
+            Improved mode only: the caller's row mask for this frame at the frame's own size
+            (ALGORITHM.md 11.1.1, resized by :func:`torchrow.core.io.evidence_mask`), in place of
+            the green mask in every section 11 pass of the frame (11.7).
 
         Returns
         -------
         (FrameResult, SequenceState)
             The frame's result and the new state (the given one is not modified).
         """
+        check_evidence_used(evidence, self.params)
         if self.lattice is not None:
             if state is not None and not isinstance(state, LatticeSequenceState):
                 raise ValueError(f"an improved-mode tracker takes a LatticeSequenceState, got {type(state).__name__}")
-            return self.lattice.step(frame, state, name=name, source=source, index=index)
+            return self.lattice.step(frame, state, name=name, source=source, index=index, evidence=evidence)
         if state is not None and not isinstance(state, SequenceState):
             raise ValueError(f"a faithful tracker takes a SequenceState, got {type(state).__name__}")
         rgb = self.prepare(frame)
