@@ -3,6 +3,9 @@ mask on both paths, and the errors."""
 
 from __future__ import annotations
 
+import csv
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -221,3 +224,105 @@ def test_the_tracker_refuses_evidence_it_cannot_use() -> None:
         Tracker(TRACK).step(_t([frame]), evidence=[mask])
     with pytest.raises(ValueError, match=r"\(B, H, W\)"):
         Tracker(TRACK)(_t([frame]), evidence=torch.from_numpy(mask)[None, :-1])
+
+
+# --- masks from files: the runner and the command line -------------------------------------------------
+
+
+def _mask_folder(tmp_path):
+    """Three green-less images and their row masks on disk: ``a.png`` (mask ``a.png``), ``b.jpg``
+    (mask ``b.png``) and ``c.png`` at 640x480 with its mask at half that size (``c.png``)."""
+    import cv2
+
+    imgs, masks = tmp_path / "img", tmp_path / "masks"
+    imgs.mkdir()
+    masks.mkdir()
+    cv2.imwrite(str(imgs / "a.png"), _grey(seed=1))
+    cv2.imwrite(str(imgs / "b.jpg"), _grey(seed=2))
+    cv2.imwrite(str(imgs / "c.png"), _grey(480, 640, seed=3))
+    cv2.imwrite(str(masks / "a.png"), _stripes(shift=12.0).astype(np.uint8) * 255)
+    cv2.imwrite(str(masks / "b.png"), _stripes(spacing=90.0, shift=-20.0).astype(np.uint8) * 255)
+    cv2.imwrite(str(masks / "c.png"), _stripes().astype(np.uint8) * 255)
+    return imgs, masks
+
+
+def test_the_runner_detects_each_image_with_its_own_evidence(tmp_path) -> None:
+    import functools
+
+    from torchrow.core.io import load_image, load_with_evidence
+    from torchrow.engines.runner import run
+
+    imgs, masks = _mask_folder(tmp_path)
+    plain = functools.partial(load_image, imgs / "a.png", 320)
+    items = [("a", functools.partial(load_with_evidence, imgs / "a.png", masks / "a.png", 320)), ("plain", plain),
+             ("b", functools.partial(load_with_evidence, imgs / "b.jpg", masks / "b.png", 320))]
+    for impl in ("tensor", "reference"):
+        # batch size 2: the first batch would hold a and plain, but never mixes evidence with none
+        got = [(rgb, res.to_record()) for _, rgb, res, _ in run(items, impl, FORWARD, batch_size=2, progress=False)]
+        for (name, loader), (rgb, rec) in zip(items, got):
+            loaded = loader()
+            image, ev = (loaded, None) if name == "plain" else loaded
+            np.testing.assert_array_equal(rgb, image)
+            assert not record_differences(detect(image, FORWARD, name=name, evidence=ev).to_record(), rec), (impl, name)
+        assert [r["status"] for _, r in got] == ["ok", "invalid", "ok"]
+    # evidence has no use in the faithful mode: an error record per image, the run goes on
+    faithful = [res for _, _, res, _ in run(items[:1], "tensor", Params(), progress=False)]
+    assert faithful[0].status == "error" and "only used by mode 'improved'" in faithful[0].error
+
+
+def test_detect_and_eval_read_a_mask_folder(tmp_path, capsys) -> None:
+    import cv2
+
+    from torchrow.apps.cli import main
+    from torchrow.core.io import evidence_mask, load_image
+
+    imgs, masks = _mask_folder(tmp_path)
+    recs = {}
+    for impl in ("tensor", "reference"):
+        out = tmp_path / f"{impl}.jsonl"
+        assert main(["detect", str(imgs), "--out", str(out), "--forward", "--evidence", str(masks), "--impl", impl,
+                     "-q"]) == 0
+        recs[impl] = [json.loads(line) for line in out.read_text().splitlines()]
+    for a, b in zip(*recs.values()):
+        assert not record_differences(a, b)
+    assert [(r["name"], r["status"]) for r in recs["tensor"]] == [("a.png", "ok"), ("b.jpg", "ok"), ("c.png", "ok")]
+    # c.png's mask is half its size: the same rows as the full-size mask at the working size
+    c = load_image(imgs / "c.png", 320)
+    want = detect(c, FORWARD, name="c.png", evidence=evidence_mask(cv2.imread(str(masks / "c.png"), 0), 320, 240))
+    assert not record_differences(want.to_record(), recs["tensor"][2])
+    capsys.readouterr()
+    argv = ["detect", str(imgs), "--out", str(tmp_path / "x.jsonl"), "-q"]
+    assert main(argv + ["--evidence", str(masks)]) == 2  # the faithful mode reads no mask
+    assert "improved mode only" in capsys.readouterr().err
+    (masks / "b.png").unlink()
+    assert main(argv + ["--forward", "--evidence", str(masks)]) == 2
+    err = capsys.readouterr().err
+    assert "no mask for 1 of 3 image(s)" in err and "b.png or" in err and not (tmp_path / "x.jsonl").exists()
+    # a mask of another aspect is that image's error record; the others are detected
+    cv2.imwrite(str(masks / "b.png"), np.zeros((100, 20), np.uint8))
+    assert main(argv + ["--forward", "--evidence", str(masks)]) == 0
+    got = [json.loads(line) for line in (tmp_path / "x.jsonl").read_text().splitlines()]
+    assert [r["status"] for r in got] == ["ok", "error", "ok"] and "not the aspect" in got[1]["error"]
+
+
+def test_eval_reads_a_mask_folder(tmp_path, capsys) -> None:
+    # CRDLD's own labels as the evidence: the lattice follows them
+    import cv2
+
+    from torchrow.apps.cli import main
+
+    split = tmp_path / "crdld" / "test"
+    (split / "image").mkdir(parents=True)
+    (split / "label").mkdir()
+    for n, shift in ((0, 0.0), (1, 15.0)):
+        cv2.imwrite(str(split / "image" / f"{n}.jpg"), _grey(320, 320, seed=n))
+        cv2.imwrite(str(split / "label" / f"{n}.jpg"), _stripes(320, 320, shift=shift).astype(np.uint8) * 255)
+    out = tmp_path / "eval"
+    argv = ["eval", "--dataset", "crdld", "--data", str(tmp_path / "crdld"), "--out", str(out), "-q", "--forward"]
+    assert main(argv + ["--evidence", str(split / "label")]) == 0
+    text = capsys.readouterr().out
+    assert "statuses: ok 2" in text
+    with open(out / "scores.csv") as fh:
+        assert [float(r["crdld_sigma0.1"]) > 0.8 for r in csv.DictReader(fh)] == [True, True]
+    assert main(argv + ["--resume"]) == 2  # a resume without the masks is another run
+    assert "written by another run: sources" in capsys.readouterr().err

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from torchrow.apps.sink import RecordSink, read_records
-from torchrow.core.io import ImageError
+from torchrow.core.io import Evidenced, ImageError
 from torchrow.core.params import Params
 from torchrow.core.progress import progress as progress_bar
 from torchrow.core.results import ImageResult
@@ -128,18 +128,21 @@ def plot_cumulative(series: Sequence[tuple[str, Sequence[float]]], path: Path, t
     plt.close(fig)
 
 
-def _load_crbd(path: str, width: int) -> np.ndarray:
-    """A CRBD image; its width must be the working width (the ground truth is in its pixels)."""
-    from torchrow.core.io import load_image
+def _load_crbd(path: str, width: int, mask: str | None = None) -> np.ndarray | Evidenced:
+    """A CRBD image (with its row evidence from ``mask``, :func:`~torchrow.core.io.load_with_evidence`);
+    its width must be the working width (the ground truth is in its pixels)."""
+    from torchrow.core.io import load_image, load_with_evidence
 
-    rgb = load_image(path)
+    got = load_image(path) if mask is None else load_with_evidence(path, mask)
+    rgb = got if isinstance(got, np.ndarray) else got.image
     if rgb.shape[1] != width:
         raise ImageError(f"CRBD image is {rgb.shape[1]} px wide but image_width is "
                          f"{width}; the ground truth is in the image's own pixels")
-    return rgb
+    return got
 
 
-def _detections(names: Sequence[str], loader: Callable[[int], Callable[[], np.ndarray]], indices: Sequence[int],
+def _detections(names: Sequence[str], loader: Callable[[int], Callable[[], np.ndarray | Evidenced]],
+                indices: Sequence[int],
                 impl: str, params: Params, batch_size: int, device: str | None, progress: bool,
                 sink: RecordSink | None, engine: str, address: str | None, workers: int | None,
                 desc: str) -> list[tuple[int, ImageResult, dict, float]]:
@@ -175,10 +178,22 @@ def _detections(names: Sequence[str], loader: Callable[[int], Callable[[], np.nd
     return out
 
 
+def _evidence_of(evidence: Mapping[int, str | Path] | None, indices: Sequence[int]) -> dict[int, str]:
+    """The mask file of every index (``{}`` without evidence); ``ValueError`` naming the first
+    index without one, before anything runs."""
+    if evidence is None:
+        return {}
+    lacking = [i for i in indices if i not in evidence]
+    if lacking:
+        raise ValueError(f"evidence: no mask for {len(lacking)} of {len(indices)} image(s), the first index {lacking[0]}")
+    return {i: str(evidence[i]) for i in indices}
+
+
 def evaluate(crbd: CRBD, indices: Sequence[int] | None = None, impl: str = "tensor",
              params: Params | None = None, batch_size: int = 64, device: str | None = None,
              progress: bool = True, sink: RecordSink | None = None, engine: str = "local",
-             address: str | None = None, workers: int | None = None) -> EvalReport:
+             address: str | None = None, workers: int | None = None,
+             evidence: Mapping[int, str | Path] | None = None) -> EvalReport:
     """Detect CRBD images with ``impl`` ("tensor" or "reference") and score each one.
 
     A file that cannot be read or a detector failure gives an ``error`` record and scores 0;
@@ -186,13 +201,16 @@ def evaluate(crbd: CRBD, indices: Sequence[int] | None = None, impl: str = "tens
     size for the tensor path. ``sink``: records are streamed to it as they come; images
     whose record it already holds (``RecordSink(..., resume=True)``) are not detected again
     but scored from that record (``seconds`` NaN). ``engine="ray"`` detects on a Ray cluster
-    (:func:`torchrow.engines.distributed.run`, ``address``, ``workers``).
+    (:func:`torchrow.engines.distributed.run`, ``address``, ``workers``). ``evidence``: a row-mask
+    file per image index (improved mode, ALGORITHM.md 11.1.1, :func:`~torchrow.core.io.load_evidence`),
+    fitted in place of the green mask; every index of ``indices`` needs one.
     """
     params = params or Params()
     indices = list(range(len(crbd))) if indices is None else list(indices)
+    masks = _evidence_of(evidence, indices)
 
-    def loader(i: int) -> Callable[[], np.ndarray]:
-        return functools.partial(_load_crbd, str(crbd.image_path(i)), params.image_width)
+    def loader(i: int) -> Callable[[], np.ndarray | Evidenced]:
+        return functools.partial(_load_crbd, str(crbd.image_path(i)), params.image_width, masks.get(i))
 
     report = EvalReport()
     for i, res, rec, seconds in _detections(crbd.names, loader, indices, impl, params, batch_size, device,
@@ -295,17 +313,22 @@ class CRDLDReport:
 def evaluate_crdld(ds: CRDLD, indices: Sequence[int] | None = None, impl: str = "tensor",
                    params: Params | None = None, batch_size: int = 64, device: str | None = None,
                    progress: bool = True, sink: RecordSink | None = None, engine: str = "local",
-                   address: str | None = None, workers: int | None = None) -> CRDLDReport:
+                   address: str | None = None, workers: int | None = None,
+                   evidence: Mapping[int, str | Path] | None = None) -> CRDLDReport:
     """Detect CRDLD images with ``impl`` ("tensor" or "reference") and score each one
     (ALGORITHM.md 10.1); arguments and resuming as for :func:`evaluate`. Images are resized
     to the working width as ``torchrow detect`` does; the score scales the rows back to the
-    image's own pixels."""
-    from torchrow.core.io import load_image
+    image's own pixels; ``evidence`` as for :func:`evaluate`."""
+    from torchrow.core.io import load_image, load_with_evidence
 
     params = params or Params()
     indices = list(range(len(ds))) if indices is None else list(indices)
+    masks = _evidence_of(evidence, indices)
 
-    def loader(i: int) -> Callable[[], np.ndarray]:
+    def loader(i: int) -> Callable[[], np.ndarray | Evidenced]:
+        if i in masks:
+            return functools.partial(load_with_evidence, str(ds.image_path(i)), masks[i], params.image_width,
+                                     params.max_pixels)
         return functools.partial(load_image, str(ds.image_path(i)), params.image_width, params.max_pixels)
 
     report = CRDLDReport(split=ds.split)

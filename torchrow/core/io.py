@@ -14,7 +14,7 @@ import functools
 import io
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
@@ -23,7 +23,7 @@ __all__ = ["ImageError", "IMAGE_EXTENSIONS", "MAX_DECODE_PIXELS", "MAX_FILE_BYTE
            "load_image", "decode_image", "check_file_size", "working_size", "check_working_size", "lattice_params",
            "check_lattice_size",
            "check_color", "check_color_used", "header_size", "majority_working_size", "evidence_mask",
-           "check_evidence_used"]
+           "check_evidence_used", "Evidenced", "load_evidence", "load_with_evidence"]
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 
@@ -335,6 +335,68 @@ def check_evidence_used(evidence: object, params: Any) -> None:
     both paths."""
     if evidence is not None and params.mode != "improved":
         raise ValueError(f"evidence (a row mask) is only used by mode 'improved'; got mode {params.mode!r}")
+
+
+class Evidenced(NamedTuple):
+    """A working image with the caller's row evidence (ALGORITHM.md 11.1.1), as a loader of
+    :func:`torchrow.engines.runner.run` may return it: ``image`` uint8 ``(H, W, 3)`` RGB and
+    ``evidence`` bool ``(H, W)`` at the same working size (:func:`evidence_mask`)."""
+
+    image: np.ndarray
+    evidence: np.ndarray
+
+
+def load_evidence(path: str | Path) -> np.ndarray:
+    """Read a row-evidence mask file (PNG, or any format :func:`load_image` reads) as bool
+    ``(H0, W0)`` at its own size: non-zero in any colour channel is a row (an alpha channel is
+    dropped, EXIF orientation applied, as :func:`load_image` decodes). Same file bounds as
+    :func:`load_image`.
+
+    Raises
+    ------
+    ImageError
+        If the file is missing, empty, too large or cannot be decoded.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise ImageError(f"no such evidence mask: {p}")
+    check_file_size(p.stat().st_size, str(p))
+    data = p.read_bytes()
+    if not data:
+        raise ImageError(f"empty evidence mask: {p}")
+    size = header_size(data, str(p))
+    if size is not None and size[0] * size[1] > MAX_DECODE_PIXELS:
+        raise ImageError(f"evidence mask of {size[0]}x{size[1]} pixels is larger than torchrow decodes "
+                         f"({MAX_DECODE_PIXELS} px): {p}")
+    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+    if img is None:
+        raise ImageError(f"cannot decode evidence mask: {p}")
+    return (img != 0).any(axis=2) if img.ndim == 3 else img != 0
+
+
+def load_with_evidence(path: str | Path, mask_path: str | Path, width: int | None = None,
+                       max_pixels: int | None = None) -> Evidenced:
+    """:func:`load_image` of ``path`` with the mask of ``mask_path`` (:func:`load_evidence`)
+    brought to the working size by :func:`evidence_mask`, as :class:`Evidenced`.
+
+    The mask may have any size of the image's aspect (a network's output at a quarter of the
+    image, say); an aspect that differs by more than 2 % (or one working pixel) means the mask
+    belongs to another image.
+
+    Raises
+    ------
+    ImageError
+        As :func:`load_image` and :func:`load_evidence`, and if the aspects differ.
+    """
+    rgb = load_image(path, width, max_pixels)
+    mask = load_evidence(mask_path)
+    h, w = rgb.shape[:2]
+    h0, w0 = mask.shape
+    # the working height is rounded to whole pixels: one working pixel of slack besides 2 %
+    if abs(h0 * w - w0 * h) > max(0.02 * h0 * w, w0):
+        raise ImageError(f"evidence mask {mask_path} is {w0}x{h0}, not the aspect of image {path} "
+                         f"({w}x{h} at working size)")
+    return Evidenced(rgb, evidence_mask(mask, w, h))
 
 
 def majority_working_size(frames: Iterable[tuple[Callable[[], tuple[int, int] | None], Callable[[], np.ndarray]]],

@@ -44,6 +44,7 @@ from torchrow.core.results import ImageResult
 
 if TYPE_CHECKING:  # imported by the workers that use them
     from torchrow.engines.detector import CropRowDetector
+    from torchrow.engines.runner import Loader
     from torchrow.onnx.runtime import OnnxDetector
 
 __all__ = ["init", "check_address", "run", "track", "read_binary", "RECORDS_PER_CHUNK", "BATCHES_IN_FLIGHT",
@@ -161,13 +162,14 @@ class _Detect:
                 "seconds": np.array([s for _, _, _, s in out], dtype=np.float64)}
 
 
-def run(items: Iterable[tuple[str, Callable[[], np.ndarray]]], impl: str = "tensor", params: Params | None = None,
+def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Params | None = None,
         batch_size: int = 64, device: str | None = None, progress: bool = True, desc: str = "detect",
         model: str | None = None, total: int | None = None, workers: int | None = None,
         cpus_per_worker: int = 1, address: str | None = None
         ) -> Iterator[tuple[int, None, ImageResult, float]]:
     """:func:`torchrow.engines.runner.run` on a Ray cluster: yields ``(index, None, result, seconds)``
-    in input order (no RGB comes back). ``workers``: detector actors (default: the cluster's
+    in input order (no RGB comes back); a loader may return :class:`~torchrow.core.io.Evidenced`
+    as there (its files are read on the worker). ``workers``: detector actors (default: the cluster's
     CPUs // ``cpus_per_worker``); ``batch_size``: inputs per call of an actor (made smaller
     for short runs, so that every worker gets a batch, when ``total`` is known).
 

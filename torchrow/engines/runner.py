@@ -5,7 +5,10 @@
 :class:`torchrow.engines.detector.CropRowDetector`. Both yield ``(index, working rgb or None, result,
 seconds)`` in input order (``seconds``: detection time of the image; for a batch, its wall
 time divided by its size); an input that cannot be loaded, or a failure inside detection,
-yields an ``error`` result and the run goes on.
+yields an ``error`` result and the run goes on. A loader may return
+:class:`torchrow.core.io.Evidenced` (the image and the caller's row evidence at its size,
+ALGORITHM.md 11.1.1) instead of the image: that image is detected with its evidence (improved
+mode; batches never mix images with and without evidence).
 
 Ordering window (``impl="tensor"``/``"onnx"``): images wait in per-working-size groups until
 a group holds ``batch_size`` images; finished results wait until every earlier input's result
@@ -30,7 +33,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from torchrow.core.camera import CameraModel
-from torchrow.core.io import ImageError
+from torchrow.core.io import Evidenced, ImageError
 from torchrow.core.params import Params
 from torchrow.core.progress import progress as progress_bar
 from torchrow.core.results import ImageResult
@@ -45,11 +48,12 @@ __all__ = ["IMPLS", "run", "default_window", "onnx_model", "onnx_workers", "trac
 
 IMPLS = ("tensor", "reference", "onnx")
 
-Loader = Callable[[], np.ndarray]
+Loader = Callable[[], "np.ndarray | Evidenced"]
 
 
-def _load(name: str, loader: Loader) -> np.ndarray | ImageResult:
-    """The working RGB image, or the ``error`` result of an input that cannot be loaded."""
+def _load(name: str, loader: Loader) -> np.ndarray | Evidenced | ImageResult:
+    """The working RGB image (with its evidence where the loader gives it), or the ``error``
+    result of an input that cannot be loaded."""
     try:
         return loader()
     except (ImageError, OSError) as exc:
@@ -67,7 +71,9 @@ def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Param
         total: int | None = None, detector: CropRowDetector | OnnxDetector | None = None,
         workers: int | None = None
         ) -> Iterator[tuple[int, np.ndarray | None, ImageResult, float]]:
-    """Detect every ``(name, loader)`` item; ``loader()`` returns the working RGB image.
+    """Detect every ``(name, loader)`` item; ``loader()`` returns the working RGB image, or
+    :class:`~torchrow.core.io.Evidenced` (the image and its row evidence, improved mode; an
+    ``error`` record with ``impl="onnx"`` or in faithful mode).
 
     ``items`` may be a lazy iterable (read one item at a time; ``total`` sizes the progress
     bar when it has no ``len``). Results come back in input order, each as soon as every
@@ -127,11 +133,11 @@ def run(items: Iterable[tuple[str, Loader]], impl: str = "tensor", params: Param
                 if isinstance(got, ImageResult):
                     res = got
                 else:
-                    rgb = got
+                    rgb, ev = got if isinstance(got, Evidenced) else (got, None)
                     try:
-                        res = detect(got, params, name=name)
+                        res = detect(rgb, params, name=name, evidence=ev)
                     except Exception as exc:  # a detector failure is a record, not a crash
-                        res = ImageResult.failed(name, f"{type(exc).__name__}: {exc}", got.shape[1], got.shape[0])
+                        res = ImageResult.failed(name, f"{type(exc).__name__}: {exc}", rgb.shape[1], rgb.shape[0])
                 bar.update(1)
                 yield i, rgb, res, time.perf_counter() - t0
             return
@@ -169,8 +175,11 @@ def _run_tensor(items: Iterable[tuple[str, Loader]], params: Params, batch_size:
     if det is None:
         det = CropRowDetector(params, device=device)
     done: dict[int, tuple[np.ndarray | None, ImageResult, float]] = {}
-    groups: dict[tuple[int, ...], list[int]] = {}
+    # a group: images of one working (H, W, 3) that all have, or all lack, row evidence
+    groups: dict[tuple[tuple[int, ...], bool], list[int]] = {}
     rgbs: dict[int, np.ndarray] = {}
+    evs: dict[int, np.ndarray] = {}
+    keys: dict[int, tuple[tuple[int, ...], bool]] = {}
     names: dict[int, str] = {}
     next_out = 0
     pool = None
@@ -184,17 +193,26 @@ def _run_tensor(items: Iterable[tuple[str, Loader]], params: Params, batch_size:
                                   initializer=torch.set_num_threads, initargs=(1,))
     pending: deque = deque()  # (indices, future) of batches on the pool, in submission order
 
-    def detect(batch, idx, key):
+    def detect(batch, evidence, idx, key):
         t0 = time.perf_counter()
         try:
-            results = det(batch).results([names[i] for i in idx])
+            if evidence is None:
+                out = det(batch)
+            elif isinstance(det, CropRowDetector):
+                out = det(batch, evidence=evidence)
+            else:
+                raise ValueError("row evidence (ALGORITHM.md 11.1.1) is read by impl 'tensor' and 'reference'; "
+                                 "the ONNX detector takes images only")
+            results = out.results([names[i] for i in idx])
         except Exception as exc:  # keep the run alive; every image of the batch gets the error
-            results = [ImageResult.failed(names[i], f"{type(exc).__name__}: {exc}", key[1], key[0]) for i in idx]
+            h, w = key[0][:2]
+            results = [ImageResult.failed(names[i], f"{type(exc).__name__}: {exc}", w, h) for i in idx]
         return results, (time.perf_counter() - t0) / len(idx)
 
     def store(idx, results, dt):
         for i, res in zip(idx, results):
             done[i] = (rgbs.pop(i), res, dt)
+            keys.pop(i)
         bar.update(len(idx))
 
     def collect(wait: bool = False):
@@ -207,12 +225,13 @@ def _run_tensor(items: Iterable[tuple[str, Loader]], params: Params, batch_size:
     def flush(key):
         idx = groups.pop(key)
         batch = torch.from_numpy(np.stack([rgbs[i] for i in idx])).permute(0, 3, 1, 2).contiguous()
+        evidence = torch.from_numpy(np.stack([evs.pop(i) for i in idx])) if key[1] else None
         if pool is None:
-            store(idx, *detect(batch, idx, key))
+            store(idx, *detect(batch, evidence, idx, key))
             return
         while len(pending) >= workers:
             collect(wait=True)
-        pending.append((idx, pool.submit(detect, batch, idx, key)))
+        pending.append((idx, pool.submit(detect, batch, evidence, idx, key)))
         collect()
 
     def ready():
@@ -232,17 +251,23 @@ def _run_tensor(items: Iterable[tuple[str, Loader]], params: Params, batch_size:
                 done[i] = (None, got, 0.0)
                 bar.update(1)
             else:
-                rgb = rgbs[i] = got
-                groups.setdefault(rgb.shape, []).append(i)
-                if len(groups[rgb.shape]) >= batch_size:
-                    flush(rgb.shape)
+                if isinstance(got, Evidenced):
+                    rgb, evs[i] = got
+                else:
+                    rgb = got
+                rgbs[i] = rgb
+                key = (rgb.shape, i in evs)
+                keys[i] = key
+                groups.setdefault(key, []).append(i)
+                if len(groups[key]) >= batch_size:
+                    flush(key)
             collect()
             yield from ready()
             while n - next_out >= window:  # the window is full: the oldest waiting input's result first
                 if any(next_out in idx for idx, _ in pending):
                     collect(wait=True)
                 else:
-                    flush(rgbs[next_out].shape)
+                    flush(keys[next_out])
                 yield from ready()
         for key in sorted(groups, key=lambda k: groups[k][0]):
             flush(key)

@@ -16,6 +16,7 @@ from torchrow.apps.commands.shared import (
     CLIError,
     add_common,
     add_engine,
+    add_evidence,
     add_impl,
     annotation_names,
     bag_picture,
@@ -25,6 +26,7 @@ from torchrow.apps.commands.shared import (
     check_model,
     check_targets,
     collect_images,
+    evidence_files,
     onnx_host_threads,
     open_recorder,
     open_sink,
@@ -58,6 +60,7 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
                    help="also write the images, rows and signals as a Foxglove MCAP recording "
                         "(pip install 'torchrow[foxglove]')")
     add_impl(p)
+    add_evidence(p)
     add_common(p)
     p.set_defaults(func=run)
 
@@ -65,7 +68,7 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
 def run(args: argparse.Namespace) -> int:
     from torchrow.apps.annotate import draw_result, save_rgb
     from torchrow.apps.sink import image_key
-    from torchrow.core.io import load_image
+    from torchrow.core.io import load_image, load_with_evidence
 
     params = with_mode(parse_params(args.param), args)
     device = check_device(args.device)
@@ -90,6 +93,9 @@ def run(args: argparse.Namespace) -> int:
                            f"(export a model with --width {first.shape[1]} --height {first.shape[0]})")
     out = Path(args.out)
     names = record_names(paths)
+    if args.evidence is not None and bags:
+        raise CLIError("--evidence holds masks for image files; ROS bag frames have none (detect the bags without it)")
+    masks = evidence_files(args, names, params)
     # bag frames are named BAG#FRAME, BAG the bag's path relative to the bags' common folder,
     # so that two bags of one file name (dayA/cam.bag, dayB/cam.bag) keep apart
     bag_names = record_names([b.path for b in bags])
@@ -99,8 +105,10 @@ def run(args: argparse.Namespace) -> int:
     check_targets([*map(Path, args.inputs), *paths, *([Path(model)] if model else [])],
                   out_targets(out) + ([("--annotate", ann)] if ann is not None else [])
                   + [("--annotate", a) for a in ann_paths] + ([("--mcap", Path(args.mcap))] if args.mcap else []))
-    sink = open_sink(out, image_key, args.resume, run_header("detect", params, args.inputs, impl=args.impl,
-                                                             engine=args.engine))
+    # the mask folder is a source: --resume with other masks (or none) is another run
+    sink = open_sink(out, image_key, args.resume,
+                     run_header("detect", params, [*args.inputs, *([args.evidence] if masks is not None else [])],
+                                impl=args.impl, engine=args.engine))
     if ann is not None:
         ann.mkdir(parents=True, exist_ok=True)
     # --mcap: the image files are one sequence, each bag another
@@ -111,7 +119,9 @@ def run(args: argparse.Namespace) -> int:
         """(name, loader, annotated picture, extra record keys, (sequence, index, source of
         the frame's bytes)); bag frames after the files."""
         for j, (p, name) in enumerate(zip(paths, names)):
-            yield (name, functools.partial(load_image, p, params.image_width, params.max_pixels),
+            loader = (functools.partial(load_image, p, params.image_width, params.max_pixels) if masks is None
+                      else functools.partial(load_with_evidence, p, masks[j], params.image_width, params.max_pixels))
+            yield (name, loader,
                    ann_paths[j] if ann is not None else None, None, (0, j, p))
         for s, (b, bag) in enumerate(zip(bags, bag_names), bool(paths)):
             for f in b.frames(params.image_width, params.max_pixels):

@@ -12,10 +12,12 @@ from torchrow.apps.commands.shared import (
     CLIError,
     add_common,
     add_engine,
+    add_evidence,
     add_impl,
     check_device,
     check_engine,
     check_targets,
+    evidence_files,
     open_crbd,
     open_crdld,
     open_sink,
@@ -47,6 +49,7 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
     p.add_argument("--limit", type=int, default=0, help="at most this many images (default 0: no limit)")
     add_engine(p)
     add_impl(p)
+    add_evidence(p)
     add_common(p)
     p.set_defaults(func=run)
 
@@ -69,11 +72,14 @@ def run(args: argparse.Namespace) -> int:
     indices = list(range(len(ds)))[:: args.every]
     if args.limit:
         indices = indices[: args.limit]
+    masks = evidence_files(args, [ds.names[i] for i in indices], params)
     out.mkdir(parents=True, exist_ok=True)
     sink = open_sink(out / "detections.jsonl", image_key, args.resume,
-                     run_header("eval", params, [ds.root], impl=args.impl, engine=args.engine))
+                     run_header("eval", params, [ds.root, *([args.evidence] if masks is not None else [])],
+                                impl=args.impl, engine=args.engine))
     options: dict[str, Any] = dict(progress=not args.quiet, sink=sink, engine=args.engine, address=args.address,
-                                   workers=args.workers)
+                                   workers=args.workers,
+                                   evidence=None if masks is None else dict(zip(indices, masks)))
     report: EvalReport | CRDLDReport
     try:
         if isinstance(ds, CRDLD):

@@ -32,7 +32,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "CLIError", "ERROR_STATUS", "DEFAULT_FPS", "print_error",
-    "add_common", "add_engine", "add_impl", "add_mode",
+    "add_common", "add_engine", "add_impl", "add_mode", "add_evidence", "evidence_files",
     "parse_params", "replace_params", "setting_hint", "tracks", "with_mode",
     "collect_images", "record_names", "annotation_names", "bag_picture", "source_stems", "split_bags",
     "check_targets", "check_device", "check_engine", "check_model", "onnx_host_threads",
@@ -107,6 +107,44 @@ def add_engine(p: argparse.ArgumentParser) -> None:
                         "concurrent onnxruntime runs, one thread each (default: this machine's cores, at most 4)")
     p.add_argument("--resume", action="store_true",
                    help="keep the records already in --out, skip their inputs, append the rest")
+
+
+def add_evidence(p: argparse.ArgumentParser) -> None:
+    """``--evidence DIR`` (checked and resolved by :func:`evidence_files`)."""
+    p.add_argument("--evidence", metavar="DIR", default=None,
+                   help="row masks to fit in place of the green mask (improved mode, ALGORITHM.md 11.1.1), e.g. a "
+                        "segmentation network's: image NAME's mask is DIR/NAME with its suffix replaced by .png, "
+                        "else DIR/NAME; non-zero pixels are crop rows; any size of the image's aspect")
+
+
+def evidence_files(args: argparse.Namespace, names: Sequence[str], params: Params) -> list[Path] | None:
+    """The mask file of each record name with ``--evidence`` (:func:`add_evidence`), in order;
+    ``None`` without it. Every mask must exist before the run starts (a missing one is a
+    :class:`CLIError` naming it), so a long run never ends with holes; an unreadable one becomes
+    its image's ``error`` record."""
+    if args.evidence is None:
+        return None
+    if params.mode != "improved":
+        raise CLIError(f"--evidence is read by the improved mode only (--mode improved or --forward); "
+                       f"got mode {params.mode}")
+    if getattr(args, "impl", None) == "onnx":
+        raise CLIError("--evidence works with --impl tensor or reference; the ONNX detector takes images only")
+    folder = Path(args.evidence)
+    if not folder.is_dir():
+        raise CLIError(f"--evidence: no such folder: {folder}")
+    found: list[Path] = []
+    missing: list[str] = []
+    for name in names:
+        tries = [folder / Path(name).with_suffix(".png"), folder / name]
+        hit = next((t for t in tries if t.is_file()), None)
+        if hit is None:
+            missing.append(" or ".join(dict.fromkeys(map(str, tries))))
+        else:
+            found.append(hit)
+    if missing:
+        raise CLIError(f"--evidence {folder}: no mask for {len(missing)} of {len(names)} image(s); "
+                       f"the first: {missing[0]}")
+    return found
 
 
 # ---------------------------------------------------------------- parameters
