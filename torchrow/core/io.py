@@ -212,11 +212,17 @@ def load_image(path: str | Path, width: int | None = None, max_pixels: int | Non
         outside the bounds above.
     """
     p = Path(path)
+    return decode_image(_file_bytes(p), width, max_pixels, what=str(p))
+
+
+def _file_bytes(p: Path) -> bytes:
+    """The bytes of file ``p`` under :func:`check_file_size`'s bound (checked before reading);
+    :class:`ImageError` if it is missing. Bytes, not ``np.fromfile``: the decode and Pillow's
+    header read then share one buffer."""
     if not p.is_file():
         raise ImageError(f"no such file: {p}")
     check_file_size(p.stat().st_size, str(p))
-    # bytes, not np.fromfile: decode_image and Pillow's header read then share one buffer
-    return decode_image(p.read_bytes(), width, max_pixels, what=str(p))
+    return p.read_bytes()
 
 
 def check_file_size(size: int, what: str) -> None:
@@ -231,6 +237,17 @@ def decode_image(data: bytes | np.ndarray, width: int | None = None, max_pixels:
                  what: str = "image") -> np.ndarray:
     """Decode an encoded image (JPEG, PNG, ... bytes) exactly as :func:`load_image` decodes a
     file with these bytes (same bounds, same errors). ``what`` names the input in messages."""
+    img = _decoded(data, what, width, max_pixels)
+    if img.ndim == 3 and img.shape[2] == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    rgb = to_rgb8(img)
+    return resize_to_width(rgb, width, max_pixels) if width is not None else rgb
+
+
+def _decoded(data: bytes | np.ndarray, what: str, width: int | None = None,
+             max_pixels: int | None = None) -> np.ndarray:
+    """OpenCV's decode of ``data`` under :func:`decode_image`'s bounds: grey ``(H, W)`` or BGR
+    ``(H, W, 3)``, 8 or 16 bits, as the file holds them. ``width``: the working-size bound too."""
     buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data
     if buf.size == 0:
         raise ImageError(f"empty file: {what}")
@@ -247,10 +264,7 @@ def decode_image(data: bytes | np.ndarray, width: int | None = None, max_pixels:
     img = cv2.imdecode(buf, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
     if img is None:
         raise ImageError(f"cannot decode image: {what}")
-    if img.ndim == 3 and img.shape[2] == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-    rgb = to_rgb8(img)
-    return resize_to_width(rgb, width, max_pixels) if width is not None else rgb
+    return img
 
 
 def check_color(color: object, name: str = "veg_color", batched: bool = False) -> np.ndarray:
@@ -358,19 +372,7 @@ def load_evidence(path: str | Path) -> np.ndarray:
         If the file is missing, empty, too large or cannot be decoded.
     """
     p = Path(path)
-    if not p.is_file():
-        raise ImageError(f"no such evidence mask: {p}")
-    check_file_size(p.stat().st_size, str(p))
-    data = p.read_bytes()
-    if not data:
-        raise ImageError(f"empty evidence mask: {p}")
-    size = header_size(data, str(p))
-    if size is not None and size[0] * size[1] > MAX_DECODE_PIXELS:
-        raise ImageError(f"evidence mask of {size[0]}x{size[1]} pixels is larger than torchrow decodes "
-                         f"({MAX_DECODE_PIXELS} px): {p}")
-    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
-    if img is None:
-        raise ImageError(f"cannot decode evidence mask: {p}")
+    img = _decoded(_file_bytes(p), f"evidence mask {p}")
     return (img != 0).any(axis=2) if img.ndim == 3 else img != 0
 
 

@@ -179,7 +179,6 @@ def _run_tensor(items: Iterable[tuple[str, Loader]], params: Params, batch_size:
     groups: dict[tuple[tuple[int, ...], bool], list[int]] = {}
     rgbs: dict[int, np.ndarray] = {}
     evs: dict[int, np.ndarray] = {}
-    keys: dict[int, tuple[tuple[int, ...], bool]] = {}
     names: dict[int, str] = {}
     next_out = 0
     pool = None
@@ -212,7 +211,6 @@ def _run_tensor(items: Iterable[tuple[str, Loader]], params: Params, batch_size:
     def store(idx, results, dt):
         for i, res in zip(idx, results):
             done[i] = (rgbs.pop(i), res, dt)
-            keys.pop(i)
         bar.update(len(idx))
 
     def collect(wait: bool = False):
@@ -233,6 +231,9 @@ def _run_tensor(items: Iterable[tuple[str, Loader]], params: Params, batch_size:
             collect(wait=True)
         pending.append((idx, pool.submit(detect, batch, evidence, idx, key)))
         collect()
+
+    def group_of(i):
+        return rgbs[i].shape, i in evs
 
     def ready():
         nonlocal next_out
@@ -256,8 +257,7 @@ def _run_tensor(items: Iterable[tuple[str, Loader]], params: Params, batch_size:
                 else:
                     rgb = got
                 rgbs[i] = rgb
-                key = (rgb.shape, i in evs)
-                keys[i] = key
+                key = group_of(i)
                 groups.setdefault(key, []).append(i)
                 if len(groups[key]) >= batch_size:
                     flush(key)
@@ -267,7 +267,7 @@ def _run_tensor(items: Iterable[tuple[str, Loader]], params: Params, batch_size:
                 if any(next_out in idx for idx, _ in pending):
                     collect(wait=True)
                 else:
-                    flush(keys[next_out])
+                    flush(group_of(next_out))
                 yield from ready()
         for key in sorted(groups, key=lambda k: groups[k][0]):
             flush(key)
