@@ -142,6 +142,25 @@ def test_vp_search_gather_form_equals_the_scatter(monkeypatch) -> None:
     assert torch.equal(flat._gathered_histograms(cnt, h, w, IMPROVED), scattered)
 
 
+def test_vp_search_product_form_equals_the_scatter(monkeypatch) -> None:
+    # batches of PRODUCT_MIN_BATCH images or more bin a whole grid by a sparse product on a CPU;
+    # its histograms (the tail of zeros included) and so the VPs are the scatter's
+    masks = torch.from_numpy(np.stack(_search_masks()[:4]))
+    h, w = masks.shape[1:]
+    idx = flat.vp_table(h, w, IMPROVED, torch.device("cpu"))[1]
+    cnt = torch.randint(0, IMPROVED.lattice_vp_cell**2 + 1, (5, idx.shape[1]), dtype=torch.int32)
+    cnt[1] = 0
+    scattered = flat._scattered_histograms(cnt, idx.shape[0], w, lambda v0, k: idx[v0:v0 + k])
+    product = flat._multiplied_histograms(cnt, h, w, IMPROVED)
+    assert product.shape == (5, idx.shape[0], 3 * w + 1 + IMPROVED.lattice_max_spacing)
+    assert torch.equal(product[:, :, :3 * w], scattered) and not product[:, :, 3 * w:].any()
+    origin = torch.tensor([0, 5, 30, 0])
+    want = [flat.vp_search(masks, IMPROVED), flat.vp_search(masks, IMPROVED, origin)]
+    monkeypatch.setattr(flat, "PRODUCT_MIN_BATCH", 10**9)
+    assert all(torch.equal(a, b) for a, b in zip(want, [flat.vp_search(masks, IMPROVED),
+                                                        flat.vp_search(masks, IMPROVED, origin)]))
+
+
 def test_vp_search_in_slices_equals_one_slice(monkeypatch) -> None:
     # the VP search projects a few VPs at a time (bounded memory); the slicing changes nothing
     masks = _search_masks()[:3]

@@ -170,6 +170,8 @@ class CropRowDetector(nn.Module):
         lab_table_torch(self.device)
         if self.params.mode == "improved" and self.params.lattice_vp == "search":
             flattice.vp_table(height, width, self.params, self.device)
+            if self.device.type == "cpu":
+                flattice.vp_product_table(height, width, self.params, self.device)
 
     def _worker(self, images: torch.Tensor, veg_color: torch.Tensor | None,
                 evidence: torch.Tensor | None) -> BatchResult:
