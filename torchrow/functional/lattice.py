@@ -257,6 +257,19 @@ def _scattered_histograms(cnt: torch.Tensor, nv: int, width: int,
 #: scatter 1.9 / 7.0 / 12.8 / 18.0.
 PRODUCT_MIN_BATCH = 4
 
+
+def _hist_bins(width: int, params: Params) -> int:
+    """The length of the VP search's histograms as the folds read them: the ``3W`` bins, then
+    ``1 + lattice_max_spacing`` zeros (the spill bin's place and what a fold's last tooth reaches)."""
+    return 3 * width + 1 + params.lattice_max_spacing
+
+
+def _float32_exact(pixels: int) -> bool:
+    """Whether float32 holds every sum of an image's pixel counts exactly: each is an integer of at
+    most its ``pixels``, exact up to ``2**24``."""
+    return pixels <= 2**24
+
+
 _VP_PRODUCT_TABLES: dict[tuple, torch.Tensor] = {}
 
 
@@ -270,10 +283,10 @@ def vp_product_table(height: int, width: int, params: Params, device: torch.devi
     key = _grid_key(height, width, params, device) + (params.lattice_max_spacing,)
     table = _VP_PRODUCT_TABLES.get(key)
     if table is None:
-        dtype = torch.float32 if height * width <= 2**24 else torch.float64
+        dtype = torch.float32 if _float32_exact(height * width) else torch.float64
         idx = vp_table(height, width, params, device)[1]
         nv, ncell = idx.shape
-        nb, nbp = 3 * width, 3 * width + 1 + params.lattice_max_spacing
+        nb, nbp = 3 * width, _hist_bins(width, params)
         order = torch.argsort(idx, dim=1, stable=True)  # row-major: by VP, then bin, then cell
         bins = torch.gather(idx, 1, order)
         binned = bins < nb
@@ -298,7 +311,7 @@ def _multiplied_histograms(cnt: torch.Tensor, height: int, width: int, params: P
     the histograms, ``8 V M`` bytes per image (1 MB at 320x240), and the cached table."""
     bsz = cnt.shape[0]
     table = vp_product_table(height, width, params, cnt.device)
-    nbp = 3 * width + 1 + params.lattice_max_spacing
+    nbp = _hist_bins(width, params)
     nv = table.shape[0] // nbp
     out = torch.sparse.mm(table, cnt.t().to(table.dtype)).view(nv, nbp, bsz)
     return torch.empty((bsz, nv, nbp), dtype=torch.int32, device=cnt.device).copy_(out.permute(2, 0, 1))
@@ -417,7 +430,7 @@ def _summed(hist: torch.Tensor, pixels: int) -> torch.Tensor:
     integer no larger than the VP's binned pixels), else themselves. onnxruntime's float32
     ``ReduceSum`` took 7 ms of a whole grid's top folds at 500x281 where int32 took 18 ms; eagerly
     float32 is no faster, so eager sums stay int32."""
-    return hist.to(torch.float32) if torch.compiler.is_exporting() and pixels <= 2**24 else hist
+    return hist.to(torch.float32) if torch.compiler.is_exporting() and _float32_exact(pixels) else hist
 
 
 def _top_fold(summed: torch.Tensor, nb: int, d: int) -> torch.Tensor:
@@ -672,7 +685,7 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
         hist = _scattered_histograms(cnt, nv, w, lambda v0, k: idx[v0:v0 + k])
     if hist.shape[2] == nb:
         # the spill bin dropped, zeros appended: a fold's last tooth may reach past 3W
-        tail = torch.zeros((bsz, nv, 1 + params.lattice_max_spacing), dtype=torch.int32, device=dev)
+        tail = torch.zeros((bsz, nv, _hist_bins(w, params) - nb), dtype=torch.int32, device=dev)
         hist = torch.cat([hist, tail], dim=2)
     total = hist.sum(dim=2, dtype=torch.int64)
     if bsz * nv <= AT_ONCE_ROWS:
