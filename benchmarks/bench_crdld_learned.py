@@ -1,9 +1,12 @@
 """What a small learned row mask buys the improved mode on a forward camera (ALGORITHM.md 11.6).
 
-    python benchmarks/bench_crdld_learned.py [--data DIR] [--eval val|test] [--epochs 60]
+    python benchmarks/bench_crdld_learned.py [--data DIR] [--eval val|test] [--epochs 60] [--net small|wide]
 
-Trains a small encoder-decoder (4 stride-2 levels, 66k weights, CPU, about 3 s an epoch here)
-to predict the CRDLD label masks at a quarter of the working size (320 x 320), then runs the
+Trains an encoder-decoder on the CPU to predict the CRDLD label masks at a quarter of the
+working size (320 x 320): ``small`` (the default; 4 stride-2 levels on the half-size image, 66k
+weights, about 3 s an epoch here) or ``wide`` (5 stride-2 levels of two batch-normalised
+convolutions on the full working image with its pixel coordinates as two more channels, 419k
+weights, about 18 s an epoch), then runs the
 improved mode (forward-camera setting, tensor path) with each image's predicted mask as its
 row evidence (11.1.1: logit above ``--threshold``), beside the green mask (11.1) and the label
 mask itself (the best any evidence can do through sections 11.2-11.4). Scored with 10.1's
@@ -58,6 +61,44 @@ class RowNet(nn.Module):
         return self.out(u)
 
 
+def _conv_bn(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+
+
+class WideRowNet(nn.Module):
+    """``float (B, 3, H, W)`` in [-0.5, 0.5] -> row logits ``(B, 1, H/4, W/4)`` (about). The
+    image's normalised row and column are two more input channels: where a row lies says how
+    far ahead it is, so how wide and how steep a crop row looks there."""
+
+    def __init__(self, widths: tuple[int, ...] = (16, 32, 48, 64, 96)) -> None:
+        super().__init__()
+        self.enc = nn.ModuleList()
+        prev = 5
+        for c in widths:
+            self.enc.append(nn.Sequential(_conv_bn(prev, c, 2), _conv_bn(c, c)))
+            prev = c
+        self.dec = nn.ModuleList([_conv_bn(widths[i + 1] + widths[i], widths[i]) for i in (3, 2, 1)])
+        self.out = nn.Conv2d(widths[1], 1, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        b, _, h, w = x.shape
+        yy = torch.linspace(-1, 1, h).view(1, 1, h, 1).expand(b, 1, h, w)
+        xx = torch.linspace(-1, 1, w).view(1, 1, 1, w).expand(b, 1, h, w)
+        x = torch.cat([x, yy, xx], 1)
+        skips = []
+        for level in self.enc:
+            x = level(x)
+            skips.append(x)
+        u = skips[4]
+        for layer, skip in zip(self.dec, (skips[3], skips[2], skips[1])):
+            u = layer(torch.cat([F.interpolate(u, size=skip.shape[-2:], mode="bilinear", align_corners=False), skip], 1))
+        return self.out(u)
+
+
+# each network with the brightness jitter it was trained and measured with
+NETS: dict[str, tuple[type[nn.Module], float]] = {"small": (RowNet, 0.2), "wide": (WideRowNet, 0.3)}
+
+
 def load(ds: CRDLD, idx: list[int], params: Params) -> tuple[np.ndarray, np.ndarray]:
     """Working images ``uint8 (N, H, W, 3)`` and label masks ``bool (N, H, W)`` at their size."""
     from torchrow.reference.pipeline import prepare
@@ -74,24 +115,26 @@ def as_input(x: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(x).permute(0, 3, 1, 2).float() / 255 - 0.5
 
 
-def train(x: np.ndarray, y: np.ndarray, epochs: int, seed: int = 0) -> RowNet:
+def train(x: np.ndarray, y: np.ndarray, epochs: int, seed: int = 0, net_name: str = "small") -> nn.Module:
     """BCE (positive weight 2) on the label masks pooled to the output's size; flips and
     brightness jitter; AdamW with a one-cycle rate, batches of 16."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
-    net = RowNet()
+    cls, jitter = NETS[net_name]
+    net = cls()
     xt, yt = as_input(x), F.avg_pool2d(torch.from_numpy(y).float()[:, None], 4)
     steps = epochs * -(-len(x) // 16)
     opt = torch.optim.AdamW(net.parameters(), 3e-3, weight_decay=1e-4)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, 3e-3, total_steps=steps)
     for ep in range(epochs):
+        net.train()
         perm, total = rng.permutation(len(x)), 0.0
         for j in range(0, len(perm), 16):
             b = torch.from_numpy(perm[j:j + 16])
             xb, yb = xt[b], yt[b]
             if rng.random() < 0.5:
                 xb, yb = xb.flip(-1), yb.flip(-1)
-            xb = xb * (1 + 0.2 * (torch.rand(len(b), 1, 1, 1) - 0.5)) + 0.1 * (torch.rand(len(b), 3, 1, 1) - 0.5)
+            xb = xb * (1 + jitter * (torch.rand(len(b), 1, 1, 1) - 0.5)) + 0.1 * (torch.rand(len(b), 3, 1, 1) - 0.5)
             loss = F.binary_cross_entropy_with_logits(net(xb), yb, pos_weight=torch.tensor(2.0))
             opt.zero_grad()
             loss.backward()
@@ -108,6 +151,7 @@ def main() -> None:
     ap.add_argument("--data", default=None)
     ap.add_argument("--eval", default="val", choices=("val", "test"))
     ap.add_argument("--epochs", type=int, default=60)
+    ap.add_argument("--net", default="small", choices=tuple(NETS))
     ap.add_argument("--threshold", type=float, default=-1.0, help="logit above which a pixel is row evidence")
     args = ap.parse_args()
 
@@ -124,7 +168,7 @@ def main() -> None:
         fit_idx = list(range(len(tr)))
         ev = CRDLD(root, "test")
         ev_idx = list(range(len(ev)))
-    net = train(*load(tr, fit_idx, params), args.epochs)
+    net = train(*load(tr, fit_idx, params), args.epochs, net_name=args.net)
     x, labels = load(ev, ev_idx, params)
     h, w = x.shape[1:3]
     with torch.no_grad():
@@ -134,7 +178,7 @@ def main() -> None:
     images = torch.from_numpy(x).permute(0, 3, 1, 2).contiguous()
     evidences = {"green mask (11.1)": None, "learned mask": learned, "label mask": torch.from_numpy(labels)}
     print(f"CRDLD {'train, every 5th image' if args.eval == 'val' else 'test'} "
-          f"({len(fit_idx)} training images, {args.epochs} epochs, threshold {args.threshold}), "
+          f"({args.net} network, {len(fit_idx)} training images, {args.epochs} epochs, threshold {args.threshold}), "
           "images with two or more labelled lines")
     print("| evidence | images | sigma 0.1 mean | median | sigma 0.3 | ok | ok below 0.2 |\n|---|---|---|---|---|---|---|")
     for name, evidence in evidences.items():
