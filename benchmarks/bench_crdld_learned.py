@@ -77,20 +77,20 @@ class WideRowNet(nn.Module):
         for c in widths:
             self.enc.append(nn.Sequential(_conv_bn(prev, c, 2), _conv_bn(c, c)))
             prev = c
-        self.dec = nn.ModuleList([_conv_bn(widths[i + 1] + widths[i], widths[i]) for i in (3, 2, 1)])
+        self.dec = nn.ModuleList([_conv_bn(widths[i + 1] + widths[i], widths[i]) for i in range(len(widths) - 2, 0, -1)])
         self.out = nn.Conv2d(widths[1], 1, 1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         b, _, h, w = x.shape
-        yy = torch.linspace(-1, 1, h).view(1, 1, h, 1).expand(b, 1, h, w)
-        xx = torch.linspace(-1, 1, w).view(1, 1, 1, w).expand(b, 1, h, w)
+        yy = torch.linspace(-1, 1, h, device=x.device, dtype=x.dtype).view(1, 1, h, 1).expand(b, 1, h, w)
+        xx = torch.linspace(-1, 1, w, device=x.device, dtype=x.dtype).view(1, 1, 1, w).expand(b, 1, h, w)
         x = torch.cat([x, yy, xx], 1)
         skips = []
         for level in self.enc:
             x = level(x)
             skips.append(x)
-        u = skips[4]
-        for layer, skip in zip(self.dec, (skips[3], skips[2], skips[1])):
+        u = skips[-1]
+        for layer, skip in zip(self.dec, skips[-2:0:-1]):
             u = layer(torch.cat([F.interpolate(u, size=skip.shape[-2:], mode="bilinear", align_corners=False), skip], 1))
         return self.out(u)
 
