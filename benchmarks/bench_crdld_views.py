@@ -6,12 +6,12 @@ when the vanishing point leaves the top centre (ALGORITHM.md 11.6, *Views off to
 Every ``--step``-th image of a CRDLD split and its label mask, each seen as it is, moved
 sideways by 30 % or 60 % of the width with the uncovered columns black (the same rows at the
 same scale, the vanishing point near a side edge or beyond it: an off-centre crop of a wider
-view, or, roughly, a camera turned towards one side), and rolled about the image centre by -30, -15, 15 and
-30 degrees (a camera on a side slope; black corners). The label mask is transformed alike
-(nearest neighbour), and the ground truth is read from it as 10.1 reads any mask. Columns
-(10.1's score at sigma 0.1, images with two or more labelled lines, each at the working width):
+view, or, roughly, a camera turned towards one side), and rolled about the image centre by
+-30, -15, 15 and 30 degrees (a camera on a side slope; black corners). The label mask is
+transformed alike (nearest neighbour), and the ground truth is read from it as 10.1 reads any
+mask. Columns (10.1's score at sigma 0.1, each at the working width):
 
-- *images*: those whose labels give a scored pair (two or more lines);
+- *images*: those whose moved labels give a scored pair (two or more lines);
 - *lattice* and *rolled lattice*: the row models least-squares-fitted to the labels
   (``bench_crdld_limits.py``): rows equally spaced on each image row, and the same pencil with
   projective spacing ``x (1 + g k) = c0 + c1 t + k (d0 + d1 t)``, ``g`` searched;
@@ -27,11 +27,11 @@ view, or, roughly, a camera turned towards one side), and rolled about the image
 A second table tries the row model that the first one asks for on the detector's own output: a
 prototype (numpy, this script only; not a stage of either path) of 11.3's straight refit with
 projective spacing, ``x (1 + g k) = c0 + c1 t + k (d0 + d1 t)``, solved as a linear least
-squares for each ``g`` of a grid (-0.3 .. 0.3 by 0.01), the ``g`` whose rows lie nearest the cell
-means in x kept (one observation per cell, the cell mean, as 11.3),
-its cells ``lattice_tolerance`` times the local spacing ``(d(t) - g c(t)) / (1 + g k)^2`` each
-side of ``(c(t) + k d(t)) / (1 + g k)``, up to ``lattice_iterations``
-steps started from the detector's three rows (their straight lattice through the bottom and
+squares for each ``g`` of a grid (-0.3 .. 0.3 by 0.01), the ``g`` whose rows lie nearest the
+cell means in x kept (one observation per cell, the cell mean, as 11.3), its cells
+``lattice_tolerance`` times the local spacing ``(d(t) - g c(t)) / (1 + g k)^2`` each side of
+``(c(t) + k d(t)) / (1 + g k)``, up to ``lattice_iterations`` steps started from the detector's
+three rows (their straight lattice through the bottom and
 the middle image rows, ``g = 0``), against the same refit with ``g`` held at 0; its rows keep the
 detector's status and validity. On the green mask as the detector runs it, and on the label
 evidence.
@@ -94,7 +94,8 @@ VIEWS: dict[str, View] = {
 
 
 def model_scores(truth: CRDLDTruth, w: int, h: int) -> tuple[float, float]:
-    """Sigma 0.1 scores of the lattice and the rolled lattice least-squares-fitted to the labels, at ``w x h``."""
+    """Sigma 0.1 scores of the lattice and the rolled lattice least-squares-fitted to the labels,
+    at the working size ``w x h``."""
     fits = own_lines(truth, w, h)
     t, x, k = label_points(fits, truth.central)
     coef, _ = fit_lattice(t, x, k, 0.0)
@@ -121,9 +122,9 @@ def start_lattice(rows: list[dict], height: int) -> tuple[float, ...] | None:
     return cb, (ct - cb) / t1, db, (dt - db) / t1, 0.0
 
 
-def projective_refit(mask: np.ndarray, lat: tuple[float, ...], params: Params, roll: bool) -> tuple[float, ...]:
+def projective_refit(mask: np.ndarray, lat: tuple[float, ...], params: Params, free_g: bool) -> tuple[float, ...]:
     """The prototype refit of the module docstring on a working-size ``bool (H, W)`` mask:
-    ``(c0, c1, d0, d1, g)`` after up to ``lattice_iterations`` steps (``g`` held at 0 unless ``roll``)."""
+    ``(c0, c1, d0, d1, g)`` after up to ``lattice_iterations`` steps (``g`` held at 0 unless ``free_g``)."""
     from torchrow.reference.lattice import prefix_sums
 
     counts, pre_x = prefix_sums(mask)
@@ -152,7 +153,7 @@ def projective_refit(mask: np.ndarray, lat: tuple[float, ...], params: Params, r
             break
         kk = a[:, 2]
         best = (np.inf, lat)
-        for gg in (ROLL_GRID if roll else (0.0,)):
+        for gg in (ROLL_GRID if free_g else (0.0,)):
             den = 1 + gg * kk
             if den.min() <= 0.25:
                 continue
@@ -180,8 +181,8 @@ def projective_rows(lat: tuple[float, ...], like: list[dict], height: int) -> li
 
 def detector_scores(det, images: list[np.ndarray], truths: list[CRDLDTruth],
                     evidence: list[np.ndarray] | None) -> tuple[float, float, float, float, float]:
-    """Sigma 0.1 mean, ``ok`` share, share of the ``ok`` images below 0.2, and the sigma 0.1 means of the
-    prototype refit with ``g`` held at 0 and with ``g`` free, from the detector's rows."""
+    """Sigma 0.1 mean, ``ok`` share, share of the ``ok`` images below 0.2, and the sigma 0.1 means
+    of the prototype refit with ``g`` held at 0 and with ``g`` free, from the detector's rows."""
     from torchrow.core.io import evidence_mask, lattice_params
     from torchrow.reference.lattice import row_evidence
     from torchrow.reference.pipeline import prepare
@@ -199,8 +200,8 @@ def detector_scores(det, images: list[np.ndarray], truths: list[CRDLDTruth],
         fp = lattice_params(*size, det.params)
         ev = None if evidence is None else evidence_mask(evidence[j], *size)
         mask = row_evidence(prepare(images[j], det.params), 0, fp, ev)
-        for out, roll in ((s0, False), (sg, True)):
-            rows = projective_rows(projective_refit(mask, lat, fp, roll), r["rows"], size[1])
+        for out, free_g in ((s0, False), (sg, True)):
+            rows = projective_rows(projective_refit(mask, lat, fp, free_g), r["rows"], size[1])
             out.append(score_image(rows, status, tr, 0.1, size))
     ok = np.array([r["status"] == "ok" for r in recs])
     a = np.array(s)
