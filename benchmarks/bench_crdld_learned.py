@@ -158,7 +158,6 @@ def main() -> None:
     from torchrow.engines.detector import CropRowDetector
 
     root = data_root(args.data)
-    root = root / "crdld_dev" if (root / "crdld_dev").is_dir() else root
     params = Params(mode="improved", **FORWARD_CAMERA)
     tr = CRDLD(root, "train")
     if args.eval == "val":

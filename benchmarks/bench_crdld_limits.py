@@ -76,6 +76,13 @@ def fit_lattice(t: np.ndarray, x: np.ndarray, k: np.ndarray, roll: float) -> tup
     return coef, float(((pred - x) ** 2).sum())
 
 
+def best_roll(t: np.ndarray, x: np.ndarray, k: np.ndarray) -> float:
+    """The ``g`` of :data:`ROLLS` whose :func:`fit_lattice` leaves the least squared x residual,
+    every labelled line's denominator ``1 + g k`` kept above 0.25."""
+    rolls = [r for r in ROLLS if (1 + r * k).min() > 0.25]
+    return min(rolls, key=lambda r: fit_lattice(t, x, k, r)[1])
+
+
 def own_lines(truth: CRDLDTruth, width: int, height: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Per labelled line its points at the working size, ``t = y - (H-1)`` and ``x``, and its
     straight least-squares fit ``(slope, x at the bottom)``."""
@@ -121,8 +128,7 @@ def image_scores(truth: CRDLDTruth, rgb: np.ndarray, params: Params, det) -> dic
     put("pencil", straight_rows(pencil_lines(fits), h))
     coef, _ = fit_lattice(t, x, k, 0.0)
     put("lattice", straight_rows(lattice_lines(coef), h))
-    rolls = [r for r in ROLLS if (1 + r * k).min() > 0.25]  # keep every labelled line's denominator away from 0
-    g = min(rolls, key=lambda r: fit_lattice(t, x, k, r)[1])
+    g = best_roll(t, x, k)
     put("rolled lattice", straight_rows(lattice_lines(fit_lattice(t, x, k, g)[0], g), h))
 
     mask = rl.green_mask(rgb, 0, fp)
@@ -159,8 +165,7 @@ def main() -> None:
     from torchrow.engines.detector import CropRowDetector
     from torchrow.reference.pipeline import prepare
 
-    root = data_root(args.data)
-    ds = CRDLD(root / "crdld_dev" if (root / "crdld_dev").is_dir() else root, args.split)
+    ds = CRDLD(data_root(args.data), args.split)  # a data folder, its crdld_dev/ or a split folder
     params = Params(mode="improved", **FORWARD_CAMERA)
     det = CropRowDetector(params)
     names = ["own lines", "pencil", "lattice", "rolled lattice", "lattice + 1 refit", "lattice + 3 refits",

@@ -55,7 +55,7 @@ from torchrow.evaluation.datasets import CRDLD
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import data_root
-from bench_crdld_limits import ROLLS, fit_lattice, label_points, lattice_lines, own_lines, straight_rows
+from bench_crdld_limits import best_roll, fit_lattice, label_points, lattice_lines, own_lines, straight_rows
 
 View = Callable[[np.ndarray, int], np.ndarray]
 ROLL_GRID = np.linspace(-0.3, 0.3, 61)  # the prototype's g, searched at each step
@@ -100,8 +100,7 @@ def model_scores(truth: CRDLDTruth, w: int, h: int) -> tuple[float, float]:
     t, x, k = label_points(fits, truth.central)
     coef, _ = fit_lattice(t, x, k, 0.0)
     plain = score_image(straight_rows(lattice_lines(coef), h), "ok", truth, 0.1, (w, h))
-    rolls = [r for r in ROLLS if (1 + r * k).min() > 0.25]
-    g = min(rolls, key=lambda r: fit_lattice(t, x, k, r)[1])
+    g = best_roll(t, x, k)
     rolled = score_image(straight_rows(lattice_lines(fit_lattice(t, x, k, g)[0], g), h), "ok", truth, 0.1, (w, h))
     return plain, rolled
 
@@ -220,8 +219,7 @@ def main() -> None:
     from torchrow.engines.detector import CropRowDetector
     from torchrow.reference.lattice import green_mask
 
-    root = data_root(args.data)
-    ds = CRDLD(root / "crdld_dev" if (root / "crdld_dev").is_dir() else root, args.split)
+    ds = CRDLD(data_root(args.data), args.split)  # a data folder, its crdld_dev/ or a split folder
     params = Params(mode="improved", **FORWARD_CAMERA)
     det = CropRowDetector(params)
     idx = list(range(0, len(ds), args.step))
