@@ -135,7 +135,7 @@ def image_scores(truth: CRDLDTruth, rgb: np.ndarray, params: Params, det) -> dic
     pre = rl.prefix_sums(mask)
     start = np.array([coef[0], coef[1], 0.0, 0.0, coef[2], coef[3], 0.0])
     for n in (1, 3, 20):
-        c7 = rl.refine(pre, start, h, dataclasses.replace(fp, lattice_iterations=n), straight=True)
+        c7 = rl.refine(pre, start, h, dataclasses.replace(fp, lattice_iterations=n), straight=True)[0]
         put(f"lattice + {n} refit" + ("s" if n > 1 else ""), straight_rows(lattice_lines(c7), h))
     # the labels' lattice VP: where d(t) = 0
     tv = -coef[2] / coef[3] if coef[3] != 0 else -10.0 * h
@@ -145,7 +145,7 @@ def image_scores(truth: CRDLDTruth, rgb: np.ndarray, params: Params, det) -> dic
         s = (h - 1) - vp[1]
         c7 = np.array([phase, (phase - vp[0]) / s, 0.0, 0.0, d, d / s, 0.0])
         put("comb at the labels' VP", straight_rows(lattice_lines(c7), h))
-        c7 = rl.refine(pre, c7, h, fp, straight=True)
+        c7 = rl.refine(pre, c7, h, fp, straight=True)[0]
         put("comb at the labels' VP + 20 refits", straight_rows(lattice_lines(c7), h))
     else:
         put("comb at the labels' VP", [], "invalid")

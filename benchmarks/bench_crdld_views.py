@@ -1,7 +1,7 @@
 """Forward-camera views off to the side and rolled: what the improved mode and its row model do
 when the vanishing point leaves the top centre (ALGORITHM.md 11.6, *Views off to the side*).
 
-    python benchmarks/bench_crdld_views.py [--data DIR] [--split train] [--step 5]
+    python benchmarks/bench_crdld_views.py [--data DIR] [--split train] [--step 5] [--time]
 
 Every ``--step``-th image of a CRDLD split and its label mask, each seen as it is, moved
 sideways by 30 % or 60 % of the width with the uncovered columns black (the same rows at the
@@ -24,19 +24,13 @@ mask. Columns (10.1's score at sigma 0.1, each at the working width):
 - *label evidence*: the same with the label mask given as 11.1.1's evidence (what the search
   and the row model do once the evidence is right).
 
-A second table tries the row model that the first one asks for on the detector's own output: a
-prototype (numpy, this script only; not a stage of either path) of 11.3's straight refit with
-projective spacing, ``x (1 + g k) = c0 + c1 t + k (d0 + d1 t)``, solved as a linear least
-squares for each ``g`` of a grid (-0.3 .. 0.3 by 0.01), the ``g`` whose rows lie nearest the
-cell means in x kept (one observation per cell, the cell mean, as 11.3), its cells
-``lattice_tolerance`` times the local spacing ``(d(t) - g c(t)) / (1 + g k)^2`` each side of
-``(c(t) + k d(t)) / (1 + g k)``, up to ``lattice_iterations`` steps started from the detector's
-three rows (their straight lattice through the bottom and
-the middle image rows, ``g = 0``), against the same refit with ``g`` held at 0; its rows keep the
-detector's status and validity. On the green mask as the detector runs it, and on the label
-evidence.
+Each detector column is run twice: the forward-camera setting as it is, and with
+``lattice_roll_grid`` 30 (11.3.2: the straight refit searches a projective spacing ``g`` of
+-0.3 .. 0.3 by 0.01), the row model that the lattice columns ask for.
 
-No timing. Choose nothing on the test split with it: it reads labels.
+``--time`` only times the two detectors side by side on the images as taken (tensor path, batch 64,
+``--rounds`` interleaved rounds, each run's best; run it with nothing else on the machine). Choose
+nothing on the test split with it: it reads labels.
 """
 
 from __future__ import annotations
@@ -58,7 +52,7 @@ from _common import data_root
 from bench_crdld_limits import best_roll, fit_lattice, label_points, lattice_lines, own_lines, straight_rows
 
 View = Callable[[np.ndarray, int], np.ndarray]
-ROLL_GRID = np.linspace(-0.3, 0.3, 61)  # the prototype's g, searched at each step
+ROLL_GRID = 30  # lattice_roll_grid of the second detector (11.3.2): g = -0.3 .. 0.3 by 0.01
 
 
 def shift(share: float) -> View:
@@ -105,107 +99,37 @@ def model_scores(truth: CRDLDTruth, w: int, h: int) -> tuple[float, float]:
     return plain, rolled
 
 
-def start_lattice(rows: list[dict], height: int) -> tuple[float, ...] | None:
-    """``(c0, c1, d0, d1, g = 0)``: the straight lattice through a record's three rows at the bottom
-    and the middle image rows (working px); None unless it has three rows."""
-    if len(rows) != 3:
-        return None
-
-    def x(r: dict, y: float) -> float:
-        return ((r["e"] * y + r["c"]) * y + r["a"]) * y + r["b"]
-
-    y0, y1 = height - 1, (height - 1) // 2
-    t1 = y1 - y0
-    cb, ct = x(rows[1], y0), x(rows[1], y1)
-    db, dt = (x(rows[2], y0) - x(rows[0], y0)) / 2, (x(rows[2], y1) - x(rows[0], y1)) / 2
-    return cb, (ct - cb) / t1, db, (dt - db) / t1, 0.0
-
-
-def projective_refit(mask: np.ndarray, lat: tuple[float, ...], params: Params, free_g: bool) -> tuple[float, ...]:
-    """The prototype refit of the module docstring on a working-size ``bool (H, W)`` mask:
-    ``(c0, c1, d0, d1, g)`` after up to ``lattice_iterations`` steps (``g`` held at 0 unless ``free_g``)."""
-    from torchrow.reference.lattice import prefix_sums
-
-    counts, pre_x = prefix_sums(mask)
-    h, w = mask.shape
-    t = np.arange(h, dtype=np.float64) - (h - 1)
-    yy = np.arange(h)
-    for _ in range(params.lattice_iterations):
-        c0, c1, d0, d1, g = lat
-        c, d = c0 + c1 * t, d0 + d1 * t
-        design, target = [], []
-        for k in (-1, 0, 1):
-            den = 1 + g * k
-            spacing = (d - g * c) / (den * den)
-            good = spacing > params.lattice_min_spacing_px
-            centre, half = (c + k * d) / den, params.lattice_tolerance * spacing
-            x0 = np.clip(np.floor(np.where(good, centre - half, 0.0)) + 1, 0, w).astype(np.int64)
-            x1 = np.maximum(np.clip(np.ceil(np.where(good, centre + half, 0.0)), 0, w).astype(np.int64), x0)
-            n = counts[yy, x1] - counts[yy, x0]
-            keep = good & (n > 0)
-            xm = (pre_x[yy, x1] - pre_x[yy, x0])[keep] / n[keep]
-            cols = [np.ones_like(xm), t[keep], np.full_like(xm, k), k * t[keep]]
-            design.append(np.stack(cols, axis=1))
-            target.append(xm)
-        a, b = np.concatenate(design), np.concatenate(target)
-        if len(b) < 5 or np.linalg.matrix_rank(a) < a.shape[1]:
-            break
-        kk = a[:, 2]
-        best = (np.inf, lat)
-        for gg in (ROLL_GRID if free_g else (0.0,)):
-            den = 1 + gg * kk
-            if den.min() <= 0.25:
-                continue
-            sol = np.linalg.lstsq(a, b * den, rcond=None)[0]
-            err = float((((a @ sol) / den - b) ** 2).sum())
-            if err < best[0]:
-                best = (err, (*map(float, sol), float(gg)))
-        new = best[1]
-        if np.allclose(new, lat, rtol=0, atol=1e-9):
-            break
-        lat = new
-    return lat
-
-
-def projective_rows(lat: tuple[float, ...], like: list[dict], height: int) -> list[dict]:
-    """Rows ``k = -1, 0, 1`` of ``(c0, c1, d0, d1, g)`` as record rows, valid where ``like``'s are."""
-    c0, c1, d0, d1, g = lat
-    out = []
-    for k, old in zip((-1, 0, 1), like):
-        den = 1 + g * k
-        x0, s = (c0 + k * d0) / den, (c1 + k * d1) / den
-        out.append(dict(a=s, b=x0 - s * (height - 1), c=0.0, e=0.0, valid=bool(old["valid"])))
-    return out
-
-
 def detector_scores(det, images: list[np.ndarray], truths: list[CRDLDTruth],
-                    evidence: list[np.ndarray] | None) -> tuple[float, float, float, float, float]:
-    """Sigma 0.1 mean, ``ok`` share, share of the ``ok`` images below 0.2, and the sigma 0.1 means
-    of the prototype refit with ``g`` held at 0 and with ``g`` free, from the detector's rows."""
-    from torchrow.core.io import evidence_mask, lattice_params
-    from torchrow.reference.lattice import row_evidence
-    from torchrow.reference.pipeline import prepare
-
+                    evidence: list[np.ndarray] | None) -> tuple[float, float, float]:
+    """Sigma 0.1 mean, ``ok`` share and the share of the ``ok`` images below 0.2."""
     recs = [r.to_record() for r in det.detect(images, evidence=evidence).results()]
-    s, s0, sg = [], [], []
-    for j, (r, tr) in enumerate(zip(recs, truths)):
-        size, status = (r["width"], r["height"]), str(r["status"])
-        s.append(score_image(r["rows"], status, tr, 0.1, size))
-        lat = start_lattice(r["rows"], size[1])
-        if lat is None:
-            s0.append(s[-1])
-            sg.append(s[-1])
-            continue
-        fp = lattice_params(*size, det.params)
-        ev = None if evidence is None else evidence_mask(evidence[j], *size)
-        mask = row_evidence(prepare(images[j], det.params), 0, fp, ev)
-        for out, free_g in ((s0, False), (sg, True)):
-            rows = projective_rows(projective_refit(mask, lat, fp, free_g), r["rows"], size[1])
-            out.append(score_image(rows, status, tr, 0.1, size))
+    s = np.array([score_image(r["rows"], str(r["status"]), tr, 0.1, (r["width"], r["height"]))
+                  for r, tr in zip(recs, truths)])
     ok = np.array([r["status"] == "ok" for r in recs])
-    a = np.array(s)
-    low = float((a[ok] < LOW_SCORE).mean()) if ok.any() else float("nan")
-    return float(a.mean()), float(ok.mean()), low, float(np.mean(s0)), float(np.mean(sg))
+    low = float((s[ok] < LOW_SCORE).mean()) if ok.any() else float("nan")
+    return float(s.mean()), float(ok.mean()), low
+
+
+def time_detectors(dets: tuple, images: list[np.ndarray], rounds: int) -> None:
+    """ms per image of each detector at batch 64, best of ``rounds`` interleaved rounds."""
+    import time
+
+    import torch
+
+    x = [images[i:i + 64] for i in range(0, len(images) - 63, 64)]  # whole batches, resized by the detector
+    n = 64 * len(x)
+    for det in dets:
+        det.detect(x[0]).results()  # warm-up: tables, thread pool
+    best = [float("inf")] * len(dets)
+    for _ in range(rounds):
+        for j, det in enumerate(dets):
+            t0 = time.perf_counter()
+            for xb in x:
+                det.detect(xb).results()
+            best[j] = min(best[j], (time.perf_counter() - t0) * 1e3 / n)
+    print(f"{n} images as taken, batch 64, best of {rounds}: equal spacing {best[0]:.1f} ms / image, "
+          f"lattice_roll_grid {ROLL_GRID} {best[1]:.1f} ms / image ({best[1] / best[0]:.2f}x), torch "
+          f"{torch.__version__}, {torch.get_num_threads()} threads")
 
 
 def main() -> None:
@@ -213,6 +137,8 @@ def main() -> None:
     ap.add_argument("--data", default=None)
     ap.add_argument("--split", default="train", choices=("train", "test"))
     ap.add_argument("--step", type=int, default=5, help="every STEP-th image (default 5)")
+    ap.add_argument("--time", action="store_true", help="only time the two detectors on the images as taken")
+    ap.add_argument("--rounds", type=int, default=3)
     args = ap.parse_args()
 
     from torchrow.core.io import lattice_params, working_size
@@ -221,19 +147,21 @@ def main() -> None:
 
     ds = CRDLD(data_root(args.data), args.split)  # a data folder, its crdld_dev/ or a split folder
     params = Params(mode="improved", **FORWARD_CAMERA)
-    det = CropRowDetector(params)
+    dets = (CropRowDetector(params), CropRowDetector(params.replace(lattice_roll_grid=ROLL_GRID)))
     idx = list(range(0, len(ds), args.step))
+    if args.time:
+        time_detectors(dets, [ds.image(i, None) for i in idx], args.rounds)
+        return
     raw = []
     for i in idx:
         rgb = ds.image(i, None)
         green = green_mask(rgb, 0, lattice_params(rgb.shape[1], rgb.shape[0], params)).astype(np.uint8) * 255
         raw.append((rgb, cv2.imread(str(ds.label_path(i)), cv2.IMREAD_GRAYSCALE), green))
     print(f"CRDLD {args.split}, every {args.step}th image ({len(idx)}), forward-camera setting, tensor path; "
-          "sigma 0.1 mean over the images with a scored labelled line")
-    head = ("| view | images | lattice fitted to the labels | rolled lattice fitted to the labels | green mask "
-            "| `ok` | `ok` below 0.2 | green mask moved | label evidence | `ok` |\n|---|---|---|---|---|---|---|---|---|---|")
-    lines, proto = [head], ["| view | green mask: detector | refit, g = 0 | refit, g free | label evidence: detector "
-                            "| refit, g = 0 | refit, g free |\n|---|---|---|---|---|---|---|"]
+          "sigma 0.1 mean over the images with a scored labelled line; each detector column as "
+          f"'equal spacing / lattice_roll_grid {ROLL_GRID}'")
+    lines = ["| view | images | lattice fitted to the labels | rolled lattice fitted to the labels | green mask "
+             "| `ok` | `ok` below 0.2 | green mask moved | label evidence | `ok` |\n|---|---|---|---|---|---|---|---|---|---|"]
     for name, view in VIEWS.items():
         images, masks, greens, truths, models = [], [], [], [], []
         for rgb, lab, grn in raw:
@@ -248,17 +176,17 @@ def main() -> None:
             truths.append(truth)
             models.append(model_scores(truth, *working_size(w, h, params.image_width)))
         m = np.array(models)
-        green = detector_scores(det, images, truths, None)
-        moved = detector_scores(det, images, truths, greens)
-        label = detector_scores(det, images, truths, masks)
-        lines.append(f"| {name} | {len(images)} | {m[:, 0].mean():.3f} | {m[:, 1].mean():.3f} | {green[0]:.3f} | "
-                     f"{green[1]:.1%} | {green[2]:.1%} | {moved[0]:.3f} | {label[0]:.3f} | {label[1]:.1%} |")
-        proto.append(f"| {name} | {green[0]:.3f} | {green[3]:.3f} | {green[4]:.3f} | {label[0]:.3f} | "
-                     f"{label[3]:.3f} | {label[4]:.3f} |")
+        green, moved, label = ([detector_scores(det, images, truths, ev) for det in dets]
+                               for ev in (None, greens, masks))
+
+        def two(runs: list[tuple[float, float, float]], j: int, fmt: str) -> str:
+            return " / ".join(format(r[j], fmt) for r in runs)
+
+        lines.append(f"| {name} | {len(images)} | {m[:, 0].mean():.3f} | {m[:, 1].mean():.3f} | {two(green, 0, '.3f')} | "
+                     f"{two(green, 1, '.0%')} | {two(green, 2, '.0%')} | {two(moved, 0, '.3f')} | "
+                     f"{two(label, 0, '.3f')} | {two(label, 1, '.0%')} |")
         print(lines[-1], file=sys.stderr, flush=True)
     print("\n".join(lines))
-    print("\nThe prototype refit with projective spacing, from the detector's rows (sigma 0.1 mean)\n")
-    print("\n".join(proto))
 
 
 if __name__ == "__main__":

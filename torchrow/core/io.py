@@ -71,6 +71,14 @@ def _lattice_sums_fit(height: int, width: int, basis: tuple[tuple[int, int], ...
     return rows * top_m < 2**63 and rows * grid * max(width - 1, 1) * top_r < 2**63
 
 
+@functools.lru_cache(maxsize=64)
+def _roll_sums_fit(height: int, width: int, half: int, grid: int) -> bool:
+    # section 11.3.2's int64 sums: sum q^2 per lattice row (|q| <= G (W-1)) and sum q k phi over
+    # the straight basis (|phi k| <= K^2 (H-1))
+    q = grid * max(width - 1, 1)
+    return height * q * q < 2**63 and (2 * half + 1) * height * q * half * half * max(height - 1, 1) < 2**63
+
+
 def check_lattice_size(width: int, height: int, params: Any) -> None:
     """The improved mode's table bound (ALGORITHM.md 11.2) at the actual working size.
 
@@ -109,6 +117,11 @@ def lattice_params(width: int, height: int, params: Any) -> Any:
         bound (:func:`check_lattice_size`).
     """
     check_lattice_size(width, height, params)
+    if getattr(params, "lattice_roll_grid", 0) and not _roll_sums_fit(int(height), int(width), params.lattice_half,
+                                                                     params.lattice_cell_grid):
+        raise ImageError(f"working size {width}x{height} is too large for the projective spacing's exact sums "
+                         f"(ALGORITHM.md 11.3.2, lattice_roll_grid {params.lattice_roll_grid}); use a smaller "
+                         f"Params.image_width or lattice_cell_grid")
     for degree in range(params.lattice_center_degree, 1, -1):
         p = params if degree == params.lattice_center_degree else params.replace(lattice_center_degree=degree)
         if _lattice_sums_fit(int(height), int(width), p.lattice_basis(), p.lattice_half, p.lattice_cell_grid):

@@ -16,7 +16,11 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["Params", "Rule", "check_fields", "FORWARD_CAMERA", "tracker_params"]
+__all__ = ["Params", "Rule", "check_fields", "FORWARD_CAMERA", "tracker_params", "LATTICE_ROLL_SCALE"]
+
+#: Section 11.3.2: the projective spacing's grid, ``g = i / LATTICE_ROLL_SCALE`` (an integer scale,
+#: so that the refit's right-hand sides stay integer sums).
+LATTICE_ROLL_SCALE = 100
 
 
 @dataclass(frozen=True)
@@ -126,6 +130,7 @@ class Params:
     lattice_min_confidence: float = 0.0  # rows below this confidence are invalid
     lattice_model: str = "curved"  # "curved" (one curved refit); "straight"; "auto": straight, curved where it gains support
     lattice_curve_gain: float = 0.02  # "auto": the curved refit must hold this fraction more inlier pixels
+    lattice_roll_grid: int = 0  # straight refits ("auto", "straight"): projective spacing g = i / 100, |i| <= this (11.3.2)
     lattice_min_contrast: float = 0.2  # status ok needs the comb's contrast per binned pixel at least this
     lattice_min_image_confidence: float = 0.0  # status ok needs the image confidence at least this
     lattice_min_dominance: float = 0.0  # status ok needs rows -K..K to outnumber their gaps on this share of lit cells
@@ -165,6 +170,11 @@ class Params:
         """Where each function of :meth:`lattice_basis` sits in the coefficients ``(c0, c1, c2, c3,
         d0, d1, d2)`` of section 11.3 (the refit's solution fills these, the others are 0)."""
         return [p if k == 0 else 4 + p for p, k in self.lattice_basis(straight)]
+
+    def lattice_rolls(self) -> tuple[int, ...]:
+        """Section 11.3.2: the integers ``i`` of the projective spacings ``g = i / 100`` a straight
+        refit searches, ascending (``(0,)`` where ``lattice_roll_grid`` is 0: equal spacing)."""
+        return tuple(range(-self.lattice_roll_grid, self.lattice_roll_grid + 1))
 
     def runs_section6(self) -> bool:
         """Whether sections 2-6 (colour, vegetation mask, Hough, vanishing point) run: always in
@@ -437,6 +447,7 @@ _RULES: dict[str, Rule] = {
     "lattice_tolerance": Rule("float", 0, 0.5, (lambda v: 0 < v < 0.5, "must lie in (0, 0.5)")),
     "lattice_model": Rule("choice", choices=("auto", "straight", "curved")),
     "lattice_curve_gain": Rule("float", 0, 100, why="a fraction of the straight lattice's inlier pixels"),
+    "lattice_roll_grid": Rule("int", 0, LATTICE_ROLL_SCALE - 1, why="g = i / 100 with |g| < 1"),
     "lattice_min_contrast": Rule("float", 0, 1, why="a fraction of the comb's binned pixels"),
     "lattice_min_image_confidence": Rule("float", 0, 1, why="a fraction of the image rows"),
     "lattice_min_dominance": Rule("float", 0, 1, why="a fraction of the rows' lit cells"),
@@ -523,6 +534,8 @@ _CROSS_RULES: tuple[tuple[str, Callable[[Params], bool], str | Callable[[Params]
     ("video_k_start", lambda p: p.video_k_min <= p.video_k_start <= p.video_k_max,
      "must lie in [video_k_min, video_k_max]"),
     ("lattice_max_spacing", lambda p: p.lattice_max_spacing >= p.lattice_min_spacing, "must be >= lattice_min_spacing"),
+    ("lattice_roll_grid", lambda p: p.lattice_roll_grid * p.lattice_half < LATTICE_ROLL_SCALE,
+     "times lattice_half must be < 100 (1 + g k > 0 on every fitted row, ALGORITHM.md 11.3.2)"),
     # improved mode only (section 11): the faithful mode never builds these tables
     ("lattice_max_spacing", lambda p: p.mode != "improved"
      or p.lattice_table_bytes(*_lattice_size(p))[0] <= LATTICE_TABLE_BYTES, _comb_what),

@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 
 from torchrow.core.io import check_lattice_size, lattice_params
-from torchrow.core.params import VP_SLICE, Params
+from torchrow.core.params import LATTICE_ROLL_SCALE, VP_SLICE, Params
 from torchrow.core.results import STATUSES
 from torchrow.functional._checks import below_horizon
 from torchrow.functional._flow import branch, int_max, repeat
@@ -38,7 +38,8 @@ __all__ = ["LatticeRows", "LatticePriorBatch", "spacing_near", "improved_batch",
            "improved_start", "improved_finish", "vp_gather_table", "vp_window", "otsu_threshold", "green_mask", "init_vp",
            "row_evidence", "check_evidence", "vp_table", "vp_origin", "vp_search", "comb_table", "comb_search",
            "solve_normal", "prefix_sums",
-           "centre_spacing", "row_cells", "monomial_tables", "normal_equations", "refine", "LatticeStartBatch",
+           "centre_spacing", "row_cells", "monomial_tables", "cell_means", "roll_terms", "roll_choice",
+           "normal_equations", "refine", "LatticeStartBatch",
            "lattice_start", "comb_start", "refit_lattice", "fit_lattice", "lattice_rows", "row_polynomials",
            "visible_rows", "VisibleRows", "row_dominance", "gap_offsets", "improved_rows", "improved_status", "LatticeFitBatch"]
 
@@ -57,7 +58,8 @@ class LatticeRows:
     ``dominance`` ``(B,)`` float64 (11.4, :func:`row_dominance`; NaN where ``lattice_min_dominance`` is 0);
     ``visible_*``: every visible row, the fields of :class:`VisibleRows` (a dataclass of tensors
     only, so that :func:`~torchrow.core.results.concat_batches` joins chunks); ``lit`` ``(B, H)``
-    int64: per image row, the rows ``-K .. K`` with an inlier there (section 11.7's row end)."""
+    int64: per image row, the rows ``-K .. K`` with an inlier there (section 11.7's row end); ``roll``
+    ``(B,)`` float64: the projective spacing ``g`` of 11.3.2 (0 where ``lattice_roll_grid`` is 0)."""
 
     a: torch.Tensor
     b: torch.Tensor
@@ -81,6 +83,7 @@ class LatticeRows:
     visible_confidence: torch.Tensor
     visible_present: torch.Tensor
     lit: torch.Tensor
+    roll: torch.Tensor
 
 
 class LatticePriorBatch(NamedTuple):
@@ -108,8 +111,9 @@ class LatticeFitBatch(NamedTuple):
     """:func:`fit_lattice`'s result per image: ``coef (B, 7)`` float64, the comb's ``spacing``,
     ``phase`` ``(B,)`` int64 and ``found`` ``(B,)`` bool, ``vp`` ``(B, 2)`` int64 (the VP the comb
     used), the final cells' counts ``cnt (B, H, R)`` int64, the comb's ``contrast`` ``(B,)``
-    float64 (best score per binned pixel, 0 without pixels) and ``curved`` ``(B,)`` bool (the
-    curved refit was kept, 11.3.1)."""
+    float64 (best score per binned pixel, 0 without pixels), ``curved`` ``(B,)`` bool (the
+    curved refit was kept, 11.3.1) and ``roll`` ``(B,)`` float64, the projective spacing ``g`` of
+    11.3.2 (0 where ``lattice_roll_grid`` is 0: equally spaced rows)."""
 
     coef: torch.Tensor
     spacing: torch.Tensor
@@ -119,6 +123,7 @@ class LatticeFitBatch(NamedTuple):
     cnt: torch.Tensor
     contrast: torch.Tensor
     curved: torch.Tensor
+    roll: torch.Tensor
 
 
 def horizon_row(sky: torch.Tensor, params: Params) -> torch.Tensor:
@@ -887,11 +892,13 @@ def _image_rows(height: int, device: torch.device) -> torch.Tensor:
 
 
 def row_cells(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: Params,
-              ks: torch.Tensor | None = None, t: torch.Tensor | None = None):
+              ks: torch.Tensor | None = None, t: torch.Tensor | None = None, roll: torch.Tensor | None = None):
     """Batched :func:`torchrow.reference.lattice.row_cells` from :func:`prefix_sums`: inlier count
     and x sum per image row and lattice row, ``(B, H, R)`` int64 each (rows ``k = -K .. K``;
     ``ks``: these rows instead, ``(R,)`` float64). ``coef (B, L, 7)`` (``L`` lattices per
     image): ``(B, L, H, R)`` each. ``t``: :func:`_image_rows` of the height, where the caller has it.
+    ``roll``: the projective spacing ``g`` of 11.3.2 per lattice, ``(B,)`` or ``(B, L)`` float64
+    (``None``: equal spacing; ``g = 0`` gives the same cells).
 
     Each lattice row's inliers on an image row are one interval of columns, so a refit step
     reads ``2R`` prefix-sum entries per image row instead of every pixel: ``O(B H L R)``.
@@ -907,12 +914,20 @@ def row_cells(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params
     # lattice-major within an image row, so that one gather per prefix sum serves every lattice
     cc = cc.view(bsz, nl, h).transpose(1, 2).unsqueeze(3)
     dd = dd.view(bsz, nl, h).transpose(1, 2).unsqueeze(3)  # (B, H, L, 1)
-    ok = dd > params.lattice_min_spacing_px
-    half = params.lattice_tolerance * dd
     if ks is None:
         ks = torch.arange(-params.lattice_half, params.lattice_half + 1, device=coef.device, dtype=torch.float64)
     k = ks.view(1, 1, 1, -1)
-    centre = cc + k * dd  # (B, H, L, R)
+    if roll is None:
+        ok = dd > params.lattice_min_spacing_px
+        half = params.lattice_tolerance * dd
+        centre = cc + k * dd  # (B, H, L, R)
+    else:
+        g = roll.reshape(bsz, 1, nl, 1)
+        u = 1.0 + g * k
+        centre = (cc + k * dd) / u
+        local = (dd - g * cc) / (u * u)  # the row's own spacing
+        half = params.lattice_tolerance * local
+        ok = (local > params.lattice_min_spacing_px) & (u > 0)
     lo, hi = centre - half, centre + half
     good = ok & torch.isfinite(lo) & torch.isfinite(hi)
     zero = torch.zeros_like(lo)
@@ -945,6 +960,57 @@ def monomial_tables(height: int, rows: int, params: Params, straight: bool,
     return mono, mono[[monos.index(f) for f in basis]], torch.tensor(where, device=device)
 
 
+def cell_means(cnt: torch.Tensor, sx: torch.Tensor, params: Params) -> tuple[torch.Tensor, torch.Tensor]:
+    """Section 11.3's observations from ``(B, H, R)`` int64 cells: ``occ`` bool (``n > 0``) and
+    ``q = round_half_even((G * sum x) / n)`` int64 (float64 division; 0 where not occupied)."""
+    occ = cnt > 0
+    q = torch.round((float(params.lattice_cell_grid) * sx.to(torch.float64))
+                    / torch.where(occ, cnt, torch.ones_like(cnt)).to(torch.float64))
+    return occ, torch.where(occ, q.to(torch.int64), torch.zeros_like(cnt))
+
+
+def roll_terms(cnt: torch.Tensor, sx: torch.Tensor, params: Params,
+               phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Section 11.3.2 (:func:`torchrow.reference.lattice.roll_rhs` and ``row_moments``) from
+    ``(B, H, R)`` int64 cells: ``r1 = sum q k phi`` over the basis ``phi (n, H R)`` int64
+    (:func:`monomial_tables`), float64 divided by ``G``, ``(B, n)``; and per lattice row the sums of
+    ``1, t, t^2, q, q^2, q t`` over its occupied cells, ``(B, R, 6)`` int64."""
+    bsz, h, r = cnt.shape
+    occ, q = cell_means(cnt, sx, params)
+    k = torch.arange(r, device=cnt.device, dtype=torch.int64) - params.lattice_half
+    qk = (q * k).view(bsz, 1, h * r)
+    r1 = (qk * phi.unsqueeze(0)).sum(dim=2).to(torch.float64) / float(params.lattice_cell_grid)
+    t = (torch.arange(h, device=cnt.device, dtype=torch.int64) - (h - 1)).view(1, h, 1)
+    o = occ.to(torch.int64)
+    moments = torch.stack([o, o * t, o * (t * t), q, q * q, q * t], dim=3).sum(dim=1)  # int64: exact in any order
+    return r1, moments
+
+
+def roll_choice(z0: torch.Tensor, z1: torch.Tensor, moments: torch.Tensor, params: Params,
+                index: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Batched :func:`torchrow.reference.lattice.roll_choice`: ``z0``, ``z1`` ``(B, n)`` float64
+    solutions whose entries ``index`` are ``c0, c1, d0, d1``, ``moments (B, 2K+1, 6)`` int64
+    (:func:`roll_terms`). Returns ``g (B,)`` float64 and ``z0 + g z1`` ``(B, n)``. Memory: ``(B, N, n)``
+    float64, ``N`` the grid's size (61 at ``lattice_roll_grid`` 30)."""
+    gs = torch.tensor(params.lattice_rolls(), dtype=torch.float64, device=z0.device) / float(LATTICE_ROLL_SCALE)
+    z = z0.unsqueeze(1) + gs.view(1, -1, 1) * z1.unsqueeze(1)  # (B, N, n)
+    zc0, zc1, zd0, zd1 = (z[:, :, i].unsqueeze(2) for i in index)
+    grid = float(params.lattice_cell_grid)
+    n, t1, t2, q1, q2, qt = moments.to(torch.float64).unsqueeze(1).unbind(3)  # (B, 1, R) each
+    ks = torch.arange(-params.lattice_half, params.lattice_half + 1, dtype=torch.float64, device=z0.device)
+    # every row at once, (B, N, R), then summed row by row in the reference's order
+    u = 1.0 + gs.view(1, -1, 1) * ks
+    a = zc0 + ks * zd0
+    b = zc1 + ks * zd1
+    per_row = ((q2 / (grid * grid) - (2.0 * (a * q1 + b * qt)) / (grid * u))
+               + (((a * a) * n + (2.0 * (a * b)) * t1) + (b * b) * t2) / (u * u))
+    err = torch.zeros_like(per_row[:, :, 0])
+    for j in range(per_row.shape[2]):
+        err = err + per_row[:, :, j]
+    best = torch.argmin(torch.where(torch.isnan(err), torch.full_like(err, float("inf")), err), dim=1)
+    return gs[best], torch.gather(z, 1, best.view(-1, 1, 1).expand(-1, 1, z.shape[2])).squeeze(1)
+
+
 def normal_equations(cnt: torch.Tensor, sx: torch.Tensor, params: Params, straight: bool = False,
                      tables: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
                      ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -958,10 +1024,8 @@ def normal_equations(cnt: torch.Tensor, sx: torch.Tensor, params: Params, straig
     sizes (``None``: computed here). Memory: ``(B, 18, H R)`` int64.
     """
     _, h, r = cnt.shape
-    occ = cnt > 0
+    occ, q = cell_means(cnt, sx, params)
     grid = params.lattice_cell_grid
-    q = torch.round((float(grid) * sx.to(torch.float64)) / torch.where(occ, cnt, torch.ones_like(cnt)).to(torch.float64))
-    q = torch.where(occ, q.to(torch.int64), torch.zeros_like(cnt))
     mono, phi, where = tables if tables is not None else monomial_tables(h, r, params, straight, cnt.device)
     n = phi.shape[0]
     o = occ.to(torch.int64).view(-1, 1, h * r)
@@ -973,13 +1037,15 @@ def normal_equations(cnt: torch.Tensor, sx: torch.Tensor, params: Params, straig
 
 def refine(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: Params,
            straight: tuple[bool, ...], flow: str = "sync",
-           start: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+           start: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """Batched :func:`torchrow.reference.lattice.refine` of ``L`` lattices per image at once:
     ``coef (B, L, 7)`` float64, lattice ``l`` refitted in the straight basis where
     ``straight[l]``, after up to ``lattice_iterations`` refits each. A lattice stops when it
     has too few inliers, a singular system, or cells equal to its previous step's (a fixed
-    point); the loop ends once every lattice has stopped. Returns the refined ``coef (B, L, 7)``
-    and its inlier counts ``(B, L, H, R)`` int64 (:func:`row_cells`).
+    point); the loop ends once every lattice has stopped. Returns the refined ``coef (B, L, 7)``,
+    its inlier counts ``(B, L, H, R)`` int64 (:func:`row_cells`) and the projective spacing ``g``
+    ``(B, L)`` float64 of 11.3.2 (straight lattices search it where ``lattice_roll_grid > 0``, by
+    :func:`roll_choice` on a second right-hand side of the same system; ``None`` where it is 0).
 
     Lattices of both bases share one loop: a straight lattice solves the curved system with its
     extra unknowns pinned to 0 (identity rows and columns), which performs the straight
@@ -1004,36 +1070,59 @@ def refine(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: P
         pin2 = pinned.unsqueeze(2) | pinned.unsqueeze(1)
         eye = torch.eye(len(basis), dtype=torch.float64, device=coef.device)
 
-    def stopped(coef, cnt, sx, active):
+    searched = params.lattice_roll_grid > 0 and any(straight)
+    if searched:
+        # c0, c1, d0, d1 in the solution; only straight lattices move g (11.3.2)
+        index = [where.index(i) for i in (0, 1, 4, 5)]
+        rolled = torch.tensor(straight, device=coef.device).view(1, nl).expand(bsz, nl).reshape(bsz * nl, 1)
+
+    def stopped(coef, cnt, sx, active, *roll):
         return ~active.any()
 
     # the carry holds lattices with their cells, so that the stop test precedes the solve
-    def refit(coef, cnt, sx, active):
+    def refit(coef, cnt, sx, active, *roll):
         h, r = cnt.shape[2:]
-        m, rhs = normal_equations(cnt.view(bsz * nl, h, r), sx.view(bsz * nl, h, r), params, all_straight, tables)
+        flat_cnt, flat_sx = cnt.view(bsz * nl, h, r), sx.view(bsz * nl, h, r)
+        m, rhs = normal_equations(flat_cnt, flat_sx, params, all_straight, tables)
         if pinned is not None:
             m = torch.where(pin2, eye, m)
             rhs = torch.where(pinned, torch.zeros_like(rhs), rhs)
-        sol, singular = solve_normal(m, rhs, params, pinned)
+        if searched:  # z1: the same systems with the second right-hand side, in the same operations
+            r1, moments = roll_terms(flat_cnt, flat_sx, params, tables[1])
+            if pinned is not None:
+                r1 = torch.where(pinned, torch.zeros_like(r1), r1)
+            both, singular = solve_normal(torch.cat([m, m]), torch.cat([rhs, r1]), params,
+                                          None if pinned is None else torch.cat([pinned, pinned]))
+            sol, z1 = both[:bsz * nl], both[bsz * nl:]
+            singular = singular[:bsz * nl]
+            g, moved = roll_choice(sol, z1, moments, params, index)
+            sol = torch.where(rolled, moved, sol)
+            g = torch.where(rolled.view(-1), g, torch.zeros_like(g))
+        else:
+            sol, singular = solve_normal(m, rhs, params, pinned)
         if pinned is not None:
             sol = torch.where(pinned, torch.zeros_like(sol), sol)
         active = active & ~singular.view(bsz, nl)
         if where != list(range(N_COEF)):  # a smaller basis: its unknowns to their coefficients, the others 0
             sol = torch.cat([sol, torch.zeros_like(sol[:, :1])], dim=1)[:, place]
         coef = torch.where(active.unsqueeze(2), sol.view(bsz, nl, N_COEF), coef)
-        cnt2, sx2 = row_cells(pre, coef, params, ks, t)
+        if searched:
+            roll = (torch.where(active, g.view(bsz, nl), roll[0]),)
+        cnt2, sx2 = row_cells(pre, coef, params, ks, t, roll[0] if searched else None)
         same = (cnt2 == cnt).flatten(2).all(dim=2) & (sx2 == sx).flatten(2).all(dim=2)
-        return coef, cnt2, sx2, active & (cnt2.sum(dim=(2, 3)) >= params.lattice_min_points) & ~same
+        return (coef, cnt2, sx2, active & (cnt2.sum(dim=(2, 3)) >= params.lattice_min_points) & ~same, *roll)
 
     t = _image_rows(pre[0].shape[1], coef.device)
     ks = torch.arange(-params.lattice_half, params.lattice_half + 1, device=coef.device, dtype=torch.float64)
-    cnt, sx = row_cells(pre, coef, params, ks, t)
+    zero_roll = torch.zeros((bsz, nl), dtype=torch.float64, device=coef.device)
+    roll0: tuple[torch.Tensor, ...] = (zero_roll,) if searched else ()
+    cnt, sx = row_cells(pre, coef, params, ks, t, zero_roll if searched else None)
     tables = monomial_tables(cnt.shape[2], cnt.shape[3], params, all_straight, coef.device)
     active = cnt.sum(dim=(2, 3)) >= params.lattice_min_points
     if start is not None:
         active = active & start.unsqueeze(1)
-    out = repeat(flow, params.lattice_iterations, stopped, refit, (coef, cnt, sx, active))
-    return out[0], out[1]
+    out = repeat(flow, params.lattice_iterations, stopped, refit, (coef, cnt, sx, active, *roll0))
+    return out[0], out[1], (out[4] if searched else None)
 
 
 class LatticeStartBatch(NamedTuple):
@@ -1132,18 +1221,20 @@ def refit_lattice(mask: torch.Tensor, sky: torch.Tensor, start: LatticeStartBatc
     is_curved = params.lattice_model == "curved"
     if params.lattice_model == "auto":
         # straight and curved from the comb's start, refined together (one loop)
-        both, cells = refine(pre, torch.stack([coef, coef], dim=1), params, straight=(True, False), flow=flow,
-                             start=go)
+        both, cells, rolls = refine(pre, torch.stack([coef, coef], dim=1), params, straight=(True, False), flow=flow,
+                                    start=go)
         n_straight = cells[:, 0].sum(dim=(1, 2)).to(torch.float64)
         n_bent = cells[:, 1].sum(dim=(1, 2)).to(torch.float64)
         curved = n_bent > (1.0 + params.lattice_curve_gain) * n_straight
         coef = torch.where(curved.unsqueeze(1), both[:, 1], both[:, 0])
         cnt = torch.where(curved.view(-1, 1, 1), cells[:, 1], cells[:, 0])
+        roll = torch.zeros_like(n_bent) if rolls is None else torch.where(curved, rolls[:, 1], rolls[:, 0])
     else:
-        one, cells = refine(pre, coef.unsqueeze(1), params, straight=(not is_curved,), flow=flow, start=go)
+        one, cells, rolls = refine(pre, coef.unsqueeze(1), params, straight=(not is_curved,), flow=flow, start=go)
         coef, cnt = one[:, 0], cells[:, 0]
         curved = torch.full((bsz,), is_curved, dtype=torch.bool, device=mask.device)
-    return LatticeFitBatch(coef, start.spacing, start.phase, start.found, start.vp, cnt, start.contrast, curved)
+        roll = torch.zeros_like(start.contrast) if rolls is None else rolls[:, 0]
+    return LatticeFitBatch(coef, start.spacing, start.phase, start.found, start.vp, cnt, start.contrast, curved, roll)
 
 
 def fit_lattice(mask: torch.Tensor, sky: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Tensor | None,
@@ -1172,10 +1263,11 @@ def _span(top: torch.Tensor, height: int) -> torch.Tensor:
     return torch.clamp(height - torch.clamp(top.to(torch.int64), min=0), min=1).to(torch.float64)
 
 
-def row_polynomials(coef: torch.Tensor, ks: torch.Tensor,
-                    height: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+def row_polynomials(coef: torch.Tensor, ks: torch.Tensor, height: int,
+                    roll: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Batched :func:`torchrow.reference.lattice.row_polynomial`: rows ``ks`` (``(R,)`` float64) of
-    the lattices ``coef (B, 7)`` as ``(a, b, c, e)``, ``(B, R)`` float64 each."""
+    the lattices ``coef (B, 7)`` as ``(a, b, c, e)``, ``(B, R)`` float64 each; ``roll (B,)`` float64:
+    11.3.2's ``g`` (each divided by ``1 + g k``; ``None``: equal spacing)."""
     c0, c1, c2, c3, d0, d1, d2 = (coef[:, i].unsqueeze(1) for i in range(N_COEF))
     kv = ks.unsqueeze(0)
     yb = float(height - 1)
@@ -1184,6 +1276,9 @@ def row_polynomials(coef: torch.Tensor, ks: torch.Tensor,
     three = 3.0 * c3
     a = (slope - (2.0 * curv) * yb) + three * (yb * yb)
     b = (((c0 + kv * d0) - slope * yb) + curv * (yb * yb)) - c3 * (yb * yb * yb)
+    if roll is not None:  # x / 1.0 is x: g = 0 keeps the bits
+        u = 1.0 + roll.unsqueeze(1) * kv
+        return a / u, b / u, (curv - three * yb) / u, c3 / u
     return a, b, curv - three * yb, c3.expand_as(curv).clone()
 
 
@@ -1222,13 +1317,14 @@ def row_dominance(rows: torch.Tensor, gaps: torch.Tensor) -> torch.Tensor:
 
 
 def visible_rows(mask: torch.Tensor, top: torch.Tensor, coef: torch.Tensor, found: torch.Tensor,
-                 params: Params) -> tuple[VisibleRows, torch.Tensor]:
+                 params: Params, roll: torch.Tensor | None = None) -> tuple[VisibleRows, torch.Tensor]:
     """Section 11.4 (:func:`torchrow.reference.lattice.visible_rows`): every row of the fitted
     lattices ``coef (B, 7)`` that its image shows, over the static bound ``K_v`` of
     :meth:`Params.lattice_visible_half` with a mask, and the dominance ``(B,)`` float64 of rows
     ``-K .. K`` (:func:`row_dominance`; their gaps' cells join the same pass; NaN, not computed,
     where ``lattice_min_dominance`` is 0). ``mask (B, H, W)`` bool is the
-    green mask, ``top (B,)`` the first image row. Memory: two ``(B, H, W+1)`` int64 prefix sums
+    green mask, ``top (B,)`` the first image row, ``roll (B,)`` 11.3.2's ``g`` (``None``: 0; each
+    row then resolvable where its own spacing is, and only while ``1 + g k > 0``). Memory: two ``(B, H, W+1)`` int64 prefix sums
     (the fit's are gone by then) and ``(B, H, 2 K_v + 2 K + 3)`` cells."""
     _, h, w = mask.shape
     dev = mask.device
@@ -1238,7 +1334,7 @@ def visible_rows(mask: torch.Tensor, top: torch.Tensor, coef: torch.Tensor, foun
     below = torch.arange(h, device=dev).view(1, h) >= top.to(torch.int64).view(-1, 1)  # (B, H)
     gaps = params.reads_dominance()
     cells, _ = row_cells(prefix_sums(mask & below.unsqueeze(2)), coef, params,
-                         torch.cat([ks, gap_offsets(params, dev)]) if gaps else ks)
+                         torch.cat([ks, gap_offsets(params, dev)]) if gaps else ks, roll=roll)
     cnt = cells[:, :, :2 * kv + 1]
     if gaps:
         dominance = row_dominance(cnt[:, :, kv - half:kv + half + 1], cells[:, :, 2 * kv + 1:])
@@ -1246,14 +1342,20 @@ def visible_rows(mask: torch.Tensor, top: torch.Tensor, coef: torch.Tensor, foun
         dominance = torch.full((mask.shape[0],), float("nan"), dtype=torch.float64, device=dev)
     t = (torch.arange(h, device=dev, dtype=torch.float64) - (h - 1)).view(1, h, 1)
     cc, dd = centre_spacing(t, coef)
-    centre = cc + ks.view(1, 1, -1) * dd  # (B, H, R)
     # a row counts as shown only where the rows are resolvable: near the VP they all converge inside the image
-    defined = below.unsqueeze(2) & (dd >= float(params.lattice_min_spacing))
+    if roll is None:
+        centre = cc + ks.view(1, 1, -1) * dd  # (B, H, R)
+        defined = below.unsqueeze(2) & (dd >= float(params.lattice_min_spacing))
+    else:
+        g = roll.view(-1, 1, 1)
+        u = 1.0 + g * ks.view(1, 1, -1)
+        centre = (cc + ks.view(1, 1, -1) * dd) / u
+        defined = below.unsqueeze(2) & (u > 0) & ((dd - g * cc) / (u * u) >= float(params.lattice_min_spacing))
     inside = (defined & (centre >= 0) & (centre <= w - 1)).any(dim=1)
     support = (cnt > 0).sum(dim=1)
     conf = support.to(torch.float64) / _span(top, h).unsqueeze(1)
     present = found.unsqueeze(1) & inside & (support > 0) & (conf >= params.lattice_min_confidence)
-    return VisibleRows(*row_polynomials(coef, ks, h), conf, present), dominance
+    return VisibleRows(*row_polynomials(coef, ks, h, roll), conf, present), dominance
 
 
 class ImprovedStart(NamedTuple):
@@ -1333,19 +1435,21 @@ def lattice_rows(mask: torch.Tensor, top: torch.Tensor, fit: LatticeFitBatch, pa
     (:func:`fit_lattice`), their confidences and every visible row, from the green ``mask (B, H,
     W)`` bool of rows ``y >= top`` (``top (B,)``)."""
     h = mask.shape[1]
-    coef, spacing, phase, found, v, cnt, contrast, curved = fit
+    coef, spacing, phase, found, v, cnt, contrast, curved, fit_roll = fit
+    roll = fit_roll if params.lattice_roll_grid else None  # else the equally spaced rule's operations
     support = (cnt > 0).sum(dim=1).to(torch.float64)  # (B, R)
     conf = support / _span(top, h).unsqueeze(1)
     ks = torch.arange(-params.lattice_half, params.lattice_half + 1, device=mask.device, dtype=torch.float64)
-    a, b, c, e = row_polynomials(coef, ks, h)
+    a, b, c, e = row_polynomials(coef, ks, h, roll)
     valid = found.unsqueeze(1) & (conf >= params.lattice_min_confidence)
     img_conf = conf[:, 0]
     for i in range(1, conf.shape[1]):
         img_conf = img_conf + conf[:, i]
     img_conf = img_conf / float(conf.shape[1])
-    vis, dominance = visible_rows(mask, top, coef, found, params)
+    vis, dominance = visible_rows(mask, top, coef, found, params, roll)
     return LatticeRows(a, b, c, e, valid, conf, img_conf, coef, spacing, phase, found, v, contrast, curved,
-                       dominance, *vis, lit=(cnt > 0).sum(dim=2))
+                       dominance, *vis, lit=(cnt > 0).sum(dim=2),
+                       roll=fit_roll)
 
 
 def improved_status(rows: LatticeRows, status: torch.Tensor, params: Params) -> torch.Tensor:

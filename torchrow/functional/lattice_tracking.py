@@ -121,10 +121,13 @@ def row_end(lit: torch.Tensor, params: Params) -> tuple[torch.Tensor, torch.Tens
     return torch.argmax((cum > drop.unsqueeze(1)).to(torch.int64), dim=1), total > 0
 
 
-def resolvable_row(coef: torch.Tensor, height: int, params: Params) -> torch.Tensor:
-    """Batched :func:`torchrow.reference.lattice_tracking.resolvable_row`, ``(B,)`` int64."""
+def resolvable_row(coef: torch.Tensor, height: int, params: Params, roll: torch.Tensor | None = None) -> torch.Tensor:
+    """Batched :func:`torchrow.reference.lattice_tracking.resolvable_row`, ``(B,)`` int64 (``roll (B,)``
+    float64: 11.3.2's ``g``, read where ``lattice_roll_grid > 0``)."""
     t = (torch.arange(height, device=coef.device, dtype=torch.float64) - (height - 1)).view(1, height, 1)
-    _, dd = flattice.centre_spacing(t, coef)
+    cc, dd = flattice.centre_spacing(t, coef)
+    if params.lattice_roll_grid and roll is not None:
+        dd = dd - roll.view(-1, 1, 1) * cc
     ok = dd[:, :, 0] >= float(params.lattice_min_spacing)
     first = torch.argmax(ok.to(torch.int64), dim=1)
     return torch.where(ok.any(dim=1), first, torch.full_like(first, height))
@@ -153,10 +156,13 @@ def frame_state(ok: torch.Tensor, last: torch.Tensor, y_end: torch.Tensor, has_e
     return torch.where(ok, code, failed)
 
 
-def lattice_vp(coef: torch.Tensor, height: int, fallback: torch.Tensor) -> torch.Tensor:
+def lattice_vp(coef: torch.Tensor, height: int, fallback: torch.Tensor, roll: torch.Tensor | None = None) -> torch.Tensor:
     """Batched :func:`torchrow.reference.lattice_tracking.lattice_vp` of ``coef (B, 7)`` float64:
-    ``(B, 2)`` int64, ``fallback`` ``(B, 2)`` int64 where not finite."""
+    ``(B, 2)`` int64, ``fallback`` ``(B, 2)`` int64 where not finite; ``roll (B,)`` float64 where
+    ``lattice_roll_grid > 0`` (11.3.2), else ``None``."""
     c0, c1, d0, d1 = coef[:, 0], coef[:, 1], coef[:, 4], coef[:, 5]
+    if roll is not None:
+        d0, d1 = d0 - roll * c0, d1 - roll * c1
     far, near = -float(8 * height), -float(height) / 4
     pos = d1 > 0
     t = torch.where(pos, torch.clamp(-d0 / torch.where(pos, d1, torch.ones_like(d1)), min=far, max=near),
@@ -274,23 +280,28 @@ def lattice_advance(images: torch.Tensor, active: torch.Tensor, state: LatticeTr
     rows, status = LatticeRows(*out[:n_rows]), out[n_rows]
     ok = status == _OK
     y_end, has_end = row_end(rows.lit, params)
-    y_res = resolvable_row(rows.coef, h, params)
+    y_res = resolvable_row(rows.coef, h, params, rows.roll)
     code = frame_state(ok, state.last, y_end, has_end, y_res, h, params, tracked | confirms(rows.spacing, state.spacing, params))
     change = torch.where(tracked & ok, state.pending, torch.zeros_like(state.pending))
     # identity: the tracked row, or its neighbour once the neighbour is clearly nearer the centre
     x0, d0 = rows.coef[:, 0], rows.coef[:, 4]
-    lim = (0.5 + params.lattice_track_hysteresis) * d0
+    rolled = params.lattice_roll_grid > 0  # 11.3.2: the central row's own spacing, the neighbour's own x
+    lim = (0.5 + params.lattice_track_hysteresis) * (d0 - rows.roll * x0 if rolled else d0)
     off = x0 - float(w) / 2
     one = torch.ones_like(change)
     pend = torch.where(off > lim, -one, torch.where(off < -lim, one, torch.zeros_like(one)))
+    nxt = x0 + pend.to(torch.float64) * d0
+    if rolled:
+        nxt = nxt / (1.0 + rows.roll * pend.to(torch.float64))
     keep = code <= _CODE["row_end_ahead"]
     redo = redo | (active & switched)
     searched_full = full | redo
     new = LatticeTrackerState(
         ready=torch.ones_like(state.ready), frames=state.frames + 1,
-        age=torch.where(searched_full, one, state.age + 1), last=code, vp=lattice_vp(rows.coef, h, rows.vp),
+        age=torch.where(searched_full, one, state.age + 1), last=code,
+        vp=lattice_vp(rows.coef, h, rows.vp, rows.roll if rolled else None),
         spacing=torch.where(ok, rows.spacing, torch.zeros_like(rows.spacing)),
-        centre=x0 + pend.to(torch.float64) * d0, has_centre=keep, pending=torch.where(keep, pend, torch.zeros_like(pend)),
+        centre=nxt, has_centre=keep, pending=torch.where(keep, pend, torch.zeros_like(pend)),
         grid_vp=torch.where((searched_full & (ok | ~state.ready)).view(-1, 1), rows.vp, state.grid_vp))
     new = _where(active, new, state)
     end = torch.where(code == _CODE["row_end_ahead"], y_end, torch.full_like(y_end, -1))

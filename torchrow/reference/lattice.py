@@ -26,14 +26,15 @@ from typing import NamedTuple
 import numpy as np
 
 from torchrow.core.io import lattice_params
-from torchrow.core.params import VP_SLICE, Params
+from torchrow.core.params import LATTICE_ROLL_SCALE, VP_SLICE, Params
 from torchrow.core.results import ImageResult, LatticeRow, Row
 
 __all__ = ["LatticeFit", "LatticePrior", "comb_near", "spacing_near",
            "horizon_row", "excess_green", "otsu_threshold", "green_mask", "row_evidence", "init_vp", "vp_grid",
            "vp_cells", "vp_origin", "vp_window", "vp_search", "comb_search",
            "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
-           "normal_equations", "refine", "fit_lattice", "improved_status", "lattice_rows", "row_polynomial",
+           "normal_equations", "cell_means", "roll_rhs", "row_moments", "roll_choice", "refine", "fit_lattice",
+           "improved_status", "lattice_rows", "row_polynomial",
            "visible_rows", "row_dominance", "gap_offsets", "improved_rows", "ImprovedRows", "N_COEF", "improved_result"]
 
 #: Coefficients ``(c0, c1, c2, c3, d0, d1, d2)`` of ``x = c(t) + k d(t)``, ``c(t) = c0 + c1 t + c2 t^2 +
@@ -95,7 +96,8 @@ class LatticeFit:
     where a row can have support; ``found``: the comb saw at least one pixel. ``contrast``: the
     comb's best score per binned pixel (11.2; 0 without pixels); ``curved``: the curved refit
     was kept (11.3.1). ``lit``: per image row, the number of rows ``-K .. K`` with an inlier there
-    (section 11.7's row end).
+    (section 11.7's row end). ``roll``: the projective spacing ``g`` of 11.3.2 (row ``k`` lies at
+    ``(c(t) + k d(t)) / (1 + g k)``; 0: equally spaced rows).
     """
 
     coef: tuple[float, ...]
@@ -108,6 +110,7 @@ class LatticeFit:
     contrast: float = 0.0
     curved: bool = True
     lit: tuple[int, ...] = ()
+    roll: float = 0.0
 
 
 def horizon_row(sky: int, params: Params) -> int:
@@ -470,7 +473,7 @@ def prefix_sums(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def row_cells(pre: tuple[np.ndarray, np.ndarray], coef: np.ndarray, params: Params,
-              ks: Sequence[float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+              ks: Sequence[float] | None = None, roll: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Section 11.3: inlier count and sum of x per lattice row and image row, two ``(2K+1, H)`` int64
     (rows ``k = -K .. K``; ``ks``: these rows instead, ``(len(ks), H)``).
 
@@ -479,6 +482,11 @@ def row_cells(pre: tuple[np.ndarray, np.ndarray], coef: np.ndarray, params: Para
     ``half = lattice_tolerance * d(t)``, ``lo = centre - half``, ``hi = centre + half`` (float64,
     this order), i.e. the columns ``floor(lo) + 1 .. ceil(hi) - 1`` clipped to the image. The
     counts and sums are differences of the mask's :func:`prefix_sums` (integers).
+
+    ``roll`` ``g != 0`` (11.3.2): ``u = 1 + g k``, ``centre = (c(t) + k d(t)) / u``, ``half =
+    lattice_tolerance * ((d(t) - g c(t)) / (u u))`` (the local spacing), and the row is assigned
+    where that spacing exceeds ``lattice_min_spacing_px`` and ``u > 0`` (with ``g = 0`` the same
+    values as above).
     """
     counts, pre_x = pre
     h, w = counts.shape[0], counts.shape[1] - 1
@@ -489,9 +497,17 @@ def row_cells(pre: tuple[np.ndarray, np.ndarray], coef: np.ndarray, params: Para
     ks = range(-params.lattice_half, params.lattice_half + 1) if ks is None else ks
     cnt = np.zeros((len(ks), h), np.int64)
     sx = np.zeros_like(cnt)
-    with np.errstate(invalid="ignore", over="ignore"):
+    g = np.float64(roll)
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
         for i, k in enumerate(ks):
-            centre = cc + np.float64(k) * dd
+            if roll:
+                u = np.float64(1.0) + g * np.float64(k)
+                centre = (cc + np.float64(k) * dd) / u
+                local = (dd - g * cc) / (u * u)
+                half = np.float64(params.lattice_tolerance) * local
+                ok = (local > params.lattice_min_spacing_px) & (u > 0)
+            else:
+                centre = cc + np.float64(k) * dd
             lo, hi = centre - half, centre + half
             good = ok & np.isfinite(lo) & np.isfinite(hi)
             x0 = np.clip(np.floor(np.where(good, lo, 0.0)) + 1, 0, w).astype(np.int64)
@@ -513,44 +529,111 @@ def normal_equations(cnt: np.ndarray, sx: np.ndarray, height: int,
     ``r = sum q phi`` are summed in int64 (exact; :func:`torchrow.core.io.lattice_params`
     keeps them in range), then ``M`` is converted to float64 and ``r`` to float64 divided by ``G``.
     """
-    half = params.lattice_half
-    kk, yy = np.nonzero(cnt > 0)
-    n = cnt[kk, yy].astype(np.float64)
-    q = np.rint((np.float64(params.lattice_cell_grid) * sx[kk, yy].astype(np.float64)) / n).astype(np.int64)
-    t = yy.astype(np.int64) - (height - 1)
-    k = kk.astype(np.int64) - half
+    k, t, q = cell_means(cnt, sx, height, params)
     phi = np.stack([t**p * k**e for p, e in params.lattice_basis(straight)], axis=1)  # (cells, n) int64
     m = (phi[:, :, None] * phi[:, None, :]).sum(axis=0)
     r = (phi * q[:, None]).sum(axis=0)
     return m.astype(np.float64), r.astype(np.float64) / np.float64(params.lattice_cell_grid)
 
 
+def cell_means(cnt: np.ndarray, sx: np.ndarray, height: int,
+               params: Params) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Section 11.3's observations: per occupied cell ``(k, y)`` (``n > 0``, in row-major order),
+    ``k``, ``t = y - (H-1)`` and ``q = round_half_even((G * sum x) / n)`` (float64 division),
+    three int64 arrays."""
+    kk, yy = np.nonzero(cnt > 0)
+    n = cnt[kk, yy].astype(np.float64)
+    q = np.rint((np.float64(params.lattice_cell_grid) * sx[kk, yy].astype(np.float64)) / n).astype(np.int64)
+    return kk.astype(np.int64) - params.lattice_half, yy.astype(np.int64) - (height - 1), q
+
+
+def roll_rhs(cnt: np.ndarray, sx: np.ndarray, height: int, params: Params) -> np.ndarray:
+    """Section 11.3.2: ``r1 = sum q k phi`` over the straight basis (int64 sums), float64 divided
+    by ``G``: the right-hand side whose solution ``z1`` moves the straight solution with ``g``."""
+    k, t, q = cell_means(cnt, sx, height, params)
+    phi = np.stack([t**p * k**e for p, e in params.lattice_basis(True)], axis=1)
+    return (phi * (q * k)[:, None]).sum(axis=0).astype(np.float64) / np.float64(params.lattice_cell_grid)
+
+
+def row_moments(cnt: np.ndarray, sx: np.ndarray, height: int, params: Params) -> np.ndarray:
+    """Section 11.3.2: per lattice row ``k = -K .. K`` the sums over its occupied cells of ``1, t,
+    t^2, q, q^2, q t``, ``(2K+1, 6)`` int64."""
+    k, t, q = cell_means(cnt, sx, height, params)
+    parts = np.stack([np.ones_like(t), t, t * t, q, q * q, q * t], axis=1)
+    out = np.zeros((2 * params.lattice_half + 1, 6), np.int64)
+    np.add.at(out, k + params.lattice_half, parts)
+    return out
+
+
+def roll_choice(z0: np.ndarray, z1: np.ndarray, moments: np.ndarray, params: Params) -> tuple[float, np.ndarray]:
+    """Section 11.3.2: the projective spacing ``g`` of :meth:`Params.lattice_rolls` whose rows lie
+    nearest the cell means in x, and its straight solution ``z0 + g z1`` (``c0, c1, d0, d1``).
+
+    For each ``g = i / 100`` (float64): ``z = z0 + g z1``; per row ``k`` (in order), ``u = 1 + g k``,
+    ``a = c0 + k d0``, ``b = c1 + k d1``, and with the row's :func:`row_moments` (float64)
+    ``S_k = (Q2 / (G G) - (2 (a Q1 + b QT)) / (G u)) + (((a a) N + (2 (a b)) T1) + (b b) T2) / (u u)``,
+    the sum over the row's cells of ``(q / G - (a + b t) / u)^2``; ``E = S_-K + ... + S_K``. The
+    first smallest ``E`` wins (NaN counts as infinite), so both paths choose the same ``g``.
+    """
+    grid = np.float64(params.lattice_cell_grid)
+    two = np.float64(2.0)
+    errs, sols = [], []
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        for i in params.lattice_rolls():
+            g = np.float64(i) / np.float64(LATTICE_ROLL_SCALE)
+            z = z0 + g * z1
+            err = np.float64(0.0)
+            for j, k in enumerate(range(-params.lattice_half, params.lattice_half + 1)):
+                n, t1, t2, q1, q2, qt = (np.float64(v) for v in moments[j])
+                kf = np.float64(k)
+                u = np.float64(1.0) + g * kf
+                a = z[0] + kf * z[2]
+                b = z[1] + kf * z[3]
+                err = err + ((q2 / (grid * grid) - (two * (a * q1 + b * qt)) / (grid * u))
+                             + (((a * a) * n + (two * (a * b)) * t1) + (b * b) * t2) / (u * u))
+            errs.append(np.inf if np.isnan(err) else err)
+            sols.append(z)
+    best = int(np.argmin(np.array(errs, np.float64)))
+    return float(np.float64(params.lattice_rolls()[best]) / np.float64(LATTICE_ROLL_SCALE)), sols[best]
+
+
 def refine(pre: tuple[np.ndarray, np.ndarray], coef: np.ndarray, height: int, params: Params,
-           straight: bool) -> np.ndarray:
-    """Section 11.3: up to ``lattice_iterations`` least-squares refits of ``coef`` (7,) float64.
+           straight: bool) -> tuple[np.ndarray, float]:
+    """Section 11.3: up to ``lattice_iterations`` least-squares refits of ``coef`` (7,) float64;
+    returns the coefficients and the projective spacing ``g`` (11.3.2; 0 unless a straight refit
+    searches it).
 
     Each iteration takes the inlier cells of :func:`row_cells` and solves
-    :func:`normal_equations` in the straight or curved basis. With fewer than
+    :func:`normal_equations` in the straight or curved basis; a straight refit with
+    ``lattice_roll_grid > 0`` solves it for :func:`roll_rhs` too and keeps :func:`roll_choice`'s
+    ``g``, whose cells the next iteration takes. With fewer than
     ``lattice_min_points`` inlier pixels or a singular system the coefficients stay (and the
     iterations stop); cells equal to the previous iteration's would give the same coefficients
     again, so the iterations stop there too (a fixed point: the result is that of running all
     of them).
     """
     where = params.lattice_coef_index(straight)
+    search = straight and params.lattice_roll_grid > 0
     last = None
+    roll = 0.0
     for _ in range(params.lattice_iterations):
-        cnt, sx = row_cells(pre, coef, params)
+        cnt, sx = row_cells(pre, coef, params, roll=roll)
         if int(cnt.sum()) < params.lattice_min_points:
             break
         if last is not None and np.array_equal(cnt, last[0]) and np.array_equal(sx, last[1]):
             break
-        sol = solve_normal(*normal_equations(cnt, sx, height, params, straight), params)
+        m, r = normal_equations(cnt, sx, height, params, straight)
+        sol = solve_normal(m, r, params)
         if sol is None:
             break
+        if search:  # the same m, so the same pivots: never singular here
+            z1 = solve_normal(m, roll_rhs(cnt, sx, height, params), params)
+            assert z1 is not None
+            roll, sol = roll_choice(sol, z1, row_moments(cnt, sx, height, params), params)
         coef = np.zeros(N_COEF, np.float64)
         coef[where] = sol
         last = (cnt, sx)
-    return coef
+    return coef, roll
 
 
 def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, params: Params,
@@ -587,28 +670,29 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
     # a tracked frame (11.7) whose comb is too weak for `ok` (11.4) is redone in full whatever
     # its refits give: they are skipped
     skip = prior is not None and prior.spacing is not None and contrast < params.lattice_min_contrast
-    coef = start if skip else refine(pre, start, h, params, straight=not curved)
+    coef, roll = (start, 0.0) if skip else refine(pre, start, h, params, straight=not curved)
     if params.lattice_model == "auto":
         # from the comb's start too: started from the straight fit, the curved refit keeps the
         # straight fit's cells where a bend has already lost the far pixels
-        bent = start if skip else refine(pre, start, h, params, straight=False)
-        n_straight = int(row_cells(pre, coef, params)[0].sum())
+        bent = start if skip else refine(pre, start, h, params, straight=False)[0]
+        n_straight = int(row_cells(pre, coef, params, roll=roll)[0].sum())
         n_bent = int(row_cells(pre, bent, params)[0].sum())
         if np.float64(n_bent) > (np.float64(1.0) + np.float64(params.lattice_curve_gain)) * np.float64(n_straight):
-            coef, curved = bent, True
-    cnt, _ = row_cells(pre, coef, params)
+            coef, curved, roll = bent, True, 0.0
+    cnt, _ = row_cells(pre, coef, params, roll=roll)
     support = tuple(int(s) for s in (cnt > 0).sum(axis=1))
     span = h - max(sky, 0)
     lit = tuple(int(s) for s in (cnt > 0).sum(axis=0))
-    return LatticeFit(tuple(float(c) for c in coef), d, phase, v, support, span, found, contrast, curved, lit)
+    return LatticeFit(tuple(float(c) for c in coef), d, phase, v, support, span, found, contrast, curved, lit, roll)
 
 
-def row_polynomial(coef: Sequence[float], k: int, height: int) -> tuple[float, float, float, float]:
+def row_polynomial(coef: Sequence[float], k: int, height: int, roll: float = 0.0) -> tuple[float, float, float, float]:
     """Section 11.4: lattice row ``k`` as ``x = e*y^3 + c*y^2 + a*y + b``, returns ``(a, b, c, e)``.
 
     With ``Y = H-1``, ``s = c1 + k d1``, ``u = c2 + k d2``: ``e = c3``, ``c = u - (3 e) Y``,
     ``a = (s - (2 u) Y) + (3 e) (Y Y)``, ``b = (((c0 + k d0) - s Y) + u (Y Y)) - e (Y Y Y)``
-    (float64, this order).
+    (float64, this order); with a projective spacing ``roll`` ``g != 0`` (11.3.2) each of them
+    then divided by ``1 + g k``.
     """
     c0, c1, c2, c3, d0, d1, d2 = (np.float64(v) for v in coef)
     yb = np.float64(height - 1)
@@ -618,7 +702,11 @@ def row_polynomial(coef: Sequence[float], k: int, height: int) -> tuple[float, f
     three = np.float64(3.0) * c3
     a = (slope - (np.float64(2.0) * curv) * yb) + three * (yb * yb)
     b = (((c0 + kf * d0) - slope * yb) + curv * (yb * yb)) - c3 * (yb * yb * yb)
-    return float(a), float(b), float(curv - three * yb), float(c3)
+    c = curv - three * yb
+    if roll:
+        u = np.float64(1.0) + np.float64(roll) * kf
+        return float(a / u), float(b / u), float(c / u), float(c3 / u)
+    return float(a), float(b), float(c), float(c3)
 
 
 def lattice_rows(fit: LatticeFit, height: int, params: Params) -> list[Row]:
@@ -631,7 +719,7 @@ def lattice_rows(fit: LatticeFit, height: int, params: Params) -> list[Row]:
     """
     rows = []
     for i in range(2 * params.lattice_half + 1):
-        a, b, c, e = row_polynomial(fit.coef, i - params.lattice_half, height)
+        a, b, c, e = row_polynomial(fit.coef, i - params.lattice_half, height, fit.roll)
         conf = float(np.float64(fit.support[i]) / np.float64(max(fit.span, 1)))
         ok = fit.found and conf >= params.lattice_min_confidence
         rows.append(Row(a, b, ok, "" if ok else "no_support", -1, c, conf, e))
@@ -673,22 +761,29 @@ def visible_rows(mask: np.ndarray, top: int, fit: LatticeFit, params: Params) ->
     coef = np.array(fit.coef, np.float64)
     half = params.lattice_half
     gaps = params.reads_dominance()
-    cells, _ = row_cells(prefix_sums(mask & below[:, None]), coef, params, [*ks, *gap_offsets(params)] if gaps else ks)
+    cells, _ = row_cells(prefix_sums(mask & below[:, None]), coef, params, [*ks, *gap_offsets(params)] if gaps else ks,
+                         fit.roll)
     cnt = cells[:2 * kv + 1]
     dominance = row_dominance(cnt[kv - half:kv + half + 1], cells[2 * kv + 1:]) if gaps else float("nan")
     cc, dd = centre_spacing(np.arange(h, dtype=np.float64) - np.float64(h - 1), coef)
     # a row counts as shown only where the rows are resolvable: near the VP they all converge inside the image
     defined = below & (dd >= np.float64(params.lattice_min_spacing))
     span = np.float64(max(fit.span, 1))
+    g = np.float64(fit.roll)
     out = []
-    with np.errstate(invalid="ignore", over="ignore"):
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
         for i, k in enumerate(ks):
-            centre = cc + np.float64(k) * dd
+            if fit.roll:  # 11.3.2: the row's own spacing, and no row beyond the pole 1 + g k = 0
+                u = np.float64(1.0) + g * np.float64(k)
+                centre = (cc + np.float64(k) * dd) / u
+                defined = below & (u > 0) & ((dd - g * cc) / (u * u) >= np.float64(params.lattice_min_spacing))
+            else:
+                centre = cc + np.float64(k) * dd
             inside = bool((defined & (centre >= 0) & (centre <= w - 1)).any())
             support = int((cnt[i] > 0).sum())
             conf = float(np.float64(support) / span)
             if fit.found and inside and support > 0 and conf >= params.lattice_min_confidence:
-                out.append(LatticeRow(k, *row_polynomial(fit.coef, k, h), conf))
+                out.append(LatticeRow(k, *row_polynomial(fit.coef, k, h, fit.roll), conf))
     return out, dominance
 
 

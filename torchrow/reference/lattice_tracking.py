@@ -51,26 +51,34 @@ def row_end(lit: Iterable[int], params: Params) -> int | None:
     return int(np.argmax(cum > drop))
 
 
-def resolvable_row(coef: Iterable[float], height: int, params: Params) -> int:
+def resolvable_row(coef: Iterable[float], height: int, params: Params, roll: float = 0.0) -> int:
     """Section 11.7: the first image row whose lattice spacing ``d(t) >= lattice_min_spacing``
-    (float64), ``height`` where none is."""
-    _, dd = centre_spacing(np.arange(height, dtype=np.float64) - np.float64(height - 1),
-                           np.asarray(tuple(coef), np.float64))
+    (float64), ``height`` where none is. With ``lattice_roll_grid > 0`` the central row's own
+    spacing ``d(t) - g c(t)`` (11.3.2, ``g`` = ``roll``) in place of ``d(t)``."""
+    cc, dd = centre_spacing(np.arange(height, dtype=np.float64) - np.float64(height - 1),
+                            np.asarray(tuple(coef), np.float64))
+    if params.lattice_roll_grid:
+        dd = dd - np.float64(roll) * cc
     ok = dd >= np.float64(params.lattice_min_spacing)
     return int(np.argmax(ok)) if ok.any() else height
 
 
-def lattice_vp(coef: Iterable[float], height: int, fallback: tuple[int, int]) -> tuple[int, int]:
+def lattice_vp(coef: Iterable[float], height: int, fallback: tuple[int, int],
+               roll: float | None = None) -> tuple[int, int]:
     """Section 11.7: where the fitted rows converge, the next tracked frame's VP (int px).
 
     From the lattice's terms of degree at most one at the bottom (``c0, c1, d0, d1``), ``d(t) = 0``
     at ``t = -d0 / d1``, clamped to ``[-8 H, -H / 4]`` (``-8 H`` where ``d1 <= 0``: rows that do
     not converge upwards keep their bottom direction through a far VP); the VP is
     ``(round_half_even(c0 + c1 t), round_half_even((H-1) + t))`` (float64, this order),
-    ``fallback`` (the comb's VP) where that is not finite.
+    ``fallback`` (the comb's VP) where that is not finite. ``roll``: 11.3.2's ``g`` where
+    ``lattice_roll_grid > 0`` (else ``None``): the rows converge where the central row's own
+    spacing vanishes, so ``d0 - g c0`` and ``d1 - g c1`` (float64) take the places of ``d0`` and ``d1``.
     """
     c = np.asarray(tuple(coef), np.float64)
     c0, c1, d0, d1 = c[0], c[1], c[4], c[5]
+    if roll is not None:
+        d0, d1 = d0 - np.float64(roll) * c0, d1 - np.float64(roll) * c1
     far, near = -np.float64(8 * height), -np.float64(height) / 4
     t = min(max(-d0 / d1, far), near) if d1 > 0 else far
     x, y = c0 + c1 * t, np.float64(height - 1) + t
@@ -194,19 +202,23 @@ class LatticeTracker:
         fit = imp.fit
         ok = res.status == "ok"
         y_end = row_end(fit.lit, p) if ok else None
-        st = frame_state(res.status, state.last, y_end, resolvable_row(fit.coef, h, p), h, p,
+        st = frame_state(res.status, state.last, y_end, resolvable_row(fit.coef, h, p, fit.roll), h, p,
                          tracked or confirms(fit.spacing, state.spacing, p))
         change = state.pending if tracked and ok else 0
         new_centre, pending = None, 0
+        rolled = p.lattice_roll_grid > 0
+        g = np.float64(fit.roll)
         if st in ("in_row", "row_end_ahead"):
             x0, d0 = np.float64(fit.coef[0]), np.float64(fit.coef[4])
-            lim = (np.float64(0.5) + np.float64(p.lattice_track_hysteresis)) * d0
+            # with a projective spacing (11.3.2) the central row's own spacing, and the neighbour's own x
+            lim = (np.float64(0.5) + np.float64(p.lattice_track_hysteresis)) * (d0 - g * x0 if rolled else d0)
             off = x0 - np.float64(w) / 2
             pending = -1 if off > lim else 1 if off < -lim else 0
-            new_centre = float(x0 + np.float64(pending) * d0)
+            nxt = x0 + np.float64(pending) * d0
+            new_centre = float(nxt / (np.float64(1.0) + g * np.float64(pending)) if rolled else nxt)
         new = LatticeSequenceState(width=w, height=h, frames=state.frames + 1,
                                    age=1 if (full or redo) else state.age + 1, last=st,
-                                   vp=lattice_vp(fit.coef, h, fit.vp),
+                                   vp=lattice_vp(fit.coef, h, fit.vp, fit.roll if rolled else None),
                                    spacing=int(fit.spacing) if ok else 0, centre=new_centre, pending=pending,
                                    grid_vp=fit.vp if (full or redo) and (ok or state.grid_vp is None) else state.grid_vp)
         track = LatticeTrack(st, change, y_end if st == "row_end_ahead" else None, full or redo, redo)
