@@ -2,6 +2,7 @@
 when the vanishing point leaves the top centre (ALGORITHM.md 11.6, *Views off to the side*).
 
     python benchmarks/bench_crdld_views.py [--data DIR] [--split train] [--step 5] [--time]
+    python benchmarks/bench_crdld_views.py [--data DIR] --caterra 0 5 12
 
 Every ``--step``-th image of a CRDLD split and its label mask, each seen as it is, moved
 sideways by 30 % or 60 % of the width with the uncovered columns black (the same rows at the
@@ -28,6 +29,9 @@ Each detector column is run twice: the forward-camera setting as it is, and with
 ``lattice_roll_grid`` 30 (11.3.2: the straight refit searches a projective spacing ``g`` of
 -0.3 .. 0.3 by 0.01), the row model that the lattice columns ask for.
 
+``--caterra DEG ...`` only tracks the 100 rover frames of ``caterra_video`` (about twelve rows,
+37 px apart at 500 px wide) turned by each DEG about their centre with the lattice tracker
+(forward-camera setting, ``video_width`` 500), both ways, and counts its states and ``ok`` frames.
 ``--time`` only times the two detectors side by side on the images as taken (tensor path, batch 64,
 ``--rounds`` interleaved rounds, each run's best; run it with nothing else on the machine). Choose
 nothing on the test split with it: it reads labels.
@@ -110,6 +114,27 @@ def detector_scores(det, images: list[np.ndarray], truths: list[CRDLDTruth],
     return float(s.mean()), float(ok.mean()), low
 
 
+def caterra_states(root: Path, degrees: list[float]) -> None:
+    """The lattice tracker's states on the Caterra frames turned by each of ``degrees``, with equal
+    spacing and with ``lattice_roll_grid`` ``ROLL_GRID``."""
+    from collections import Counter
+
+    import torchrow
+    from torchrow.core.io import load_image
+
+    params = Params(mode="improved", video_width=500, **FORWARD_CAMERA)
+    frames = [load_image(f, params.video_width) for f in sorted((root / "caterra_video").glob("*.jpg"))]
+    h, w = frames[0].shape[:2]
+    print("| turned | `lattice_roll_grid` | frames | `ok` | states |\n|---|---|---|---|---|")
+    for deg in degrees:
+        turn = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), deg, 1.0)
+        seen = [cv2.warpAffine(f, turn, (w, h)) for f in frames] if deg else frames
+        for grid in (0, ROLL_GRID):
+            recs = torchrow.Tracker(params.replace(lattice_roll_grid=grid)).track([seen])[0]
+            states = ", ".join(f"{k} {v}" for k, v in sorted(Counter(r.state for r in recs).items()))
+            print(f"| {deg:g}° | {grid} | {len(recs)} | {sum(r.status == 'ok' for r in recs)} | {states} |", flush=True)
+
+
 def time_detectors(dets: tuple, images: list[np.ndarray], rounds: int) -> None:
     """ms per image of each detector at batch 64, best of ``rounds`` interleaved rounds."""
     import time
@@ -139,7 +164,12 @@ def main() -> None:
     ap.add_argument("--step", type=int, default=5, help="every STEP-th image (default 5)")
     ap.add_argument("--time", action="store_true", help="only time the two detectors on the images as taken")
     ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--caterra", nargs="*", type=float, default=None, metavar="DEG",
+                    help="only track the Caterra frames turned by each DEG")
     args = ap.parse_args()
+    if args.caterra is not None:
+        caterra_states(data_root(args.data), args.caterra)
+        return
 
     from torchrow.core.io import lattice_params, working_size
     from torchrow.engines.detector import CropRowDetector
