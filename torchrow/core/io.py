@@ -117,8 +117,8 @@ def lattice_params(width: int, height: int, params: Any) -> Any:
         bound (:func:`check_lattice_size`).
     """
     check_lattice_size(width, height, params)
-    if getattr(params, "lattice_roll_grid", 0) and not _roll_sums_fit(int(height), int(width), params.lattice_half,
-                                                                     params.lattice_cell_grid):
+    if params.lattice_roll_grid and not _roll_sums_fit(int(height), int(width), params.lattice_half,
+                                                       params.lattice_cell_grid):
         raise ImageError(f"working size {width}x{height} is too large for the projective spacing's exact sums "
                          f"(ALGORITHM.md 11.3.2, lattice_roll_grid {params.lattice_roll_grid}); use a smaller "
                          f"Params.image_width or lattice_cell_grid")

@@ -1046,6 +1046,8 @@ def refine(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: P
     its inlier counts ``(B, L, H, R)`` int64 (:func:`row_cells`) and the projective spacing ``g``
     ``(B, L)`` float64 of 11.3.2 (straight lattices search it where ``lattice_roll_grid > 0``, by
     :func:`roll_choice` on a second right-hand side of the same system; ``None`` where it is 0).
+    The search adds ``(B L, 6, H, R)`` int64 moments and ``(B L, N, 7)`` float64 solutions per step
+    (``N`` = ``2 lattice_roll_grid + 1``) and solves twice as many systems.
 
     Lattices of both bases share one loop: a straight lattice solves the curved system with its
     extra unknowns pinned to 0 (identity rows and columns), which performs the straight
