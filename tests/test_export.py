@@ -79,6 +79,9 @@ def scatter_free_path(tmp_path_factory) -> Path:
 
 
 # ------------------------------------------------------------------------------------------
+# heavy: the scatter-free, If-free export adds about 50 s to a cold CI run (exports are cached by
+# source hash, so every change to torchrow pays them); the onnxruntime form below stays
+@pytest.mark.heavy
 def test_op_list_of_the_scatter_free_form(scatter_free_path: Path):
     import onnx
 
@@ -88,6 +91,7 @@ def test_op_list_of_the_scatter_free_form(scatter_free_path: Path):
     assert ops["CumSum"] > 0 and ops["TopK"] > 0  # the vote and the band points
 
 
+@pytest.mark.heavy
 def test_scatter_free_form_equals_torch(scatter_free_path: Path):
     x = torch.from_numpy(np.stack([sequence(FieldSpec.at_size(160, 90, n_rows=5, seed=3), 1)[0].image]))
     x = x.permute(0, 3, 1, 2).contiguous()
@@ -370,6 +374,7 @@ def test_parity_all_crbd_default_params(crbd_dir: Path, tmp_path_factory):
     assert not problems, problems[:10]
 
 
+@pytest.mark.heavy
 def test_lab_box_decisions_exhaustive():
     """All 2**24 colours through the graph's LAB in onnxruntime: no box decision of any
     vegetation colour can differ from the shared table's, for image mode's k and every
