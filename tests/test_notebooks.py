@@ -13,7 +13,8 @@ import pytest
 
 NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
 
-pytestmark = [pytest.mark.data, pytest.mark.slow]
+# heavy: about 40 s of a cold CI run; the notebooks' helpers are tested in test_notebook_helpers.py
+pytestmark = [pytest.mark.data, pytest.mark.slow, pytest.mark.heavy]
 
 
 @pytest.mark.parametrize("name", ["01_stages_and_learning.ipynb", "02_evaluation.ipynb"])
