@@ -38,7 +38,7 @@ __all__ = ["LatticeRows", "LatticePriorBatch", "spacing_near", "improved_batch",
            "improved_start", "improved_finish", "vp_gather_table", "vp_window", "otsu_threshold", "green_mask", "init_vp",
            "row_evidence", "check_evidence", "vp_table", "vp_origin", "vp_search", "comb_table", "comb_search",
            "solve_normal", "prefix_sums",
-           "centre_spacing", "row_cells", "monomial_tables", "cell_means", "roll_terms", "roll_choice",
+           "centre_spacing", "row_cells", "monomial_tables", "cell_means", "projective_rows", "roll_terms", "roll_choice",
            "normal_equations", "refine", "LatticeStartBatch",
            "lattice_start", "comb_start", "refit_lattice", "fit_lattice", "lattice_rows", "row_polynomials",
            "visible_rows", "VisibleRows", "row_dominance", "gap_offsets", "improved_rows", "improved_status", "LatticeFitBatch"]
@@ -891,6 +891,15 @@ def _image_rows(height: int, device: torch.device) -> torch.Tensor:
     return (torch.arange(height, device=device, dtype=torch.float64) - (height - 1)).view(1, height, 1)
 
 
+def projective_rows(cc: torch.Tensor, dd: torch.Tensor, k: torch.Tensor,
+                    g: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Batched :func:`torchrow.reference.lattice.projective_rows` (section 11.3.2): centres ``(c + k d)
+    / u``, own spacings ``(d - g c) / (u u)`` and ``u = 1 + g k``, float64, broadcast over the
+    shapes of ``c(t)``, ``d(t)`` (``cc``, ``dd``), the rows ``k`` and the spacings ``g``."""
+    u = 1.0 + g * k
+    return (cc + k * dd) / u, (dd - g * cc) / (u * u), u
+
+
 def row_cells(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: Params,
               ks: torch.Tensor | None = None, t: torch.Tensor | None = None, roll: torch.Tensor | None = None):
     """Batched :func:`torchrow.reference.lattice.row_cells` from :func:`prefix_sums`: inlier count
@@ -922,10 +931,7 @@ def row_cells(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params
         half = params.lattice_tolerance * dd
         centre = cc + k * dd  # (B, H, L, R)
     else:
-        g = roll.reshape(bsz, 1, nl, 1)
-        u = 1.0 + g * k
-        centre = (cc + k * dd) / u
-        local = (dd - g * cc) / (u * u)  # the row's own spacing
+        centre, local, u = projective_rows(cc, dd, k, roll.reshape(bsz, 1, nl, 1))
         half = params.lattice_tolerance * local
         ok = (local > params.lattice_min_spacing_px) & (u > 0)
     lo, hi = centre - half, centre + half
@@ -1349,10 +1355,8 @@ def visible_rows(mask: torch.Tensor, top: torch.Tensor, coef: torch.Tensor, foun
         centre = cc + ks.view(1, 1, -1) * dd  # (B, H, R)
         defined = below.unsqueeze(2) & (dd >= float(params.lattice_min_spacing))
     else:
-        g = roll.view(-1, 1, 1)
-        u = 1.0 + g * ks.view(1, 1, -1)
-        centre = (cc + ks.view(1, 1, -1) * dd) / u
-        defined = below.unsqueeze(2) & (u > 0) & ((dd - g * cc) / (u * u) >= float(params.lattice_min_spacing))
+        centre, local, u = projective_rows(cc, dd, ks.view(1, 1, -1), roll.view(-1, 1, 1))
+        defined = below.unsqueeze(2) & (u > 0) & (local >= float(params.lattice_min_spacing))
     inside = (defined & (centre >= 0) & (centre <= w - 1)).any(dim=1)
     support = (cnt > 0).sum(dim=1)
     conf = support.to(torch.float64) / _span(top, h).unsqueeze(1)

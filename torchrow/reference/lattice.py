@@ -33,7 +33,7 @@ __all__ = ["LatticeFit", "LatticePrior", "comb_near", "spacing_near",
            "horizon_row", "excess_green", "otsu_threshold", "green_mask", "row_evidence", "init_vp", "vp_grid",
            "vp_cells", "vp_origin", "vp_window", "vp_search", "comb_search",
            "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
-           "normal_equations", "cell_means", "roll_rhs", "row_moments", "roll_choice", "refine", "fit_lattice",
+           "normal_equations", "cell_means", "projective_rows", "roll_rhs", "row_moments", "roll_choice", "refine", "fit_lattice",
            "improved_status", "lattice_rows", "row_polynomial",
            "visible_rows", "row_dominance", "gap_offsets", "improved_rows", "ImprovedRows", "N_COEF", "improved_result"]
 
@@ -472,6 +472,14 @@ def prefix_sums(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return pre, pre_x
 
 
+def projective_rows(cc: np.ndarray, dd: np.ndarray, k: float, g: float) -> tuple[np.ndarray, np.ndarray, np.float64]:
+    """Section 11.3.2: row ``k``'s centre ``(c(t) + k d(t)) / u`` and own spacing ``(d(t) - g c(t)) /
+    (u u)`` on every image row (float64, this order) and ``u = 1 + g k``."""
+    kf, gf = np.float64(k), np.float64(g)
+    u = np.float64(1.0) + gf * kf
+    return (cc + kf * dd) / u, (dd - gf * cc) / (u * u), u
+
+
 def row_cells(pre: tuple[np.ndarray, np.ndarray], coef: np.ndarray, params: Params,
               ks: Sequence[float] | None = None, roll: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Section 11.3: inlier count and sum of x per lattice row and image row, two ``(2K+1, H)`` int64
@@ -501,9 +509,7 @@ def row_cells(pre: tuple[np.ndarray, np.ndarray], coef: np.ndarray, params: Para
     with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
         for i, k in enumerate(ks):
             if roll:
-                u = np.float64(1.0) + g * np.float64(k)
-                centre = (cc + np.float64(k) * dd) / u
-                local = (dd - g * cc) / (u * u)
+                centre, local, u = projective_rows(cc, dd, k, g)
                 half = np.float64(params.lattice_tolerance) * local
                 ok = (local > params.lattice_min_spacing_px) & (u > 0)
             else:
@@ -547,18 +553,19 @@ def cell_means(cnt: np.ndarray, sx: np.ndarray, height: int,
     return kk.astype(np.int64) - params.lattice_half, yy.astype(np.int64) - (height - 1), q
 
 
-def roll_rhs(cnt: np.ndarray, sx: np.ndarray, height: int, params: Params) -> np.ndarray:
+def roll_rhs(obs: tuple[np.ndarray, np.ndarray, np.ndarray], params: Params) -> np.ndarray:
     """Section 11.3.2: ``r1 = sum q k phi`` over the straight basis (int64 sums), float64 divided
-    by ``G``: the right-hand side whose solution ``z1`` moves the straight solution with ``g``."""
-    k, t, q = cell_means(cnt, sx, height, params)
+    by ``G``: the right-hand side whose solution ``z1`` moves the straight solution with ``g``.
+    ``obs``: :func:`cell_means`."""
+    k, t, q = obs
     phi = np.stack([t**p * k**e for p, e in params.lattice_basis(True)], axis=1)
     return (phi * (q * k)[:, None]).sum(axis=0).astype(np.float64) / np.float64(params.lattice_cell_grid)
 
 
-def row_moments(cnt: np.ndarray, sx: np.ndarray, height: int, params: Params) -> np.ndarray:
+def row_moments(obs: tuple[np.ndarray, np.ndarray, np.ndarray], params: Params) -> np.ndarray:
     """Section 11.3.2: per lattice row ``k = -K .. K`` the sums over its occupied cells of ``1, t,
-    t^2, q, q^2, q t``, ``(2K+1, 6)`` int64."""
-    k, t, q = cell_means(cnt, sx, height, params)
+    t^2, q, q^2, q t``, ``(2K+1, 6)`` int64, from :func:`cell_means`' ``obs``."""
+    k, t, q = obs
     parts = np.stack([np.ones_like(t), t, t * t, q, q * q, q * t], axis=1)
     out = np.zeros((2 * params.lattice_half + 1, 6), np.int64)
     np.add.at(out, k + params.lattice_half, parts)
@@ -627,9 +634,10 @@ def refine(pre: tuple[np.ndarray, np.ndarray], coef: np.ndarray, height: int, pa
         if sol is None:
             break
         if search:  # the same m, so the same pivots: never singular here
-            z1 = solve_normal(m, roll_rhs(cnt, sx, height, params), params)
+            obs = cell_means(cnt, sx, height, params)
+            z1 = solve_normal(m, roll_rhs(obs, params), params)
             assert z1 is not None
-            roll, sol = roll_choice(sol, z1, row_moments(cnt, sx, height, params), params)
+            roll, sol = roll_choice(sol, z1, row_moments(obs, params), params)
         coef = np.zeros(N_COEF, np.float64)
         coef[where] = sol
         last = (cnt, sx)
@@ -774,9 +782,8 @@ def visible_rows(mask: np.ndarray, top: int, fit: LatticeFit, params: Params) ->
     with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
         for i, k in enumerate(ks):
             if fit.roll:  # 11.3.2: the row's own spacing, and no row beyond the pole 1 + g k = 0
-                u = np.float64(1.0) + g * np.float64(k)
-                centre = (cc + np.float64(k) * dd) / u
-                defined = below & (u > 0) & ((dd - g * cc) / (u * u) >= np.float64(params.lattice_min_spacing))
+                centre, local, u = projective_rows(cc, dd, k, g)
+                defined = below & (u > 0) & (local >= np.float64(params.lattice_min_spacing))
             else:
                 centre = cc + np.float64(k) * dd
             inside = bool((defined & (centre >= 0) & (centre <= w - 1)).any())
