@@ -14,8 +14,10 @@ ROOT = Path(__file__).resolve().parents[1]
 #: a ```python block, optionally followed by "prints" and a ```text block of its exact output
 BLOCK = re.compile(r"```python\n(?P<code>.*?)```\n(?:\s*prints\s*\n\s*```text\n(?P<out>.*?)```\n)?", re.S)
 NEEDS_DATA = ("CRBD(", "resolve_data_root", "TORCHROW_DATA")
-#: blocks that export an ONNX model take minutes on a small CPU: run with ``-m heavy``
-HEAVY = ("to_onnx(",)
+#: blocks that export an ONNX model take minutes on a small CPU, and the Ray block starts a
+#: local cluster (about 18 s; ``tests/test_distributed.py`` checks the engine by default): run
+#: them with ``-m heavy``
+HEAVY = ("to_onnx(", "distributed.init(")
 
 
 def _blocks() -> list[tuple[str, str, str | None]]:

@@ -195,7 +195,9 @@ def ftrack_step(o: dict, active: torch.Tensor):
 
 
 @pytest.mark.parametrize(("scatter_free", "flow", "tier"), [(False, "always", None), (False, "sync", 2000),
-                                                      (False, "sync", 100000), (True, "sync", None)])
+                                                      (False, "sync", 100000),
+                                                      # the scatter-free re-vote (12 s) is checked with its export
+                                                      pytest.param(True, "sync", None, marks=pytest.mark.heavy)])
 def test_static_voter_line_search_equals_eager(scatter_free: bool, flow: str, tier: int | None) -> None:
     """find_lines with the static voter (one vote, band-only updates in chunks, or the
     scatter-free re-vote) == the eager voter, on adversarial masks that exhaust lines, drop
