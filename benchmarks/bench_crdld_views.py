@@ -25,19 +25,21 @@ mask. Columns (10.1's score at sigma 0.1, each at the working width):
 - *label evidence*: the same with the label mask given as 11.1.1's evidence (what the search
   and the row model do once the evidence is right).
 
-Each detector column is run twice: the forward-camera setting as it is, and with
+Each detector column is run three times: the forward-camera setting as it is, with
 ``lattice_roll_grid`` 30 (11.3.2: the straight refit searches a projective spacing ``g`` of
--0.3 .. 0.3 by 0.01), the row model that the lattice columns ask for.
+-0.3 .. 0.3 by 0.01), the row model that the lattice columns ask for, and with that and
+``lattice_comb_warps`` 6 (11.3.2: the comb also on the bottom row warped projectively, a start
+with its own ``g``).
 
 ``--caterra DEG ...`` only tracks the 100 rover frames of ``caterra_video`` (about twelve rows in
 view) turned by each DEG about their centre with the lattice tracker
-(forward-camera setting, ``video_width`` 500), both ways, and counts its states and ``ok`` frames.
+(forward-camera setting, ``video_width`` 500), the three ways, and counts its states and ``ok`` frames.
 The turned frames are enlarged about the centre until no corner is uncovered
 (:func:`turn_filled`: what a rolled camera with a narrower view sees). Black corners would be
 an artifact of the test, not of a rolled camera, and they move section 1's sky row: turned 12°
 with black corners, 3 of the 9 frames 0, 12, .., 96 get no sky row and their VP grid starts above
 the image.
-``--time`` only times the two detectors side by side on the images as taken (tensor path, batch 64,
+``--time`` only times the three detectors side by side on the images as taken (tensor path, batch 64,
 ``--rounds`` interleaved rounds, each run's best; run it with nothing else on the machine). Choose
 nothing on the test split with it: it reads labels.
 """
@@ -62,6 +64,7 @@ from bench_crdld_limits import best_roll, fit_lattice, label_points, lattice_lin
 
 View = Callable[[np.ndarray, int], np.ndarray]
 ROLL_GRID = 30  # lattice_roll_grid of the second detector (11.3.2): g = -0.3 .. 0.3 by 0.01
+COMB_WARPS = 6  # lattice_comb_warps of the third (11.3.2): the comb on 13 warps, -0.3 .. 0.3 of W/2 by 0.05
 
 
 def shift(share: float) -> View:
@@ -130,7 +133,8 @@ def turn_filled(a: np.ndarray, degrees: float) -> np.ndarray:
 
 def caterra_states(root: Path, degrees: list[float]) -> None:
     """The lattice tracker's states on the Caterra frames turned by each of ``degrees``
-    (:func:`turn_filled`), with equal spacing and with ``lattice_roll_grid`` ``ROLL_GRID``."""
+    (:func:`turn_filled`), with equal spacing, with ``lattice_roll_grid`` ``ROLL_GRID``, and with that
+    and ``lattice_comb_warps`` ``COMB_WARPS``."""
     from collections import Counter
 
     import torchrow
@@ -138,13 +142,14 @@ def caterra_states(root: Path, degrees: list[float]) -> None:
 
     params = Params(mode="improved", video_width=500, **FORWARD_CAMERA)
     frames = [load_image(f, params.video_width) for f in sorted((root / "caterra_video").glob("*.jpg"))]
-    print("| turned | `lattice_roll_grid` | frames | `ok` | states |\n|---|---|---|---|---|")
+    print("| turned | `lattice_roll_grid` | `lattice_comb_warps` | frames | `ok` | states |\n|---|---|---|---|---|---|")
     for deg in degrees:
         seen = [turn_filled(f, deg) for f in frames] if deg else frames
-        for grid in (0, ROLL_GRID):
-            recs = torchrow.Tracker(params.replace(lattice_roll_grid=grid)).track([seen])[0]
+        for grid, warps in ((0, 0), (ROLL_GRID, 0), (ROLL_GRID, COMB_WARPS)):
+            recs = torchrow.Tracker(params.replace(lattice_roll_grid=grid, lattice_comb_warps=warps)).track([seen])[0]
             states = ", ".join(f"{k} {v}" for k, v in sorted(Counter(r.state for r in recs).items()))
-            print(f"| {deg:g}° | {grid} | {len(recs)} | {sum(r.status == 'ok' for r in recs)} | {states} |", flush=True)
+            print(f"| {deg:g}° | {grid} | {warps} | {len(recs)} | {sum(r.status == 'ok' for r in recs)} | {states} |",
+                  flush=True)
 
 
 def time_detectors(dets: tuple, images: list[np.ndarray], rounds: int) -> None:
@@ -165,7 +170,8 @@ def time_detectors(dets: tuple, images: list[np.ndarray], rounds: int) -> None:
                 det.detect(xb).results()
             best[j] = min(best[j], (time.perf_counter() - t0) * 1e3 / n)
     print(f"{n} images as taken, batch 64, best of {rounds}: equal spacing {best[0]:.1f} ms / image, "
-          f"lattice_roll_grid {ROLL_GRID} {best[1]:.1f} ms / image ({best[1] / best[0]:.2f}x), torch "
+          f"lattice_roll_grid {ROLL_GRID} {best[1]:.1f} ms / image ({best[1] / best[0]:.2f}x), and "
+          f"lattice_comb_warps {COMB_WARPS} {best[2]:.1f} ms / image ({best[2] / best[0]:.2f}x), torch "
           f"{torch.__version__}, {torch.get_num_threads()} threads")
 
 
@@ -174,7 +180,7 @@ def main() -> None:
     ap.add_argument("--data", default=None)
     ap.add_argument("--split", default="train", choices=("train", "test"))
     ap.add_argument("--step", type=int, default=5, help="every STEP-th image (default 5)")
-    ap.add_argument("--time", action="store_true", help="only time the two detectors on the images as taken")
+    ap.add_argument("--time", action="store_true", help="only time the three detectors on the images as taken")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--caterra", nargs="*", type=float, default=None, metavar="DEG",
                     help="only track the Caterra frames turned by each DEG")
@@ -189,7 +195,8 @@ def main() -> None:
 
     ds = CRDLD(data_root(args.data), args.split)  # a data folder, its crdld_dev/ or a split folder
     params = Params(mode="improved", **FORWARD_CAMERA)
-    dets = (CropRowDetector(params), CropRowDetector(params.replace(lattice_roll_grid=ROLL_GRID)))
+    dets = (CropRowDetector(params), CropRowDetector(params.replace(lattice_roll_grid=ROLL_GRID)),
+            CropRowDetector(params.replace(lattice_roll_grid=ROLL_GRID, lattice_comb_warps=COMB_WARPS)))
     idx = list(range(0, len(ds), args.step))
     if args.time:
         time_detectors(dets, [ds.image(i, None) for i in idx], args.rounds)
@@ -201,7 +208,7 @@ def main() -> None:
         raw.append((rgb, cv2.imread(str(ds.label_path(i)), cv2.IMREAD_GRAYSCALE), green))
     print(f"CRDLD {args.split}, every {args.step}th image ({len(idx)}), forward-camera setting, tensor path; "
           "sigma 0.1 mean over the images with a scored labelled line; each detector column as "
-          f"'equal spacing / lattice_roll_grid {ROLL_GRID}'")
+          f"'equal spacing / lattice_roll_grid {ROLL_GRID} / and lattice_comb_warps {COMB_WARPS}'")
     lines = ["| view | images | lattice fitted to the labels | rolled lattice fitted to the labels | green mask "
              "| `ok` | `ok` below 0.2 | green mask moved | label evidence | `ok` |\n|---|---|---|---|---|---|---|---|---|---|"]
     for name, view in VIEWS.items():

@@ -1,6 +1,7 @@
 """The exported lattice tracker step (improved mode) against torch on every Caterra frame:
 ``python benchmarks/check_lattice_onnx.py [--data DIR] [--model M.onnx | --out M.onnx] [--top]
-[--frames N] [--cover FIRST:N ...] [--roll-grid N] [--turn DEG] [--rounds R] [--compare OTHER.onnx ...]``.
+[--frames N] [--cover FIRST:N ...] [--roll-grid N] [--comb-warps N] [--turn DEG] [--rounds R]
+[--compare OTHER.onnx ...]``.
 
 Exports the step at the real working size (500x281, the forward-camera setting
 ``Params(mode="improved", video_width=500, lattice_model="auto", lattice_min_spacing=16,
@@ -9,7 +10,8 @@ counts from the camera's horizon (ALGORITHM.md 11.2), the frames pass as ``ok`` 
 tracked, with redos and scheduled full searches (section 1 inside a graph ``If``); with
 ``--top`` (the grid above the image) every frame is ``weak``, so every frame runs the full search;
 ``--cover 30:8`` darkens frames 30-37 (a lens covered: a loss, and the search after it).
-``--roll-grid 30`` exports and tracks with ``lattice_roll_grid`` 30 (ALGORITHM.md 11.3.2), and
+``--roll-grid 30`` exports and tracks with ``lattice_roll_grid`` 30 (ALGORITHM.md 11.3.2),
+``--comb-warps 6`` with ``lattice_comb_warps`` 6 as well (the warped comb of 11.3.2), and
 ``--turn 12`` turns every frame by 12 degrees about its centre (a rolled camera; black corners).
 Tracks the frames with :class:`torchrow.Tracker` and with
 :class:`~torchrow.onnx.runtime.OnnxTracker`, and compares the records (discrete values equal,
@@ -64,9 +66,11 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=3, help="passes per run; each frame's fastest counts")
     ap.add_argument("--compare", nargs="*", default=[], help="other exports of the step, timed beside it")
     ap.add_argument("--roll-grid", type=int, default=0, help="Params.lattice_roll_grid (11.3.2)")
+    ap.add_argument("--comb-warps", type=int, default=0, help="Params.lattice_comb_warps (11.3.2; needs --roll-grid)")
     ap.add_argument("--turn", type=float, default=0.0, help="turn every frame by DEG about its centre")
     args = ap.parse_args()
-    params = (PARAMS.replace(lattice_vp_origin="top") if args.top else PARAMS).replace(lattice_roll_grid=args.roll_grid)
+    params = (PARAMS.replace(lattice_vp_origin="top") if args.top else PARAMS).replace(lattice_roll_grid=args.roll_grid,
+                                                                                         lattice_comb_warps=args.comb_warps)
     files = sorted((data_root(args.data) / "caterra_video").glob("*.jpg"))[:args.frames]
     frames = [load_image(f, params.video_width) for f in files]
     if args.turn:

@@ -187,3 +187,119 @@ def test_the_lattice_tracker_follows_a_rolled_camera_on_both_paths() -> None:
     assert [r.state for r in got][1:] == ["in_row"] * 5 and not any(r.row_change for r in got[1:])
     bottom = [_x(r.to_record()["rows"][1], H - 1.0) for r in got[1:]]
     assert all(abs((b - a) - 14.0) < 1.5 for a, b in itertools.pairwise(bottom)), bottom  # the tracked row moves with it
+
+
+# -- the comb with a projective warp (11.3.2): dense fields seen by a rolled camera --------------
+
+WARPED = ROLLED.replace(lattice_comb_warps=6)
+
+
+@pytest.mark.parametrize("g", [-0.15, 0.1])
+def test_the_warp_spaces_projective_rows_equally_on_both_paths(g: float) -> None:
+    c, d, w = 130.0, 55.0, 320
+    xs = np.array([(c + k * d) / (1 + g * k) for k in range(-4, 5)])
+    gamma = np.float64(g) / (np.float64(d) - np.float64(g) * (w / 2))  # its pole x0 + 1 / gamma is their limit d / g
+    got, ok = rlat.warped(xs, gamma, w)
+    assert ok.all() and np.ptp(np.diff(got)) < 1e-9 * np.abs(got).max()
+    tgot, tok = flat.warped(torch.from_numpy(xs), float(gamma), w)
+    assert tok.all() and np.array_equal(tgot.numpy(), got)
+    assert rlat.warped(np.array([w / 2 + 2 / gamma]), gamma, w)[1].tolist() == [False]  # beyond the pole
+    assert flat.warp_rate(3, w) == rlat.warp_rate(3, w) == 3 / (10 * w)
+
+
+def _dense_mask(g: float, h: int = 240, w: int = 320, vp: tuple[int, int] = (160, -40)) -> tuple[np.ndarray, list]:
+    """Thin rows ``k = -6..6`` of a rolled camera, ``(c(t) + k d(t)) / (1 + g k)`` through ``vp``,
+    the central row at x 170 and 40 px from its neighbours at the bottom; and the bottom x of each."""
+    t_v = vp[1] - (h - 1)
+    c0, d0 = 170.0, 40.0 + g * 170.0
+    c1, d1 = (vp[0] - c0) / t_v, (g * vp[0] - d0) / t_v
+    t = np.arange(h, dtype=np.float64) - (h - 1)
+    mask = np.zeros((h, w), bool)
+    for k in range(-6, 7):
+        x = np.rint((c0 + c1 * t + k * (d0 + d1 * t)) / (1 + g * k)).astype(int)
+        ok = (x >= 0) & (x < w) & (t > t_v + 30)
+        mask[np.arange(h)[ok], x[ok]] = True
+    return mask, [(c0 + k * d0) / (1 + g * k) for k in (-1, 0, 1)]
+
+
+@pytest.mark.parametrize("g", [-0.06, 0.05])
+def test_a_warped_comb_starts_on_a_dense_rolled_field_on_both_paths(g: float) -> None:
+    mask, truth = _dense_mask(g)
+    vp = (160, -40)
+    params = WARPED.replace(lattice_model="straight")
+
+    def bottom(coef: np.ndarray, roll: float) -> list[float]:
+        return [(coef[0] + k * coef[4]) / (1 + roll * k) for k in (-1, 0, 1)]
+
+    *_, coef, bent, roll = rlat.comb_start(mask, vp, params)
+    *_, plain, _, zero = rlat.comb_start(mask, vp, params.replace(lattice_comb_warps=0))
+    assert zero == 0.0 and roll == pytest.approx(g, abs=0.03)
+    warped_err = max(abs(a - b) for a, b in zip(bottom(coef, roll), truth))
+    plain_err = max(abs(a - b) for a, b in zip(bottom(plain, 0.0), truth))
+    assert warped_err < 4.0 < plain_err, (warped_err, plain_err)
+    assert bent[4] == pytest.approx(coef[4] - roll * coef[0]) and bent[5] == pytest.approx(bent[4] / (239 + 40))
+    got = flat.comb_start(torch.from_numpy(mask)[None], torch.tensor([vp]), params)
+    assert np.array_equal(got.coef[0].numpy(), coef) and np.array_equal(got.bent[0].numpy(), bent)
+    assert float(got.roll[0]) == roll
+    # a tracked frame's restricted comb is the bottom row's: no warp
+    prior = rlat.LatticePrior(170.0, vp, 40)
+    assert rlat.comb_start(mask, vp, params, prior)[-1] == 0.0
+    tprior = flat.LatticePriorBatch(torch.tensor([170.0], dtype=torch.float64), torch.tensor([True]),
+                                    torch.tensor([vp]), torch.tensor([40]))
+    assert float(flat.comb_start(torch.from_numpy(mask)[None], torch.tensor([vp]), params, tprior).roll[0]) == 0.0
+
+
+def _dense_field(degrees: float, seed: int = 0, shift: float = 0.0) -> np.ndarray:
+    """Thirteen green rows 30 px apart at the bottom, through a VP in the image (a forward camera
+    seeing the horizon), turned about the centre and enlarged so that no corner is uncovered."""
+    rng = np.random.default_rng(seed)
+    vp = (W / 2, 60.0)
+    img = np.clip(np.array([120, 90, 60]) + rng.integers(-10, 11, (H, W, 3)), 0, 255).astype(np.uint8)
+    img[:50] = (200, 210, 230)  # sky
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
+    for k in range(-6, 7):
+        xb = W / 2 + shift + k * 30.0
+        a = (xb - vp[0]) / ((H - 1) - vp[1])
+        img[(ys > vp[1] + 8) & (np.abs(xs - (xb + a * (ys - (H - 1)))) < 1 + 3 * (ys - vp[1]) / H)] = (40, 170, 40)
+    th = np.radians(abs(degrees))
+    m = cv2.getRotationMatrix2D(((W - 1) / 2, (H - 1) / 2), degrees, float(np.cos(th) + (W / H) * np.sin(th)))
+    return cv2.warpAffine(img, m, (W, H), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+
+
+def test_a_dense_rolled_field_on_both_paths(data_dir) -> None:
+    """Synthetic and rover frames rolled by a few degrees: detector (batched and alone) and
+    lattice tracker give the reference's records with the warped comb."""
+    synthetic = [_dense_field(6.0, seed=i, shift=4.0 * i) for i in range(3)]
+    det = CropRowDetector(WARPED)
+    batch = [r.to_record() for r in det.detect(synthetic).results()]
+    for img, got in zip(synthetic, batch):
+        assert detect(img, WARPED).to_record() == got
+    assert det.detect(synthetic[1:2]).results()[0].to_record() == batch[1]
+    folder = data_dir / "caterra_video"
+    if not folder.is_dir():
+        pytest.skip(f"caterra_video not found under {data_dir}")
+    th = np.radians(5.0)
+    frames = []
+    for p in sorted(folder.glob("*.jpg"))[:6]:
+        img = cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB)
+        h, w = img.shape[:2]
+        m = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), 5.0, float(np.cos(th) + (w / h) * np.sin(th)))
+        frames.append(cv2.warpAffine(img, m, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
+    params = WARPED.replace(video_width=500)
+    got = torchrow.Tracker(params).track([frames])[0]
+    want = RefTracker(params).track(frames)
+    for r, g in zip(want, got):
+        assert not record_differences(r.to_record(), g.to_record())
+    # turned by 5 degrees, the equally spaced comb starts no lattice the tracker can confirm;
+    # the warped one does, and the tracked frames' restricted comb keeps it
+    assert [r.state for r in got][2:] == ["in_row"] * 4 and not all(r.hough_ran for r in got)
+    assert all(r.state == "lost" for r in torchrow.Tracker(params.replace(lattice_comb_warps=0)).track([frames])[0])
+
+
+def test_warps_need_the_roll_search() -> None:
+    assert WARPED.lattice_warps() == (0, -1, 1, -2, 2, -3, 3, -4, 4, -5, 5, -6, 6)
+    assert ROLLED.lattice_warps() == (0,)
+    with pytest.raises(ValueError, match=r"lattice_comb_warps.*lattice_roll_grid"):
+        WARPED.replace(lattice_roll_grid=0)
+    with pytest.raises(ValueError, match="lattice_comb_warps"):
+        ROLLED.replace(lattice_comb_warps=20)

@@ -16,11 +16,16 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["Params", "Rule", "check_fields", "FORWARD_CAMERA", "tracker_params", "LATTICE_ROLL_SCALE"]
+__all__ = ["Params", "Rule", "check_fields", "FORWARD_CAMERA", "tracker_params", "LATTICE_ROLL_SCALE",
+           "LATTICE_WARP_SCALE"]
 
 #: Section 11.3.2: the projective spacing's grid, ``g = i / LATTICE_ROLL_SCALE`` (an integer scale,
 #: so that the refit's right-hand sides stay integer sums).
 LATTICE_ROLL_SCALE = 100
+
+#: Section 11.3.2: the comb's warps, ``gamma = j / (LATTICE_WARP_SCALE / 2 * W)`` per pixel (``j / 20``
+#: relative to half the working width).
+LATTICE_WARP_SCALE = 20
 
 
 @dataclass(frozen=True)
@@ -131,6 +136,7 @@ class Params:
     lattice_model: str = "curved"  # "curved" (one curved refit); "straight"; "auto": straight, curved where it gains support
     lattice_curve_gain: float = 0.02  # "auto": the curved refit must hold this fraction more inlier pixels
     lattice_roll_grid: int = 0  # straight refits ("auto", "straight"): projective spacing g = i / 100, |i| <= this (11.3.2)
+    lattice_comb_warps: int = 0  # the comb also on the bottom row warped projectively, j = -this..this (11.3.2)
     lattice_min_contrast: float = 0.2  # status ok needs the comb's contrast per binned pixel at least this
     lattice_min_image_confidence: float = 0.0  # status ok needs the image confidence at least this
     lattice_min_dominance: float = 0.0  # status ok needs rows -K..K to outnumber their gaps on this share of lit cells
@@ -175,6 +181,11 @@ class Params:
         """Section 11.3.2: the integers ``i`` of the projective spacings ``g = i / 100`` a straight
         refit searches, ascending (``(0,)`` where ``lattice_roll_grid`` is 0: equal spacing)."""
         return tuple(range(-self.lattice_roll_grid, self.lattice_roll_grid + 1))
+
+    def lattice_warps(self) -> tuple[int, ...]:
+        """Section 11.3.2: the comb's warps ``j`` in search order, ``0, -1, 1, -2, 2, ...`` up to
+        ``lattice_comb_warps`` (``(0,)`` where it is 0: the bottom row as projected)."""
+        return (0,) + tuple(j for n in range(1, self.lattice_comb_warps + 1) for j in (-n, n))
 
     def runs_section6(self) -> bool:
         """Whether sections 2-6 (colour, vegetation mask, Hough, vanishing point) run: always in
@@ -448,6 +459,7 @@ _RULES: dict[str, Rule] = {
     "lattice_model": Rule("choice", choices=("auto", "straight", "curved")),
     "lattice_curve_gain": Rule("float", 0, 100, why="a fraction of the straight lattice's inlier pixels"),
     "lattice_roll_grid": Rule("int", 0, LATTICE_ROLL_SCALE - 1, why="g = i / 100 with |g| < 1"),
+    "lattice_comb_warps": Rule("int", 0, LATTICE_WARP_SCALE - 1, why="each warp is one more comb; |j| / 20 < 1"),
     "lattice_min_contrast": Rule("float", 0, 1, why="a fraction of the comb's binned pixels"),
     "lattice_min_image_confidence": Rule("float", 0, 1, why="a fraction of the image rows"),
     "lattice_min_dominance": Rule("float", 0, 1, why="a fraction of the rows' lit cells"),
@@ -536,6 +548,9 @@ _CROSS_RULES: tuple[tuple[str, Callable[[Params], bool], str | Callable[[Params]
     ("lattice_max_spacing", lambda p: p.lattice_max_spacing >= p.lattice_min_spacing, "must be >= lattice_min_spacing"),
     ("lattice_roll_grid", lambda p: p.lattice_roll_grid * p.lattice_half < LATTICE_ROLL_SCALE,
      "times lattice_half must be < 100 (1 + g k > 0 on every fitted row, ALGORITHM.md 11.3.2)"),
+    ("lattice_comb_warps", lambda p: p.lattice_comb_warps == 0 or p.lattice_roll_grid > 0,
+     "needs lattice_roll_grid > 0 (a warped comb starts the refit with a projective spacing that only "
+     "the roll search refits, ALGORITHM.md 11.3.2)"),
     # improved mode only (section 11): the faithful mode never builds these tables
     ("lattice_max_spacing", lambda p: p.mode != "improved"
      or p.lattice_table_bytes(*_lattice_size(p))[0] <= LATTICE_TABLE_BYTES, _comb_what),

@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 
 from torchrow.core.io import check_lattice_size, lattice_params
-from torchrow.core.params import LATTICE_ROLL_SCALE, VP_SLICE, Params
+from torchrow.core.params import LATTICE_ROLL_SCALE, LATTICE_WARP_SCALE, VP_SLICE, Params
 from torchrow.core.results import STATUSES
 from torchrow.functional._checks import below_horizon
 from torchrow.functional._flow import branch, int_max, repeat
@@ -37,6 +37,7 @@ from torchrow.functional._flow import branch, int_max, repeat
 __all__ = ["LatticeRows", "LatticePriorBatch", "spacing_near", "improved_batch", "horizon_row", "excess_green", "ImprovedStart",
            "improved_start", "improved_finish", "vp_gather_table", "vp_window", "otsu_threshold", "green_mask", "init_vp",
            "row_evidence", "check_evidence", "vp_table", "vp_origin", "vp_search", "comb_table", "comb_search",
+           "warp_rate", "warped",
            "solve_normal", "prefix_sums",
            "centre_spacing", "row_cells", "monomial_tables", "cell_means", "projective_rows", "roll_terms", "roll_choice",
            "normal_equations", "refine", "LatticeStartBatch",
@@ -753,7 +754,24 @@ def spacing_near(d: torch.Tensor, previous: torch.Tensor, params: Params) -> tor
     return (d - previous).to(torch.float64).abs() <= params.lattice_track_spacing_tol * previous.to(torch.float64)
 
 
-def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params, prior: LatticePriorBatch | None = None):
+def warp_rate(warp: int, width: int) -> float:
+    """:func:`torchrow.reference.lattice.warp_rate`: the comb's warp ``j`` per pixel (a Python float
+    holding the reference's float64)."""
+    return float(warp) / float(LATTICE_WARP_SCALE // 2 * width)
+
+
+def warped(x: torch.Tensor, gamma: float, width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`torchrow.reference.lattice.warped`: float64 bottom-row positions under the comb's
+    projective warp (the same operations in the same order) and where it is defined, bool."""
+    x0 = float(width) / 2.0
+    t = x - x0
+    den = 1.0 - gamma * t
+    ok = den > 0
+    return x0 + t / torch.where(ok, den, torch.ones_like(den)), ok
+
+
+def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params, prior: LatticePriorBatch | None = None,
+                warp: int = 0):
     """Section 11.2 per image: ``(spacing, phase, found, contrast)``, each ``(B,)`` (int64, int64,
     bool, float64; ``contrast`` = the best score per binned pixel, 0 without pixels).
 
@@ -763,9 +781,10 @@ def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params, prior: Lat
     whose anti-teeth (``d // 2`` bins on) it is on (:func:`comb_table`; integer sums, so the scores
     are the reference's). ``prior`` (section 11.7): the central row is the tooth nearest
     ``prior.centre``, and where ``prior.restrict`` only the candidates of
-    :func:`torchrow.reference.lattice.comb_near` compete. Peak memory per image: the ``(Q + 1)``
-    int64 scores and float64 masks, ``32 Q`` bytes (1.6 MB at 500 px, spacings 16..320), and
-    the ``(G, 3W)`` windows.
+    :func:`torchrow.reference.lattice.comb_near` compete. ``warp`` ``j``: the comb on the bottom
+    row under 11.3.2's warp (:func:`warped`), the centre warped alike. Peak memory per image: the
+    ``(Q + 1)`` int64 scores and float64 masks, ``32 Q`` bytes (1.6 MB at 500 px, spacings
+    16..320), and the ``(G, 3W)`` windows.
     """
     bsz, h, w = mask.shape
     dev = mask.device
@@ -778,6 +797,9 @@ def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params, prior: Lat
     yv = yv_i.to(torch.float64)
     dy = ys.to(torch.float64) - yv
     proj = xv + ((xs - xv) * ((h - 1) - yv)) / torch.where(sel, dy, torch.ones_like(dy))
+    if warp != 0:
+        proj, defined = warped(proj, warp_rate(warp, w), w)
+        sel = sel & defined
     b = torch.floor(proj)
     keep = sel & (b >= -w) & (b < 2 * w)
     bins = torch.where(keep, b, torch.zeros_like(b)).to(torch.int64) + w
@@ -816,6 +838,8 @@ def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params, prior: Lat
     d_q = d_all[q]
     p_q = p_all[q] - w
     centre = torch.full((bsz,), float(w) / 2, dtype=torch.float64, device=dev) if prior is None else prior.centre
+    if warp != 0:
+        centre = warped(centre, warp_rate(warp, w), w)[0]
     k0 = torch.round((centre - p_q.to(torch.float64)) / d_q.to(torch.float64)).to(torch.int64)
     found = n > 0
     spacing = torch.where(found, d_q, torch.full_like(d_q, params.lattice_min_spacing))
@@ -1042,8 +1066,8 @@ def normal_equations(cnt: torch.Tensor, sx: torch.Tensor, params: Params, straig
 
 
 def refine(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: Params,
-           straight: tuple[bool, ...], flow: str = "sync",
-           start: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+           straight: tuple[bool, ...], flow: str = "sync", start: torch.Tensor | None = None,
+           roll: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """Batched :func:`torchrow.reference.lattice.refine` of ``L`` lattices per image at once:
     ``coef (B, L, 7)`` float64, lattice ``l`` refitted in the straight basis where
     ``straight[l]``, after up to ``lattice_iterations`` refits each. A lattice stops when it
@@ -1064,7 +1088,8 @@ def refine(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: P
     ``flow`` (:mod:`torchrow.functional._flow`): how the end is found (eager ``"sync"``;
     ``"loop"``: one ONNX ``Loop`` in an exported graph; ``"always"``: every refit, masked);
     results never depend on it. ``start`` ``(B,)`` bool: the images whose lattices refit at all
-    (``None``: every image); the others keep ``coef``."""
+    (``None``: every image); the others keep ``coef``. ``roll`` ``(B,)`` float64: the straight
+    lattices' starting ``g`` (a warped comb's, 11.3.2; ``None``: 0)."""
     bsz, nl = coef.shape[:2]
     all_straight = all(straight)
     basis = params.lattice_basis(all_straight)
@@ -1123,6 +1148,9 @@ def refine(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: P
     t = _image_rows(pre[0].shape[1], coef.device)
     ks = torch.arange(-params.lattice_half, params.lattice_half + 1, device=coef.device, dtype=torch.float64)
     zero_roll = torch.zeros((bsz, nl), dtype=torch.float64, device=coef.device)
+    if roll is not None:  # the straight lattices start from the warped comb's g, the curved ones from 0
+        bent_l = torch.tensor([not s for s in straight], device=coef.device).view(1, nl)
+        zero_roll = torch.where(bent_l, zero_roll, roll.view(bsz, 1).to(torch.float64))
     roll0: tuple[torch.Tensor, ...] = (zero_roll,) if searched else ()
     cnt, sx = row_cells(pre, coef, params, ks, t, zero_roll if searched else None)
     tables = monomial_tables(cnt.shape[2], cnt.shape[3], params, all_straight, coef.device)
@@ -1136,7 +1164,9 @@ def refine(pre: tuple[torch.Tensor, torch.Tensor], coef: torch.Tensor, params: P
 class LatticeStartBatch(NamedTuple):
     """:func:`lattice_start`'s result per image: the straight start ``coef (B, 7)`` float64 through
     the VP ``vp (B, 2)`` int64 the comb used, and the comb's ``spacing``, ``phase`` ``(B,)``
-    int64, ``found`` ``(B,)`` bool and ``contrast`` ``(B,)`` float64 (11.2)."""
+    int64, ``found`` ``(B,)`` bool and ``contrast`` ``(B,)`` float64 (11.2). With
+    ``lattice_comb_warps`` (11.3.2) also the curved refit's start ``bent (B, 7)`` float64 and the
+    straight start's projective spacing ``roll (B,)`` float64; ``None`` without (``coef`` and 0)."""
 
     coef: torch.Tensor
     spacing: torch.Tensor
@@ -1144,6 +1174,8 @@ class LatticeStartBatch(NamedTuple):
     found: torch.Tensor
     vp: torch.Tensor
     contrast: torch.Tensor
+    bent: torch.Tensor | None = None
+    roll: torch.Tensor | None = None
 
 
 def lattice_start(mask: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Tensor | None, params: Params,
@@ -1197,21 +1229,62 @@ def lattice_start(mask: torch.Tensor, vp: torch.Tensor | None, has_vp: torch.Ten
         raise ValueError(f"lattice_vp={params.lattice_vp!r} needs section 6's vp and has_vp, got None")
     else:
         v = init_vp(vp, has_vp, w, params)
-    return comb_start(mask, v, params, prior)
+    return comb_start(mask, v, params, prior, flow)
 
 
 def comb_start(mask: torch.Tensor, vp: torch.Tensor, params: Params,
-               prior: LatticePriorBatch | None = None) -> LatticeStartBatch:
-    """Section 11.2's comb through ``vp (B, 2)`` int64 (:func:`comb_search`) and 11.3's straight
-    start from it."""
-    h = mask.shape[1]
+               prior: LatticePriorBatch | None = None, flow: str = "sync") -> LatticeStartBatch:
+    """Section 11.2's comb through ``vp (B, 2)`` int64 (:func:`comb_search`) and 11.3's starts from
+    it (:func:`torchrow.reference.lattice.comb_start`: with ``lattice_comb_warps`` the comb on
+    each warp too, where ``prior`` does not restrict it, one :func:`comb_search` per warp; the
+    first highest contrast wins per image; skipped by ``flow`` where every image is restricted, a
+    lattice tracker's tracked frames). The warps' combs run one after another: the peak memory
+    is one :func:`comb_search`'s, the time that many times its."""
+    h, w = mask.shape[1:]
     spacing, phase, found, contrast = comb_search(mask, vp, params, prior)
     den = ((h - 1) - vp[:, 1]).to(torch.float64)
     ph = phase.to(torch.float64)
     sp = spacing.to(torch.float64)
     zero = torch.zeros_like(ph)
-    coef = torch.stack([ph, (ph - vp[:, 0].to(torch.float64)) / den, zero, zero, sp, sp / den, zero], dim=1)
-    return LatticeStartBatch(coef, spacing, phase, found, vp, contrast)
+    xv = vp[:, 0].to(torch.float64)
+    coef = torch.stack([ph, (ph - xv) / den, zero, zero, sp, sp / den, zero], dim=1)
+    if params.lattice_comb_warps == 0:
+        return LatticeStartBatch(coef, spacing, phase, found, vp, contrast)
+    free = torch.ones_like(found) if prior is None else ~prior.restrict
+
+    def warps(mask, vp, free, spacing, phase, found, contrast, *known):
+        warp = torch.zeros_like(spacing)
+        own = None if not known else LatticePriorBatch(known[0], known[1], vp, known[2])  # the fields comb_search reads
+        for j in params.lattice_warps()[1:]:
+            s_j, p_j, f_j, c_j = comb_search(mask, vp, params, own, j)
+            better = free & f_j & (~found | (c_j > contrast))
+            spacing, phase = torch.where(better, s_j, spacing), torch.where(better, p_j, phase)
+            found, contrast = found | better, torch.where(better, c_j, contrast)
+            warp = torch.where(better, torch.full_like(warp, j), warp)
+        return spacing, phase, found, contrast, warp
+
+    def none(mask, vp, free, spacing, phase, found, contrast, *known):
+        return spacing.clone(), phase.clone(), found.clone(), contrast.clone(), torch.zeros_like(spacing)
+
+    known = () if prior is None else (prior.centre, prior.restrict, prior.spacing)
+    spacing, phase, found, contrast, warp = branch(flow, free.any(), warps, none,
+                                                   (mask, vp, free, spacing, phase, found, contrast, *known))
+    gamma = warp.to(torch.float64) / float(LATTICE_WARP_SCALE // 2 * w)
+    x0 = float(w) / 2.0
+    p = phase.to(torch.float64)
+    sw = spacing.to(torch.float64)
+    u = 1.0 + gamma * (p - x0)
+    a = (p - x0) / u
+    s = sw / u
+    g = gamma * s
+    dd = s + g * x0
+    c = x0 + a
+    own = dd - g * c
+    rolled = warp != 0  # elsewhere the comb's spacing and phase are those ``coef`` was built from
+    start = torch.stack([c, (c - xv) / den, zero, zero, dd, (dd - g * xv) / den, zero], dim=1)
+    bent = torch.stack([c, (c - xv) / den, zero, zero, own, own / den, zero], dim=1)
+    return LatticeStartBatch(torch.where(rolled.unsqueeze(1), start, coef), spacing, phase, found, vp, contrast,
+                             torch.where(rolled.unsqueeze(1), bent, coef), torch.where(rolled, g, zero))
 
 
 def refit_lattice(mask: torch.Tensor, sky: torch.Tensor, start: LatticeStartBatch, params: Params,
@@ -1227,10 +1300,11 @@ def refit_lattice(mask: torch.Tensor, sky: torch.Tensor, start: LatticeStartBatc
     # give (11.4, 11.7): its refits are skipped, since a redone frame is the tracker's slowest
     go = None if prior is None else ~(prior.restrict & (start.contrast < params.lattice_min_contrast))
     is_curved = params.lattice_model == "curved"
+    bent = coef if start.bent is None else start.bent
     if params.lattice_model == "auto":
-        # straight and curved from the comb's start, refined together (one loop)
-        both, cells, rolls = refine(pre, torch.stack([coef, coef], dim=1), params, straight=(True, False), flow=flow,
-                                    start=go)
+        # straight and curved from the comb's starts, refined together (one loop)
+        both, cells, rolls = refine(pre, torch.stack([coef, bent], dim=1), params, straight=(True, False), flow=flow,
+                                    start=go, roll=start.roll)
         n_straight = cells[:, 0].sum(dim=(1, 2)).to(torch.float64)
         n_bent = cells[:, 1].sum(dim=(1, 2)).to(torch.float64)
         curved = n_bent > (1.0 + params.lattice_curve_gain) * n_straight
@@ -1238,7 +1312,8 @@ def refit_lattice(mask: torch.Tensor, sky: torch.Tensor, start: LatticeStartBatc
         cnt = torch.where(curved.view(-1, 1, 1), cells[:, 1], cells[:, 0])
         roll = torch.zeros_like(n_bent) if rolls is None else torch.where(curved, rolls[:, 1], rolls[:, 0])
     else:
-        one, cells, rolls = refine(pre, coef.unsqueeze(1), params, straight=(not is_curved,), flow=flow, start=go)
+        one, cells, rolls = refine(pre, (bent if is_curved else coef).unsqueeze(1), params, straight=(not is_curved,),
+                                   flow=flow, start=go, roll=None if is_curved else start.roll)
         coef, cnt = one[:, 0], cells[:, 0]
         curved = torch.full((bsz,), is_curved, dtype=torch.bool, device=mask.device)
         roll = torch.zeros_like(start.contrast) if rolls is None else rolls[:, 0]

@@ -205,21 +205,28 @@ def _lattice(images: torch.Tensor, active: torch.Tensor, prior: LatticePriorBatc
     counted = params.lattice_vp_sky_origin()
     weak = active & prior.restrict & (start.contrast < params.lattice_min_contrast)
     if switch:
+        # the start's fields that this setting fills (bent and roll only with a warped comb, 11.3.2)
+        present = [i for i, x in enumerate(start) if x is not None]
+
         def search(images, mask, weak, centre, restrict, vp, spacing, near, sky, *now):
             if counted and not have_sky:
                 sky = fsky.sky_row(images, params)
             wide = LatticePriorBatch(centre, restrict & ~weak, vp, spacing)
             # a weak frame is tracked: the grid near its last grid VP (11.7)
             grid = flattice.vp_search(mask, fparams, flattice.vp_origin(sky, h, params) if counted else None, near)
-            got = flattice.comb_start(mask, torch.where(weak.view(-1, 1), grid, now[4]), fparams, wide)
-            return tuple(torch.where(weak.view(-1, *([1] * (x.dim() - 1))), x, y) for x, y in zip(got, now))
+            got = flattice.comb_start(mask, torch.where(weak.view(-1, 1), grid, now[4]), fparams, wide, flow)
+            filled = [t for t in got if t is not None]  # the same fields as ``now``: one setting
+            return tuple(torch.where(weak.view(-1, *([1] * (x.dim() - 1))), x, y) for x, y in zip(filled, now))
 
         def keep(images, mask, weak, centre, restrict, vp, spacing, near, sky, *now):
             return tuple(t.clone() for t in now)
 
-        start = flattice.LatticeStartBatch(*branch(flow, weak.any(), search, keep,
-                                                   (images, mask, weak, prior.centre, prior.restrict, prior.vp,
-                                                    prior.spacing, prior.near, sky) + tuple(start)))
+        fields: list[torch.Tensor | None] = list(start)
+        for i, x in zip(present, branch(flow, weak.any(), search, keep,
+                                        (images, mask, weak, prior.centre, prior.restrict, prior.vp,
+                                         prior.spacing, prior.near, sky) + tuple(fields[i] for i in present))):
+            fields[i] = x
+        start = flattice.LatticeStartBatch._make(fields)
         prior = prior._replace(restrict=prior.restrict & ~weak)
     else:
         weak = torch.zeros_like(weak)

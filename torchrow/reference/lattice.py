@@ -26,12 +26,12 @@ from typing import NamedTuple
 import numpy as np
 
 from torchrow.core.io import lattice_params
-from torchrow.core.params import LATTICE_ROLL_SCALE, VP_SLICE, Params
+from torchrow.core.params import LATTICE_ROLL_SCALE, LATTICE_WARP_SCALE, VP_SLICE, Params
 from torchrow.core.results import ImageResult, LatticeRow, Row
 
 __all__ = ["LatticeFit", "LatticePrior", "comb_near", "spacing_near",
            "horizon_row", "excess_green", "otsu_threshold", "green_mask", "row_evidence", "init_vp", "vp_grid",
-           "vp_cells", "vp_origin", "vp_window", "vp_search", "comb_search",
+           "vp_cells", "vp_origin", "vp_window", "vp_search", "comb_search", "comb_start", "warp_rate", "warped",
            "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
            "normal_equations", "cell_means", "projective_rows", "roll_rhs", "row_moments", "roll_choice", "refine", "fit_lattice",
            "improved_status", "lattice_rows", "row_polynomial",
@@ -364,25 +364,48 @@ def _comb_tables_for(width: int, min_spacing: int, max_spacing: int, window: flo
     return out
 
 
+def warp_rate(warp: int, width: int) -> np.float64:
+    """Section 11.3.2: the comb's warp ``j`` as ``gamma = j / ((LATTICE_WARP_SCALE / 2) W)`` per
+    pixel (float64, one division of integers)."""
+    return np.float64(warp) / np.float64(LATTICE_WARP_SCALE // 2 * width)
+
+
+def warped(x: np.ndarray, gamma: np.float64, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Section 11.3.2: bottom-row positions ``x`` (float64) under the comb's projective warp,
+    ``x' = x0 + (x - x0) / (1 - gamma (x - x0))`` with ``x0 = W / 2`` (float64, this order), and
+    where it is defined (``1 - gamma (x - x0) > 0``), bool. Rows at ``(c + k d) / (1 + g k)`` are
+    equally spaced under the warp whose pole ``x0 + 1 / gamma`` is their limit ``d / g``."""
+    x0 = np.float64(width) / np.float64(2.0)
+    t = x - x0
+    den = np.float64(1.0) - gamma * t
+    ok = den > 0
+    return x0 + t / np.where(ok, den, np.float64(1.0)), ok
+
+
 def bottom_bins(xs: np.ndarray, ys: np.ndarray, vp: tuple[int, int], height: int,
-                width: int, params: Params) -> np.ndarray:
+                width: int, params: Params, warp: int = 0) -> np.ndarray:
     """Bin of each pixel's projection through the VP onto the bottom row (section 11.2).
 
     Pixels with ``y - yv > lattice_vp_margin`` project to
-    ``X = xv + ((x - xv) * (H-1 - yv)) / (y - yv)`` (float64, this order); bin
-    ``floor(X) + W``, kept when in ``[0, 3W)``. Returns the kept bins, int64.
+    ``X = xv + ((x - xv) * (H-1 - yv)) / (y - yv)`` (float64, this order); with ``warp`` ``j != 0``
+    (11.3.2) ``X`` is replaced by :func:`warped` ``X`` for ``gamma =`` :func:`warp_rate` and pixels
+    where the warp is undefined are dropped; bin ``floor(X) + W``, kept when in ``[0, 3W)``.
+    Returns the kept bins, int64.
     """
     xv, yv = vp
     sel = (ys - yv) > params.lattice_vp_margin
     xs, ys = xs[sel].astype(np.float64), ys[sel].astype(np.float64)
     proj = np.float64(xv) + ((xs - np.float64(xv)) * np.float64(height - 1 - yv)) / (ys - np.float64(yv))
+    defined = np.ones(proj.shape, bool)
+    if warp != 0:
+        proj, defined = warped(proj, warp_rate(warp, width), width)
     b = np.floor(proj)
-    keep = (b >= -width) & (b < 2 * width)
+    keep = defined & (b >= -width) & (b < 2 * width)
     return b[keep].astype(np.int64) + width
 
 
 def comb_search(mask: np.ndarray, vp: tuple[int, int], params: Params,
-                prior: LatticePrior | None = None) -> tuple[int, int, bool, float]:
+                prior: LatticePrior | None = None, warp: int = 0) -> tuple[int, int, bool, float]:
     """Section 11.2: bottom-row spacing and central phase of the rows through ``vp``.
 
     Histogram the bins of :func:`bottom_bins`; candidate ``q`` captures ``cap_q`` pixels in
@@ -396,11 +419,13 @@ def comb_search(mask: np.ndarray, vp: tuple[int, int], params: Params,
     number of binned pixels (float64; the evidence of 11.4's status); without pixels
     ``(lattice_min_spacing, W // 2, False, 0.0)``. ``prior`` (section 11.7): the central row is
     the tooth nearest ``prior.centre`` instead of ``W/2``, and with ``prior.spacing`` only the
-    candidates of :func:`comb_near` compete (the others score ``-inf``).
+    candidates of :func:`comb_near` compete (the others score ``-inf``). ``warp`` ``j``: the
+    comb on the warped bottom row of 11.3.2 (:func:`bottom_bins`), the centre warped alike; its
+    spacing and phase are the warped row's.
     """
     h, w = mask.shape
     ys, xs = np.nonzero(mask)
-    bins = bottom_bins(xs, ys, vp, h, w, params)
+    bins = bottom_bins(xs, ys, vp, h, w, params, warp)
     if bins.size == 0:
         return params.lattice_min_spacing, w // 2, False, 0.0
     hist = np.bincount(bins, minlength=3 * w).astype(np.int64)
@@ -412,12 +437,59 @@ def comb_search(mask: np.ndarray, vp: tuple[int, int], params: Params,
     else:
         score = cap.astype(np.float64) - (bins.size * (2 * hw + 1)).astype(np.float64) / d.astype(np.float64)
     centre = np.float64(w) / 2 if prior is None else np.float64(prior.centre)
+    if warp != 0:
+        centre = warped(np.array([centre]), warp_rate(warp, w), w)[0][0]
     if prior is not None and prior.spacing is not None:
         score = np.where(comb_near(d, p, w, prior, params), score, -np.inf)
     q = int(np.argmax(score))
     d_q, p_q = int(d[q]), int(p[q]) - w
     k0 = int(np.rint((centre - np.float64(p_q)) / np.float64(d_q)))
     return d_q, p_q + k0 * d_q, True, float(score[q] / np.float64(bins.size))
+
+
+def comb_start(mask: np.ndarray, vp: tuple[int, int], params: Params, prior: LatticePrior | None = None
+               ) -> tuple[int, int, bool, float, np.ndarray, np.ndarray, float]:
+    """Section 11.2's comb through ``vp`` and 11.3's starts from it: ``(d, phase, found,
+    contrast, coef, bent, g)``, the comb's four (:func:`comb_search`), the straight start ``coef``
+    (7,) float64 with its projective spacing ``g`` and the start of a curved refit ``bent``.
+
+    Without a warp: ``c(t) = phase + ((phase - xv) / (H-1 - yv)) t``, ``d(t) = d + (d / (H-1 - yv)) t``
+    (straight rows through the VP), ``g = 0``, ``bent = coef``. With ``lattice_comb_warps`` (11.3.2)
+    the comb also runs on each warp ``j`` of :meth:`Params.lattice_warps` in that order (not where
+    ``prior`` restricts it: a tracked frame's comb is the bottom row's), and the first highest
+    ``contrast`` wins. A warp's teeth ``P + k d'`` (``gamma =`` :func:`warp_rate`, ``x0 = W / 2``)
+    are the rows ``(c + k D) / (1 + g k)`` with ``u = 1 + gamma (P - x0)``, ``a = (P - x0) / u``,
+    ``s = d' / u``, ``g = gamma s``, ``D = s + g x0``, ``c = x0 + a`` (float64, this order): the
+    straight start ``c(t) = c + ((c - xv) / (H-1 - yv)) t``, ``d(t) = D + ((D - g xv) / (H-1 - yv)) t``
+    (the rows' pencil through the VP) with that ``g``; ``bent`` takes the central row's own
+    spacing ``D - g c`` in place of ``D`` with ``g = 0`` (the curved refit is equally spaced).
+    """
+    h, w = mask.shape
+    xv, yv = vp
+    den = np.float64(h - 1 - yv)
+    restricted = prior is not None and prior.spacing is not None
+    best, warp = comb_search(mask, vp, params, prior), 0
+    for j in params.lattice_warps()[1:] if not restricted else ():
+        got = comb_search(mask, vp, params, prior, j)
+        if got[2] and (not best[2] or got[3] > best[3]):
+            best, warp = got, j
+    d, phase, found, contrast = best
+    p, sp = np.float64(phase), np.float64(d)
+    coef = np.array([p, (p - np.float64(xv)) / den, 0.0, 0.0, sp, sp / den, 0.0], np.float64)
+    if warp == 0:
+        return d, phase, found, contrast, coef, coef, 0.0
+    gamma = warp_rate(warp, w)
+    x0 = np.float64(w) / np.float64(2.0)
+    u = np.float64(1.0) + gamma * (p - x0)
+    a = (p - x0) / u
+    s = sp / u
+    g = gamma * s
+    dd = s + g * x0
+    c = x0 + a
+    own = dd - g * c
+    coef = np.array([c, (c - np.float64(xv)) / den, 0.0, 0.0, dd, (dd - g * np.float64(xv)) / den, 0.0], np.float64)
+    bent = np.array([c, (c - np.float64(xv)) / den, 0.0, 0.0, own, own / den, 0.0], np.float64)
+    return d, phase, found, contrast, coef, bent, float(g)
 
 
 def solve_normal(m: np.ndarray, r: np.ndarray, params: Params) -> np.ndarray | None:
@@ -605,10 +677,10 @@ def roll_choice(z0: np.ndarray, z1: np.ndarray, moments: np.ndarray, params: Par
 
 
 def refine(pre: tuple[np.ndarray, np.ndarray], coef: np.ndarray, height: int, params: Params,
-           straight: bool) -> tuple[np.ndarray, float]:
+           straight: bool, roll: float = 0.0) -> tuple[np.ndarray, float]:
     """Section 11.3: up to ``lattice_iterations`` least-squares refits of ``coef`` (7,) float64;
-    returns the coefficients and the projective spacing ``g`` (11.3.2; 0 unless a straight refit
-    searches it).
+    returns the coefficients and the projective spacing ``g`` (11.3.2; the start's ``roll``, 0
+    unless a warped comb gave one, until a straight refit searches it).
 
     Each iteration takes the inlier cells of :func:`row_cells` and solves
     :func:`normal_equations` in the straight or curved basis; a straight refit with
@@ -622,7 +694,6 @@ def refine(pre: tuple[np.ndarray, np.ndarray], coef: np.ndarray, height: int, pa
     where = params.lattice_coef_index(straight)
     search = straight and params.lattice_roll_grid > 0
     last = None
-    roll = 0.0
     for _ in range(params.lattice_iterations):
         cnt, sx = row_cells(pre, coef, params, roll=roll)
         if int(cnt.sum()) < params.lattice_min_points:
@@ -648,10 +719,10 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
                 prior: LatticePrior | None = None, origin: int = 0) -> LatticeFit:
     """Sections 11.2-11.4 on a green mask: comb start, then the refits of 11.3 and 11.3.1.
 
-    Start: ``c(t) = phase + ((phase - xv) / (H-1 - yv)) t``, ``d(t) = d + (d / (H-1 - yv)) t``,
-    no higher terms (straight rows through the VP). ``lattice_model`` ``"curved"``: one curved
-    :func:`refine` from the start. ``"straight"``: one straight refine. ``"auto"`` (default):
-    a straight and a curved refine, both from the start, the curved one kept only where its inlier
+    Starts: :func:`comb_start`'s (straight rows through the VP; with a warped comb, 11.3.2, the
+    straight start's projective spacing too). ``lattice_model`` ``"curved"``: one curved
+    :func:`refine` from the curved start. ``"straight"``: one straight refine. ``"auto"`` (default):
+    a straight and a curved refine, each from its start, the curved one kept only where its inlier
     pixels exceed ``(1 + lattice_curve_gain)`` times the straight lattice's (float64), so
     straight rows stay straight unless the pixels demand a bend. ``prior``: section 11.7's
     tracked frame (its VP instead of the search, the comb restricted; no refits where the comb's
@@ -665,24 +736,20 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
             mask, params, origin, None if prior is None else prior.near, None if prior is None else prior.sweep)
     else:
         v = init_vp(vp, w, params)
-    d, phase, found, contrast = comb_search(mask, v, params, prior)
-    xv, yv = v
-    den = np.float64(h - 1 - yv)
-    coef = np.array([np.float64(phase), (np.float64(phase) - np.float64(xv)) / den, 0.0, 0.0,
-                     np.float64(d), np.float64(d) / den, 0.0], np.float64)
+    d, phase, found, contrast, coef, bent, g0 = comb_start(mask, v, params, prior)
     mask = mask.copy()
     mask[:max(sky, 0)] = False
     pre = prefix_sums(mask)
     curved = params.lattice_model == "curved"
-    start = coef
+    start = bent if curved else coef
     # a tracked frame (11.7) whose comb is too weak for `ok` (11.4) is redone in full whatever
     # its refits give: they are skipped
     skip = prior is not None and prior.spacing is not None and contrast < params.lattice_min_contrast
-    coef, roll = (start, 0.0) if skip else refine(pre, start, h, params, straight=not curved)
+    coef, roll = (start, 0.0) if skip else refine(pre, start, h, params, straight=not curved, roll=0.0 if curved else g0)
     if params.lattice_model == "auto":
         # from the comb's start too: started from the straight fit, the curved refit keeps the
         # straight fit's cells where a bend has already lost the far pixels
-        bent = start if skip else refine(pre, start, h, params, straight=False)[0]
+        bent = bent if skip else refine(pre, bent, h, params, straight=False)[0]
         n_straight = int(row_cells(pre, coef, params, roll=roll)[0].sum())
         n_bent = int(row_cells(pre, bent, params)[0].sum())
         if np.float64(n_bent) > (np.float64(1.0) + np.float64(params.lattice_curve_gain)) * np.float64(n_straight):
