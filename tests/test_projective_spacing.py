@@ -231,8 +231,10 @@ def test_a_warped_comb_starts_on_a_dense_rolled_field_on_both_paths(g: float) ->
     def bottom(coef: np.ndarray, roll: float) -> list[float]:
         return [(coef[0] + k * coef[4]) / (1 + roll * k) for k in (-1, 0, 1)]
 
-    *_, coef, bent, roll = rlat.comb_start(mask, vp, params)
-    *_, plain, _, zero = rlat.comb_start(mask, vp, params.replace(lattice_comb_warps=0))
+    start = rlat.comb_start(mask, vp, params)
+    coef, bent, roll = start.coef, start.bent, start.roll
+    unwarped = rlat.comb_start(mask, vp, params.replace(lattice_comb_warps=0))
+    plain, zero = unwarped.coef, unwarped.roll
     assert zero == 0.0 and roll == pytest.approx(g, abs=0.03)
     warped_err = max(abs(a - b) for a, b in zip(bottom(coef, roll), truth))
     plain_err = max(abs(a - b) for a, b in zip(bottom(plain, 0.0), truth))
@@ -243,7 +245,7 @@ def test_a_warped_comb_starts_on_a_dense_rolled_field_on_both_paths(g: float) ->
     assert float(got.roll[0]) == roll
     # a tracked frame's restricted comb is the bottom row's: no warp
     prior = rlat.LatticePrior(170.0, vp, 40)
-    assert rlat.comb_start(mask, vp, params, prior)[-1] == 0.0
+    assert rlat.comb_start(mask, vp, params, prior).roll == 0.0
     tprior = flat.LatticePriorBatch(torch.tensor([170.0], dtype=torch.float64), torch.tensor([True]),
                                     torch.tensor([vp]), torch.tensor([40]))
     assert float(flat.comb_start(torch.from_numpy(mask)[None], torch.tensor([vp]), params, tprior).roll[0]) == 0.0
@@ -261,9 +263,16 @@ def _dense_field(degrees: float, seed: int = 0, shift: float = 0.0) -> np.ndarra
         xb = W / 2 + shift + k * 30.0
         a = (xb - vp[0]) / ((H - 1) - vp[1])
         img[(ys > vp[1] + 8) & (np.abs(xs - (xb + a * (ys - (H - 1)))) < 1 + 3 * (ys - vp[1]) / H)] = (40, 170, 40)
+    return _turn_filled(img, degrees, cv2.INTER_NEAREST)
+
+
+def _turn_filled(img: np.ndarray, degrees: float, interp: int) -> np.ndarray:
+    """``img`` turned about its centre and enlarged until no corner is uncovered (a rolled camera's
+    view; ``benchmarks/bench_crdld_views.py``'s ``turn_filled``)."""
+    h, w = img.shape[:2]
     th = np.radians(abs(degrees))
-    m = cv2.getRotationMatrix2D(((W - 1) / 2, (H - 1) / 2), degrees, float(np.cos(th) + (W / H) * np.sin(th)))
-    return cv2.warpAffine(img, m, (W, H), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+    m = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), degrees, float(np.cos(th) + (w / h) * np.sin(th)))
+    return cv2.warpAffine(img, m, (w, h), flags=interp, borderMode=cv2.BORDER_REPLICATE)
 
 
 def test_a_dense_rolled_field_on_both_paths(data_dir) -> None:
@@ -278,13 +287,8 @@ def test_a_dense_rolled_field_on_both_paths(data_dir) -> None:
     folder = data_dir / "caterra_video"
     if not folder.is_dir():
         pytest.skip(f"caterra_video not found under {data_dir}")
-    th = np.radians(5.0)
-    frames = []
-    for p in sorted(folder.glob("*.jpg"))[:6]:
-        img = cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB)
-        h, w = img.shape[:2]
-        m = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), 5.0, float(np.cos(th) + (w / h) * np.sin(th)))
-        frames.append(cv2.warpAffine(img, m, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
+    frames = [_turn_filled(cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB), 5.0, cv2.INTER_LINEAR)
+              for p in sorted(folder.glob("*.jpg"))[:6]]
     params = WARPED.replace(video_width=500)
     got = torchrow.Tracker(params).track([frames])[0]
     want = RefTracker(params).track(frames)

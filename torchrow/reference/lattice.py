@@ -29,7 +29,7 @@ from torchrow.core.io import lattice_params
 from torchrow.core.params import LATTICE_ROLL_SCALE, LATTICE_WARP_SCALE, VP_SLICE, Params
 from torchrow.core.results import ImageResult, LatticeRow, Row
 
-__all__ = ["LatticeFit", "LatticePrior", "comb_near", "spacing_near",
+__all__ = ["LatticeFit", "LatticePrior", "LatticeStart", "comb_near", "spacing_near",
            "horizon_row", "excess_green", "otsu_threshold", "green_mask", "row_evidence", "init_vp", "vp_grid",
            "vp_cells", "vp_origin", "vp_window", "vp_search", "comb_search", "comb_start", "warp_rate", "warped",
            "solve_normal", "prefix_sums", "centre_spacing", "row_cells",
@@ -447,11 +447,24 @@ def comb_search(mask: np.ndarray, vp: tuple[int, int], params: Params,
     return d_q, p_q + k0 * d_q, True, float(score[q] / np.float64(bins.size))
 
 
-def comb_start(mask: np.ndarray, vp: tuple[int, int], params: Params, prior: LatticePrior | None = None
-               ) -> tuple[int, int, bool, float, np.ndarray, np.ndarray, float]:
-    """Section 11.2's comb through ``vp`` and 11.3's starts from it: ``(d, phase, found,
-    contrast, coef, bent, g)``, the comb's four (:func:`comb_search`), the straight start ``coef``
-    (7,) float64 with its projective spacing ``g`` and the start of a curved refit ``bent``.
+class LatticeStart(NamedTuple):
+    """:func:`comb_start`'s result (the tensor path's ``LatticeStartBatch`` for one image): the
+    straight start ``coef`` (7,) float64 through ``vp``, the comb's ``spacing``, ``phase``, ``found``
+    and ``contrast`` (:func:`comb_search`), the curved refit's start ``bent`` (7,) float64 and the
+    straight start's projective spacing ``roll`` (11.3.2; 0 without a warp)."""
+
+    coef: np.ndarray
+    spacing: int
+    phase: int
+    found: bool
+    vp: tuple[int, int]
+    contrast: float
+    bent: np.ndarray
+    roll: float
+
+
+def comb_start(mask: np.ndarray, vp: tuple[int, int], params: Params, prior: LatticePrior | None = None) -> LatticeStart:
+    """Section 11.2's comb through ``vp`` and 11.3's starts from it (:class:`LatticeStart`).
 
     Without a warp: ``c(t) = phase + ((phase - xv) / (H-1 - yv)) t``, ``d(t) = d + (d / (H-1 - yv)) t``
     (straight rows through the VP), ``g = 0``, ``bent = coef``. With ``lattice_comb_warps`` (11.3.2)
@@ -477,7 +490,7 @@ def comb_start(mask: np.ndarray, vp: tuple[int, int], params: Params, prior: Lat
     p, sp = np.float64(phase), np.float64(d)
     coef = np.array([p, (p - np.float64(xv)) / den, 0.0, 0.0, sp, sp / den, 0.0], np.float64)
     if warp == 0:
-        return d, phase, found, contrast, coef, coef, 0.0
+        return LatticeStart(coef, d, phase, found, vp, contrast, coef, 0.0)
     gamma = warp_rate(warp, w)
     x0 = np.float64(w) / np.float64(2.0)
     u = np.float64(1.0) + gamma * (p - x0)
@@ -489,7 +502,7 @@ def comb_start(mask: np.ndarray, vp: tuple[int, int], params: Params, prior: Lat
     own = dd - g * c
     coef = np.array([c, (c - np.float64(xv)) / den, 0.0, 0.0, dd, (dd - g * np.float64(xv)) / den, 0.0], np.float64)
     bent = np.array([c, (c - np.float64(xv)) / den, 0.0, 0.0, own, own / den, 0.0], np.float64)
-    return d, phase, found, contrast, coef, bent, float(g)
+    return LatticeStart(coef, d, phase, found, vp, contrast, bent, float(g))
 
 
 def solve_normal(m: np.ndarray, r: np.ndarray, params: Params) -> np.ndarray | None:
@@ -736,7 +749,8 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
             mask, params, origin, None if prior is None else prior.near, None if prior is None else prior.sweep)
     else:
         v = init_vp(vp, w, params)
-    d, phase, found, contrast, coef, bent, g0 = comb_start(mask, v, params, prior)
+    begun = comb_start(mask, v, params, prior)
+    d, phase, found, contrast, coef, bent = begun.spacing, begun.phase, begun.found, begun.contrast, begun.coef, begun.bent
     mask = mask.copy()
     mask[:max(sky, 0)] = False
     pre = prefix_sums(mask)
@@ -745,7 +759,7 @@ def fit_lattice(mask: np.ndarray, sky: int, vp: tuple[float, float] | None, para
     # a tracked frame (11.7) whose comb is too weak for `ok` (11.4) is redone in full whatever
     # its refits give: they are skipped
     skip = prior is not None and prior.spacing is not None and contrast < params.lattice_min_contrast
-    coef, roll = (start, 0.0) if skip else refine(pre, start, h, params, straight=not curved, roll=0.0 if curved else g0)
+    coef, roll = (start, 0.0) if skip else refine(pre, start, h, params, straight=not curved, roll=0.0 if curved else begun.roll)
     if params.lattice_model == "auto":
         # from the comb's start too: started from the straight fit, the curved refit keeps the
         # straight fit's cells where a bend has already lost the far pixels
