@@ -229,7 +229,7 @@ def main() -> None:
                                for ev in (None, greens, masks))
 
         def two(runs: list[tuple[float, float, float]], j: int, fmt: str) -> str:
-            return " / ".join(format(r[j], fmt) for r in runs)
+            return " / ".join("-" if np.isnan(r[j]) else format(r[j], fmt) for r in runs)  # "-": no image ok
 
         lines.append(f"| {name} | {len(images)} | {m[:, 0].mean():.3f} | {m[:, 1].mean():.3f} | {two(green, 0, '.3f')} | "
                      f"{two(green, 1, '.0%')} | {two(green, 2, '.0%')} | {two(moved, 0, '.3f')} | "

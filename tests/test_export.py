@@ -113,6 +113,67 @@ def test_default_form_votes_by_scatter_add_and_exits_early(model_path: Path):
     assert not {"NonZero", "Unique", "Scan"} & set(ops), ops
 
 
+def test_share_initializers_keeps_one_copy_and_the_results():
+    """Equal tables in the main graph and in both branches of an ``If`` (as constant folding
+    leaves them) become one main-graph initializer that the branches read as an outer value;
+    a branch's own different table and a nested body's stay; onnxruntime gives the same results
+    before and after."""
+    import onnx
+    import onnxruntime as ort
+    from onnx import TensorProto, helper, numpy_helper
+
+    from torchrow.onnx.passes import drop_unused_initializers, share_initializers
+
+    table = np.arange(300, dtype=np.float32)
+    x = helper.make_tensor_value_info("x", TensorProto.FLOAT, [300])
+    y = helper.make_tensor_value_info("y", TensorProto.FLOAT, [300])
+
+    def init(name, arr):
+        return numpy_helper.from_array(arr, name)
+
+    def inner(tag):  # a nested body reading the outer table and its own
+        return helper.make_graph(
+            [helper.make_node("Add", ["x", "t_else"], [f"{tag}_a"]), helper.make_node("Add", [f"{tag}_a", f"{tag}_t"],
+                                                                                  [f"{tag}_y"])],
+            tag, [], [helper.make_tensor_value_info(f"{tag}_y", TensorProto.FLOAT, [300])], [init(f"{tag}_t", table * 3)])
+    then = helper.make_graph([helper.make_node("Add", ["x", "t_then"], ["y_then"]),
+                              helper.make_node("Add", ["y_then", "t_own"], ["y_then2"])],
+                             "then", [], [helper.make_tensor_value_info("y_then2", TensorProto.FLOAT, [300])],
+                             [init("t_then", table), init("t_own", table * 2)])
+    other = helper.make_graph([helper.make_node("Mul", ["x", "t_else"], ["y_else0"]),
+                               helper.make_node("If", ["c"], ["y_inner"], then_branch=inner("in1"), else_branch=inner("in2")),
+                               helper.make_node("Add", ["y_else0", "y_inner"], ["y_else"])],
+                              "else", [], [helper.make_tensor_value_info("y_else", TensorProto.FLOAT, [300])],
+                              [init("t_else", table)])
+    graph = helper.make_graph([helper.make_node("If", ["c"], ["z"], then_branch=then, else_branch=other),
+                               helper.make_node("Sub", ["z", "t_main"], ["y"])],
+                              "main", [x, helper.make_tensor_value_info("c", TensorProto.BOOL, [])], [y],
+                              [init("t_main", table)])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    onnx.checker.check_model(model)
+
+    def run(m, c):
+        sess = ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"])
+        return sess.run(None, {"x": np.linspace(-1, 1, 300, dtype=np.float32), "c": np.array(c)})[0]
+
+    want = [run(model, c) for c in (True, False)]
+    shared = drop_unused_initializers(share_initializers(onnx.ModelProto.FromString(model.SerializeToString())))
+    onnx.checker.check_model(shared)
+    g = shared.graph
+    branches = {a.name: a.g for a in g.node[0].attribute}
+    nested = [a.g for a in branches["else_branch"].node[1].attribute]
+    main_names = [i.name for i in g.initializer]
+    assert len(main_names) == 2 and main_names[0] == "t_main"
+    assert np.array_equal(numpy_helper.to_array(g.initializer[1]), table * 3)
+    assert [i.name for i in branches["then_branch"].initializer] == ["t_own"]  # its own values: stays
+    assert not branches["else_branch"].initializer and branches["else_branch"].node[0].input[1] == "t_main"
+    assert [(len(n.initializer), n.node[0].input[1], n.node[1].input[1]) for n in nested] == [
+        (0, "t_main", main_names[1])] * 2
+    for c, w in zip((True, False), want):
+        assert np.array_equal(run(shared, c), w)
+
+
 def test_ort_native_small_integer_ops_run_and_agree_with_int32():
     """Every (op, type) that legalize leaves narrow for onnxruntime has a CPU kernel in the
     installed onnxruntime, and gives the int32 computation's values (cast back) on edge

@@ -251,6 +251,34 @@ def test_a_warped_comb_starts_on_a_dense_rolled_field_on_both_paths(g: float) ->
     assert float(flat.comb_start(torch.from_numpy(mask)[None], torch.tensor([vp]), params, tprior).roll[0]) == 0.0
 
 
+@pytest.mark.parametrize(("contrasts", "won"), [
+    ({0: 1.0, -1: 1.10, 1: 1.14, -2: 1.149}, 0),  # no warp beats the unwarped comb by the margin
+    ({0: 1.0, -1: 1.10, 1: 1.16, -2: 1.155, 2: 1.16}, 1),  # then the first highest, by any amount
+    ({0: 1.0, -1: 1.20, 1: 1.10}, -1),
+    ({0: -0.5, -1: -0.45, 1: -0.42}, 1),  # a margin of |contrast|: above -0.5 + 0.075 only
+    ({-1: 0.01}, -1),  # an unwarped comb that binned nothing loses to any that did
+], ids=["within", "first-highest", "first", "negative", "unwarped-empty"])
+def test_a_warp_wins_only_by_the_margin_on_both_paths(monkeypatch, contrasts: dict, won: int) -> None:
+    """Each warp ``j``'s comb finds spacing ``20 + j`` with the listed contrast (not listed: it
+    binned nothing); both paths' :func:`comb_start` pick the same warp."""
+    def one(m, v, p, prior=None, j=0, table=None):
+        return 20 + j, 32, j in contrasts, contrasts.get(j, 0.0)
+
+    def batched(m, v, p, prior=None, j=0, table=None):
+        s, ph, f, c = one(m, v, p, prior, j)
+        ones = torch.ones(m.shape[0], dtype=torch.int64)
+        return ones * s, ones * ph, ones.bool() & f, ones.double() * c
+
+    monkeypatch.setattr(rlat, "comb_search", one)
+    monkeypatch.setattr(flat, "comb_search", batched)
+    mask, vp, params = np.zeros((40, 64), bool), (32, -10), WARPED.replace(lattice_comb_warps=2)
+    want = rlat.comb_start(mask, vp, params)
+    got = flat.comb_start(torch.from_numpy(mask)[None], torch.tensor([vp]), params)
+    assert want.spacing == 20 + won and (want.roll == 0.0) == (won == 0)
+    assert int(got.spacing[0]) == want.spacing and float(got.roll[0]) == want.roll
+    assert np.array_equal(got.coef[0].numpy(), want.coef)
+
+
 def _dense_field(degrees: float, seed: int = 0, shift: float = 0.0) -> np.ndarray:
     """Thirteen green rows 30 px apart at the bottom, through a VP in the image (a forward camera
     seeing the horizon), turned about the centre and enlarged so that no corner is uncovered."""

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from typing import Any
 
 __all__ = ["Params", "Rule", "check_fields", "FORWARD_CAMERA", "tracker_params", "LATTICE_ROLL_SCALE",
-           "LATTICE_WARP_SCALE"]
+           "LATTICE_WARP_SCALE", "LATTICE_WARP_MARGIN"]
 
 #: Section 11.3.2: the projective spacing's grid, ``g = i / LATTICE_ROLL_SCALE`` (an integer scale,
 #: so that the refit's right-hand sides stay integer sums).
@@ -26,6 +26,10 @@ LATTICE_ROLL_SCALE = 100
 #: Section 11.3.2: the comb's warps, ``gamma = j / (LATTICE_WARP_SCALE / 2 * W)`` per pixel (``j / 20``
 #: relative to half the working width).
 LATTICE_WARP_SCALE = 20
+
+#: Section 11.3.2: a warped comb takes the start from the unwarped one only where its contrast exceeds
+#: the unwarped comb's by this fraction of it (chosen on training data: upright fields keep their comb).
+LATTICE_WARP_MARGIN = 0.15
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 
 from torchrow.core.io import check_lattice_size, lattice_params
-from torchrow.core.params import LATTICE_ROLL_SCALE, LATTICE_WARP_SCALE, VP_SLICE, Params
+from torchrow.core.params import LATTICE_ROLL_SCALE, LATTICE_WARP_MARGIN, LATTICE_WARP_SCALE, VP_SLICE, Params
 from torchrow.core.results import STATUSES
 from torchrow.functional._checks import below_horizon
 from torchrow.functional._flow import branch, int_max, repeat
@@ -709,39 +709,56 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     return torch.where(seen.any(dim=1, keepdim=True), pick, fallback.expand_as(pick))
 
 
-_CombTable = tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple[torch.Tensor, ...], tuple[torch.Tensor, ...]]
+class _CombTable(NamedTuple):
+    """:func:`comb_table`'s tables for one working width."""
+
+    d: torch.Tensor  # (Q,) int64: candidate q's spacing, in spacing then phase order
+    p: torch.Tensor  # (Q,) int64: candidate q's bin phase
+    hws: torch.Tensor  # (G,) int64: the distinct tooth half-widths, ascending
+    chunks: tuple[tuple[torch.Tensor, torch.Tensor, torch.Tensor], ...]  # (group, tooth, anti) per chunk
+
+
 _COMB_TABLES: dict[tuple, _CombTable] = {}
+
+#: Spacings whose teeth :func:`comb_search` scatters at once: one scatter (and one for the
+#: anti-teeth) per chunk, not per tooth half-width (an exported comb holds a few scatters, not
+#: ~60 at 500 px); it bounds the memory of the windows scattered.
+COMB_CHUNK = 64
 
 
 def comb_table(width: int, params: Params, device: torch.device) -> _CombTable:
     """The comb's candidate tables for ``width``-px images, built once per size, spacing range and
-    window, and cached: ``d``, ``p`` ``(Q,)`` int64 (candidate ``q``'s spacing and bin phase, in
-    spacing then phase order); ``hws`` ``(G,)`` int64 (the distinct tooth half-widths); per
-    half-width group ``g`` the spacings' rows ``rows[g]`` and ``tooth[g]``, ``anti[g]`` ``(n_g, 3W)``
-    int64: the candidate each bin's tooth window counts towards (``off_d + b mod d``) and the one
-    its window counts against as an anti-tooth (``off_d + (b - d//2) mod d`` for ``b >= d//2``,
-    else the spill index ``Q``). ``16 n_d 3W`` bytes (7 MB at 500 px, spacings 16..320)."""
+    window, and cached (:class:`_CombTable`). The spacings, in ascending order, fall into chunks
+    of at most :data:`COMB_CHUNK`; per chunk ``group (r,)`` int64 (each spacing's half-width, an
+    index into ``hws``), ``tooth (r 3W,)`` int64 (the candidate each bin's tooth window counts
+    towards, ``off_d + b mod d``, row by row) and ``anti (r 3W,)`` int64 (the candidate each bin's
+    window counts against as an anti-tooth, ``off_d + (b - d//2) mod d`` for ``b >= d//2``, else
+    the spill index ``Q``). ``16 n_d 3W`` bytes (7 MB at 500 px, spacings 16..320)."""
     key = (width, params.lattice_min_spacing, params.lattice_max_spacing, params.lattice_window, str(device))
     table = _COMB_TABLES.get(key)
     if table is None:
         nb = 3 * width
         spacings = list(range(params.lattice_min_spacing, params.lattice_max_spacing + 1))
         hw_of = [int(math.floor(d * params.lattice_window)) for d in spacings]
+        hws = sorted(set(hw_of))
         b = torch.arange(nb, dtype=torch.int64, device=device)
+        q = sum(spacings)
         off = 0
         dq, pq, tooth, anti = [], [], [], []
         for d in spacings:
             dq.append(torch.full((d,), d, dtype=torch.int64, device=device))
             pq.append(torch.arange(d, dtype=torch.int64, device=device))
             tooth.append(off + b % d)
-            anti.append(torch.where(b >= d // 2, off + (b - d // 2) % d, torch.full_like(b, -1)))
+            anti.append(torch.where(b >= d // 2, off + (b - d // 2) % d, torch.full_like(b, q)))
             off += d
-        anti = [torch.where(a < 0, torch.full_like(a, off), a) for a in anti]
-        hws = sorted(set(hw_of))
-        groups = [[i for i, h in enumerate(hw_of) if h == g] for g in hws]
-        table = (torch.cat(dq), torch.cat(pq), torch.tensor(hws, dtype=torch.int64, device=device),
-                 tuple(torch.stack([tooth[i] for i in grp]) for grp in groups),
-                 tuple(torch.stack([anti[i] for i in grp]) for grp in groups))
+        chunks = []
+        for lo in range(0, len(spacings), COMB_CHUNK):
+            rows = range(lo, min(lo + COMB_CHUNK, len(spacings)))
+            teeth = torch.cat([tooth[i] for i in rows])
+            chunks.append((torch.tensor([hws.index(hw_of[i]) for i in rows], dtype=torch.int64, device=device),
+                           teeth, torch.cat([anti[i] for i in rows])))
+        table = _CombTable(torch.cat(dq), torch.cat(pq), torch.tensor(hws, dtype=torch.int64, device=device),
+                           tuple(chunks))
         if not torch.compiler.is_exporting():  # never cache a tensor traced by torch.export
             _COMB_TABLES.clear()  # one size at a time: a video or a batch has one working size
             _COMB_TABLES[key] = table
@@ -767,11 +784,11 @@ def warped(x: torch.Tensor, gamma: float, width: int) -> tuple[torch.Tensor, tor
     t = x - x0
     den = 1.0 - gamma * t
     ok = den > 0
-    return x0 + t / torch.where(ok, den, torch.ones_like(den)), ok
+    return x0 + t / torch.where(ok, den, 1.0), ok
 
 
 def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params, prior: LatticePriorBatch | None = None,
-                warp: int = 0):
+                warp: int = 0, table: _CombTable | None = None):
     """Section 11.2 per image: ``(spacing, phase, found, contrast)``, each ``(B,)`` (int64, int64,
     bool, float64; ``contrast`` = the best score per binned pixel, 0 without pixels).
 
@@ -779,12 +796,15 @@ def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params, prior: Lat
     half-width of it, one prefix-sum difference per distinct half-width) is scatter-added to the
     candidate whose teeth it is on and, with ``lattice_comb == "contrast"``, subtracted from the one
     whose anti-teeth (``d // 2`` bins on) it is on (:func:`comb_table`; integer sums, so the scores
-    are the reference's). ``prior`` (section 11.7): the central row is the tooth nearest
-    ``prior.centre``, and where ``prior.restrict`` only the candidates of
-    :func:`torchrow.reference.lattice.comb_near` compete. ``warp`` ``j``: the comb on the bottom
-    row under 11.3.2's warp (:func:`warped`), the centre warped alike. Peak memory per image: the
+    are the reference's; one scatter per :data:`COMB_CHUNK` spacings). ``prior`` (section 11.7):
+    the central row is the tooth nearest ``prior.centre``, and where ``prior.restrict`` only the
+    candidates of :func:`torchrow.reference.lattice.comb_near` compete. ``warp`` ``j``: the comb
+    on the bottom row under 11.3.2's warp (:func:`warped`), the centre warped alike. ``table``:
+    this width's :func:`comb_table`, where the caller holds it (a traced graph then builds it
+    once for all of its combs, not once per call). Peak memory per image: the
     ``(Q + 1)`` int64 scores and float64 masks, ``32 Q`` bytes (1.6 MB at 500 px, spacings
-    16..320), and the ``(G, 3W)`` windows.
+    16..320), the ``(G, 3W)`` windows and a chunk's ``(COMB_CHUNK, 3W)`` int64 windows (0.8 MB
+    at 500 px).
     """
     bsz, h, w = mask.shape
     dev = mask.device
@@ -796,28 +816,32 @@ def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params, prior: Lat
     sel = mask & ((ys - yv_i) > params.lattice_vp_margin)
     yv = yv_i.to(torch.float64)
     dy = ys.to(torch.float64) - yv
-    proj = xv + ((xs - xv) * ((h - 1) - yv)) / torch.where(sel, dy, torch.ones_like(dy))
+    proj = xv + ((xs - xv) * ((h - 1) - yv)) / torch.where(sel, dy, 1.0)  # a scalar: no folded (B, H, W) constant
     if warp != 0:
         proj, defined = warped(proj, warp_rate(warp, w), w)
         sel = sel & defined
     b = torch.floor(proj)
     keep = sel & (b >= -w) & (b < 2 * w)
-    bins = torch.where(keep, b, torch.zeros_like(b)).to(torch.int64) + w
+    bins = torch.where(keep, b, 0.0).to(torch.int64) + w
     hist = torch.zeros((bsz, nb), dtype=torch.int64, device=dev)
     hist.scatter_add_(1, bins.flatten(1), keep.flatten(1).to(torch.int64))
     n = keep.flatten(1).sum(dim=1)  # (B,)
     cs = torch.cat([torch.zeros((bsz, 1), dtype=torch.int64, device=dev), torch.cumsum(hist, dim=1)], dim=1)
-    d_all, p_all, hws, tooth, anti = comb_table(w, params, dev)
+    d_all, p_all, hws, chunks = comb_table(w, params, dev) if table is None else table
     centre = torch.arange(nb, device=dev)
     lo = torch.clamp(centre.view(1, -1) - hws.view(-1, 1), 0, nb)
     hi = torch.clamp(centre.view(1, -1) + hws.view(-1, 1) + 1, 0, nb)
     win = cs[:, hi] - cs[:, lo]  # (B, G, 3W): pixels in the tooth of each half-width centred on each bin
     acc = torch.zeros((bsz, d_all.numel() + 1), dtype=torch.int64, device=dev)  # + the anti-teeth's spill
-    for g in range(hws.numel()):
-        src = win[:, g].unsqueeze(1).expand(bsz, tooth[g].shape[0], nb)
-        acc.scatter_add_(1, tooth[g].view(1, -1).expand(bsz, -1), src.reshape(bsz, -1))
-        if params.lattice_comb == "contrast":
-            acc.scatter_add_(1, anti[g].view(1, -1).expand(bsz, -1), -src.reshape(bsz, -1))
+    contrasted = params.lattice_comb == "contrast"
+    against = torch.zeros_like(acc) if contrasted else None
+    for group, tooth, anti in chunks:
+        src = torch.index_select(win, 1, group).reshape(bsz, -1)  # (B, r 3W): each spacing's tooth windows
+        acc.scatter_add_(1, tooth.view(1, -1).expand(bsz, -1), src)
+        if against is not None:
+            against.scatter_add_(1, anti.view(1, -1).expand(bsz, -1), src)
+    if against is not None:
+        acc = acc - against
     d_f = d_all.to(torch.float64)
     if params.lattice_comb == "contrast":
         allsc = acc[:, :-1].to(torch.float64)
@@ -832,7 +856,7 @@ def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params, prior: Lat
         off = rel - d_f * torch.round(rel / d_f)
         near = spacing_near(d_all, d_prev, params) & (off.abs() <= params.lattice_track_phase_tol * d_f)
         near = near | ~prior.restrict.view(-1, 1)
-        allsc = torch.where(near, allsc, torch.full_like(allsc, -math.inf))
+        allsc = torch.where(near, allsc, -math.inf)
     q = torch.argmax(allsc, dim=1)  # first maximum: spacing, then phase order
     best = torch.gather(allsc, 1, q.unsqueeze(1)).squeeze(1)
     d_q = d_all[q]
@@ -1237,11 +1261,14 @@ def comb_start(mask: torch.Tensor, vp: torch.Tensor, params: Params,
     """Section 11.2's comb through ``vp (B, 2)`` int64 (:func:`comb_search`) and 11.3's starts from
     it (:func:`torchrow.reference.lattice.comb_start`: with ``lattice_comb_warps`` the comb on
     each warp too, where ``prior`` does not restrict it, one :func:`comb_search` per warp; the
-    first highest contrast wins per image; skipped by ``flow`` where every image is restricted, a
-    lattice tracker's tracked frames). The warps' combs run one after another: the peak memory
-    is one :func:`comb_search`'s, the time that many times its."""
+    first highest contrast wins per image, a warp over the unwarped comb only by
+    ``LATTICE_WARP_MARGIN``; skipped by ``flow`` where every image is restricted, a lattice
+    tracker's tracked frames). The warps' combs run one after another and share one
+    :func:`comb_table`: the peak memory is one :func:`comb_search`'s, the time that many times
+    its."""
     h, w = mask.shape[1:]
-    spacing, phase, found, contrast = comb_search(mask, vp, params, prior)
+    table = comb_table(w, params, mask.device)
+    spacing, phase, found, contrast = comb_search(mask, vp, params, prior, table=table)
     den = ((h - 1) - vp[:, 1]).to(torch.float64)
     ph = phase.to(torch.float64)
     sp = spacing.to(torch.float64)
@@ -1251,24 +1278,29 @@ def comb_start(mask: torch.Tensor, vp: torch.Tensor, params: Params,
     if params.lattice_comb_warps == 0:
         return LatticeStartBatch(coef, spacing, phase, found, vp, contrast)
     free = torch.ones_like(found) if prior is None else ~prior.restrict
+    known = () if prior is None else (prior.centre, prior.restrict, prior.spacing)
+    # the table passes as operands, not as a closure: an exported ``If`` then reads the one copy
+    flat = (*table[:3], *(t for chunk in table.chunks for t in chunk))
 
-    def warps(mask, vp, free, spacing, phase, found, contrast, *known):
+    def warps(mask, vp, free, spacing, phase, found, contrast, *rest):
         warp = torch.zeros_like(spacing)
+        known, got = rest[:len(rest) - len(flat)], rest[len(rest) - len(flat):]
         own = None if not known else LatticePriorBatch(known[0], known[1], vp, known[2])  # the fields comb_search reads
+        tab = _CombTable(got[0], got[1], got[2], tuple((got[i], got[i + 1], got[i + 2]) for i in range(3, len(got), 3)))
         for j in params.lattice_warps()[1:]:
-            s_j, p_j, f_j, c_j = comb_search(mask, vp, params, own, j)
-            better = free & f_j & (~found | (c_j > contrast))
+            s_j, p_j, f_j, c_j = comb_search(mask, vp, params, own, j, tab)
+            bar = torch.where(warp != 0, contrast, contrast + LATTICE_WARP_MARGIN * contrast.abs())
+            better = free & f_j & (~found | (c_j > bar))
             spacing, phase = torch.where(better, s_j, spacing), torch.where(better, p_j, phase)
             found, contrast = found | better, torch.where(better, c_j, contrast)
             warp = torch.where(better, torch.full_like(warp, j), warp)
         return spacing, phase, found, contrast, warp
 
-    def none(mask, vp, free, spacing, phase, found, contrast, *known):
+    def none(mask, vp, free, spacing, phase, found, contrast, *rest):
         return spacing.clone(), phase.clone(), found.clone(), contrast.clone(), torch.zeros_like(spacing)
 
-    known = () if prior is None else (prior.centre, prior.restrict, prior.spacing)
     spacing, phase, found, contrast, warp = branch(flow, free.any(), warps, none,
-                                                   (mask, vp, free, spacing, phase, found, contrast, *known))
+                                                   (mask, vp, free, spacing, phase, found, contrast, *known, *flat))
     gamma = warp.to(torch.float64) / float(LATTICE_WARP_SCALE // 2 * w)
     x0 = float(w) / 2.0
     p = phase.to(torch.float64)

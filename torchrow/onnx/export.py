@@ -24,7 +24,7 @@ from typing import Any
 import torch
 
 from torchrow.core.params import Params
-from torchrow.onnx.passes import ORT_NATIVE, compact_names, drop_unused_initializers, legalize
+from torchrow.onnx.passes import ORT_NATIVE, compact_names, drop_unused_initializers, legalize, share_initializers
 from torchrow.onnx.shims import float64_python_constants, nested_subgraph_opsets
 
 __all__ = ["to_onnx", "DEFAULT_OPSET", "MAX_EXPORT_BATCH"]
@@ -199,7 +199,8 @@ def to_onnx(path: str | Path, height: int = 240, width: int = 320, batch: int = 
     note("save")
     # onnxruntime runs small-integer arithmetic natively; the scatter-free form is for other
     # runtimes (TensorRT), which need int32
-    model = compact_names(drop_unused_initializers(legalize(prog.model_proto, None if scatter_free else ORT_NATIVE)))
+    model = compact_names(drop_unused_initializers(share_initializers(
+        legalize(prog.model_proto, None if scatter_free else ORT_NATIVE))))
     meta = {"torchrow_format": "1", "kind": "tracker" if tracker else "detector", "height": str(height),
             "width": str(width), "batch": str(batch), "control_flow": str(bool(control_flow)),
             "scatter_free": str(bool(scatter_free)),

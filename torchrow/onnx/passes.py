@@ -6,15 +6,18 @@ computed them (``Where`` on bool, ``Min`` on int16); :func:`legalize` widens tho
 int32 (values never overflow: every such tensor holds small counts, pixel values or 0/1
 masks) and leaves the ones onnxruntime runs natively (:data:`ORT_NATIVE`) narrow. The
 scatter-free form, meant for other runtimes (TensorRT), has every small-integer node widened.
-:func:`drop_unused_initializers` and :func:`compact_names` shrink the saved file;
+:func:`share_initializers`, :func:`drop_unused_initializers` and :func:`compact_names` shrink the
+saved file;
 :func:`op_counts` lists the op types (the TensorRT form must hold none of :data:`FORBIDDEN_OPS`).
 """
 
 from __future__ import annotations
 
+import hashlib
 from collections import Counter
 
-__all__ = ["FORBIDDEN_OPS", "ORT_NATIVE", "legalize", "op_counts", "drop_unused_initializers", "compact_names"]
+__all__ = ["FORBIDDEN_OPS", "ORT_NATIVE", "legalize", "op_counts", "share_initializers", "drop_unused_initializers",
+           "compact_names"]
 
 #: Ops the scatter-free graph without control flow (the TensorRT form) must not contain:
 #: scatters with a reduction (TensorRT has none), control flow, and any op whose output
@@ -197,6 +200,96 @@ def op_counts(model) -> Counter:
                 name += "_reduction"
         c[name] += 1
     return c
+
+
+def _defined(graph) -> set:
+    """Names a graph defines itself (inputs, initializers, node outputs)."""
+    return ({v.name for v in graph.input} | {i.name for i in graph.initializer}
+            | {o for node in graph.node for o in node.output})
+
+
+def _rename_reads(graph, mapping: dict) -> None:
+    """Rename what the nodes of ``graph`` and of its bodies read (ONNX names are single
+    assignment across nested graphs, so no body redefines an outer name)."""
+    for node in graph.node:
+        node.input[:] = [mapping.get(x, x) for x in node.input]
+        for g in _subgraphs(node):
+            _rename_reads(g, mapping)
+
+
+def share_initializers(model, min_bytes: int = 1024):
+    """Keep one copy of equal initializers (same type, shape and values; ``min_bytes`` or more),
+    in the main graph, where every ``If``/``Loop`` body reads it as an outer value (in place;
+    returns the model).
+
+    Constant folding gives every use of a constant table its own copy: the lattice tracker's
+    step unrolls the comb (ALGORITHM.md 11.2) once per VP-search window and per warp (11.3.2),
+    and each unrolled comb carried its own index tables and zero buffers. An initializer that
+    is itself one of its graph's outputs stays where it is.
+    """
+    from onnx import TensorProto
+
+    main = model.graph
+    names: set = set()
+
+    def collect(graph):
+        names.update(_defined(graph))
+        for node in graph.node:
+            for g in _subgraphs(node):
+                collect(g)
+
+    collect(main)
+
+    def key(t):
+        bare = TensorProto()
+        bare.CopyFrom(t)
+        bare.name = ""
+        data = bare.SerializeToString()
+        return hashlib.sha256(data).digest() if len(data) >= min_bytes else None
+
+    def tables(graph):
+        outputs = {o.name for o in graph.output}
+        keys = [None if t.name in outputs else key(t) for t in graph.initializer]
+        for node in graph.node:
+            for g in _subgraphs(node):
+                keys += tables(g)
+        return keys
+
+    copies = Counter(k for k in tables(main) if k is not None)
+    first: dict = {}
+
+    def visit(graph, top: bool):
+        outputs = {o.name for o in graph.output}
+        mapping, kept = {}, []
+        for t in graph.initializer:
+            k = None if t.name in outputs else key(t)
+            if k is None or copies[k] < 2:
+                kept.append(t)
+            elif k in first:
+                mapping[t.name] = first[k]
+            elif top:
+                first[k] = t.name
+                kept.append(t)
+            else:
+                fresh, n = f"shared_{len(first)}", len(first)
+                while fresh in names:
+                    n += 1
+                    fresh = f"shared_{n}"
+                names.add(fresh)
+                moved = main.initializer.add()
+                moved.CopyFrom(t)
+                moved.name = fresh
+                first[k] = mapping[t.name] = fresh
+        if mapping:
+            del graph.initializer[:]
+            graph.initializer.extend(kept)
+            _rename_reads(graph, mapping)
+        for node in graph.node:
+            for g in _subgraphs(node):
+                visit(g, False)
+
+    visit(main, True)
+    return model
 
 
 def drop_unused_initializers(model):

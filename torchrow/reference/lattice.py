@@ -26,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 
 from torchrow.core.io import lattice_params
-from torchrow.core.params import LATTICE_ROLL_SCALE, LATTICE_WARP_SCALE, VP_SLICE, Params
+from torchrow.core.params import LATTICE_ROLL_SCALE, LATTICE_WARP_MARGIN, LATTICE_WARP_SCALE, VP_SLICE, Params
 from torchrow.core.results import ImageResult, LatticeRow, Row
 
 __all__ = ["LatticeFit", "LatticePrior", "LatticeStart", "comb_near", "spacing_near",
@@ -470,7 +470,8 @@ def comb_start(mask: np.ndarray, vp: tuple[int, int], params: Params, prior: Lat
     (straight rows through the VP), ``g = 0``, ``bent = coef``. With ``lattice_comb_warps`` (11.3.2)
     the comb also runs on each warp ``j`` of :meth:`Params.lattice_warps` in that order (not where
     ``prior`` restricts it: a tracked frame's comb is the bottom row's), and the first highest
-    ``contrast`` wins. A warp's teeth ``P + k d'`` (``gamma =`` :func:`warp_rate`, ``x0 = W / 2``)
+    ``contrast`` wins, a warp over the unwarped comb only by more than ``LATTICE_WARP_MARGIN`` of
+    the unwarped comb's ``|contrast|``. A warp's teeth ``P + k d'`` (``gamma =`` :func:`warp_rate`, ``x0 = W / 2``)
     are the rows ``(c + k D) / (1 + g k)`` with ``u = 1 + gamma (P - x0)``, ``a = (P - x0) / u``,
     ``s = d' / u``, ``g = gamma s``, ``D = s + g x0``, ``c = x0 + a`` (float64, this order): the
     straight start ``c(t) = c + ((c - xv) / (H-1 - yv)) t``, ``d(t) = D + ((D - g xv) / (H-1 - yv)) t``
@@ -484,7 +485,8 @@ def comb_start(mask: np.ndarray, vp: tuple[int, int], params: Params, prior: Lat
     best, warp = comb_search(mask, vp, params, prior), 0
     for j in params.lattice_warps()[1:] if not restricted else ():
         got = comb_search(mask, vp, params, prior, j)
-        if got[2] and (not best[2] or got[3] > best[3]):
+        bar = best[3] if warp != 0 else best[3] + LATTICE_WARP_MARGIN * abs(best[3])
+        if got[2] and (not best[2] or got[3] > bar):
             best, warp = got, j
     d, phase, found, contrast = best
     p, sp = np.float64(phase), np.float64(d)
