@@ -71,7 +71,10 @@ def exported(params: Params, batch: int, tmp: Path, height: int = 240, width: in
     try:
         cache.mkdir(parents=True, exist_ok=True)
         _prune(cache, source)
-        shutil.copyfile(out, path)
+        # Test workers (pytest-xdist) share the cache: a model appears whole or not at all.
+        part = path.with_name(f"{path.name}.{os.getpid()}.part")
+        shutil.copyfile(out, part)
+        os.replace(part, path)
         return path
     except OSError:
         return out

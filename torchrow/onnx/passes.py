@@ -232,14 +232,6 @@ def share_initializers(model, min_bytes: int = 1024):
     main = model.graph
     names: set = set()
 
-    def collect(graph):
-        names.update(_defined(graph))
-        for node in graph.node:
-            for g in _subgraphs(node):
-                collect(g)
-
-    collect(main)
-
     def key(t):
         bare = TensorProto()
         bare.CopyFrom(t)
@@ -247,22 +239,24 @@ def share_initializers(model, min_bytes: int = 1024):
         data = bare.SerializeToString()
         return hashlib.sha256(data).digest() if len(data) >= min_bytes else None
 
-    def tables(graph):
+    # One walk hashes every initializer (graph order, then its bodies); a second pass over the
+    # stored keys keeps the first copy, so the main graph's own copy wins where there is one.
+    graphs: list = []
+
+    def walk(graph, top: bool):
+        names.update(_defined(graph))
         outputs = {o.name for o in graph.output}
-        keys = [None if t.name in outputs else key(t) for t in graph.initializer]
+        graphs.append((graph, top, [None if t.name in outputs else key(t) for t in graph.initializer]))
         for node in graph.node:
             for g in _subgraphs(node):
-                keys += tables(g)
-        return keys
+                walk(g, False)
 
-    copies = Counter(k for k in tables(main) if k is not None)
+    walk(main, True)
+    copies = Counter(k for _, _, keys in graphs for k in keys if k is not None)
     first: dict = {}
-
-    def visit(graph, top: bool):
-        outputs = {o.name for o in graph.output}
+    for graph, top, keys in graphs:
         mapping, kept = {}, []
-        for t in graph.initializer:
-            k = None if t.name in outputs else key(t)
+        for t, k in zip(list(graph.initializer), keys):
             if k is None or copies[k] < 2:
                 kept.append(t)
             elif k in first:
@@ -284,11 +278,6 @@ def share_initializers(model, min_bytes: int = 1024):
             del graph.initializer[:]
             graph.initializer.extend(kept)
             _rename_reads(graph, mapping)
-        for node in graph.node:
-            for g in _subgraphs(node):
-                visit(g, False)
-
-    visit(main, True)
     return model
 
 
