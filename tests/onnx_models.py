@@ -10,6 +10,7 @@ models only, not every model ever exported).
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import shutil
@@ -49,8 +50,9 @@ def _source_key() -> str:
 
 
 def _prune(cache: Path, source: str) -> None:
-    """Delete cached models of other sources (stale: their key can never match again)."""
-    for old in cache.glob("*.onnx"):
+    """Delete cached models of other sources (stale: their key can never match again), and the
+    partial copies a killed run of another source left behind."""
+    for old in [*cache.glob("*.onnx"), *cache.glob("*.onnx.*.part")]:
         if f"-{source}-" not in old.name:
             old.unlink(missing_ok=True)
 
@@ -68,13 +70,15 @@ def exported(params: Params, batch: int, tmp: Path, height: int = 240, width: in
         return path
     out = to_onnx(tmp / f"{kind}.onnx", height=height, width=width, batch=batch, params=params, tracker=tracker,
                   control_flow=control_flow, scatter_free=scatter_free)
+    # Test workers (pytest-xdist) share the cache: a model appears whole or not at all.
+    part = path.with_name(f"{path.name}.{os.getpid()}.part")
     try:
         cache.mkdir(parents=True, exist_ok=True)
         _prune(cache, source)
-        # Test workers (pytest-xdist) share the cache: a model appears whole or not at all.
-        part = path.with_name(f"{path.name}.{os.getpid()}.part")
         shutil.copyfile(out, part)
         os.replace(part, path)
         return path
     except OSError:
+        with contextlib.suppress(OSError):
+            part.unlink(missing_ok=True)
         return out
