@@ -717,6 +717,17 @@ class _CombTable(NamedTuple):
     hws: torch.Tensor  # (G,) int64: the distinct tooth half-widths, ascending
     chunks: tuple[tuple[torch.Tensor, torch.Tensor, torch.Tensor], ...]  # (group, tooth, anti) per chunk
 
+    def flat(self) -> tuple[torch.Tensor, ...]:
+        """The tables as one flat tuple of tensors (a ``torch.cond`` branch's operands)."""
+        return (self.d, self.p, self.hws, *(t for chunk in self.chunks for t in chunk))
+
+    @classmethod
+    def from_flat(cls, tensors: tuple[torch.Tensor, ...]) -> _CombTable:
+        """The inverse of :meth:`flat`."""
+        rest = tensors[3:]
+        return cls(tensors[0], tensors[1], tensors[2],
+                   tuple((rest[i], rest[i + 1], rest[i + 2]) for i in range(0, len(rest), 3)))
+
 
 _COMB_TABLES: dict[tuple, _CombTable] = {}
 
@@ -843,7 +854,7 @@ def comb_search(mask: torch.Tensor, vp: torch.Tensor, params: Params, prior: Lat
     if against is not None:
         acc = acc - against
     d_f = d_all.to(torch.float64)
-    if params.lattice_comb == "contrast":
+    if contrasted:
         allsc = acc[:, :-1].to(torch.float64)
     else:
         hw_d = torch.floor(d_f * params.lattice_window).to(torch.int64)
@@ -1280,13 +1291,13 @@ def comb_start(mask: torch.Tensor, vp: torch.Tensor, params: Params,
     free = torch.ones_like(found) if prior is None else ~prior.restrict
     known = () if prior is None else (prior.centre, prior.restrict, prior.spacing)
     # the table passes as operands, not as a closure: an exported ``If`` then reads the one copy
-    flat = (*table[:3], *(t for chunk in table.chunks for t in chunk))
+    flat = table.flat()
 
     def warps(mask, vp, free, spacing, phase, found, contrast, *rest):
         warp = torch.zeros_like(spacing)
         known, got = rest[:len(rest) - len(flat)], rest[len(rest) - len(flat):]
         own = None if not known else LatticePriorBatch(known[0], known[1], vp, known[2])  # the fields comb_search reads
-        tab = _CombTable(got[0], got[1], got[2], tuple((got[i], got[i + 1], got[i + 2]) for i in range(3, len(got), 3)))
+        tab = _CombTable.from_flat(got)
         for j in params.lattice_warps()[1:]:
             s_j, p_j, f_j, c_j = comb_search(mask, vp, params, own, j, tab)
             bar = torch.where(warp != 0, contrast, contrast + LATTICE_WARP_MARGIN * contrast.abs())
