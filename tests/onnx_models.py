@@ -10,7 +10,6 @@ models only, not every model ever exported).
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import os
 import shutil
@@ -19,6 +18,7 @@ from pathlib import Path
 import torch
 
 from torchrow import Params
+from torchrow.core.tables import write_atomic
 from torchrow.onnx.export import to_onnx
 
 #: Op types the graph may contain: all supported by TensorRT's ONNX parser (CumSum, TopK with
@@ -50,9 +50,8 @@ def _source_key() -> str:
 
 
 def _prune(cache: Path, source: str) -> None:
-    """Delete cached models of other sources (stale: their key can never match again), and the
-    partial copies a killed run of another source left behind."""
-    for old in [*cache.glob("*.onnx"), *cache.glob("*.onnx.*.part")]:
+    """Delete cached models of other sources (stale: their key can never match again)."""
+    for old in cache.glob("*.onnx"):
         if f"-{source}-" not in old.name:
             old.unlink(missing_ok=True)
 
@@ -70,15 +69,12 @@ def exported(params: Params, batch: int, tmp: Path, height: int = 240, width: in
         return path
     out = to_onnx(tmp / f"{kind}.onnx", height=height, width=width, batch=batch, params=params, tracker=tracker,
                   control_flow=control_flow, scatter_free=scatter_free)
-    # Test workers (pytest-xdist) share the cache: a model appears whole or not at all.
-    part = path.with_name(f"{path.name}.{os.getpid()}.part")
     try:
         cache.mkdir(parents=True, exist_ok=True)
         _prune(cache, source)
-        shutil.copyfile(out, part)
-        os.replace(part, path)
+        # test workers (pytest-xdist) share the cache: a model appears whole or not at all
+        with out.open("rb") as src:
+            write_atomic(path, lambda fh: shutil.copyfileobj(src, fh))
         return path
     except OSError:
-        with contextlib.suppress(OSError):
-            part.unlink(missing_ok=True)
         return out
