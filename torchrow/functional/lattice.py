@@ -499,6 +499,13 @@ _FOLD_TABLES: dict[tuple, _FoldTables] = {}
 #: (119 VPs at 320x240) takes 9.7 against 7.1 ms.
 AT_ONCE_ROWS = 16
 
+#: :data:`AT_ONCE_ROWS` while exporting: onnxruntime pays more for each of the loop's hundreds of
+#: small nodes than eager torch for each operation. On one thread at 500x281 with spacings 16..320 it
+#: took a frame after a loss's search (41 pairs: 15 window VPs and a grid height of 26) 14.7 ms
+#: at once against 22.9 spacing by spacing, and a whole grid (182 VPs) 49.3 against 43.9 ms: the
+#: two cost the same near 130 pairs (``benchmarks/RESULTS.md``).
+EXPORT_AT_ONCE_ROWS = 128
+
 
 def _fold_tables(nb: int, pixels: int, params: Params, device: torch.device) -> _FoldTables:
     """:class:`_FoldTables` for ``nb`` histogram bins of images of ``pixels`` pixels, built once per
@@ -646,11 +653,14 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     :data:`PRODUCT_MIN_BATCH` images on a CPU as one sparse product instead,
     :func:`_multiplied_histograms`, the same integers), then folded per spacing (a
     spacing whose double is searched too is folded from that fold, ``2d`` values instead of
-    ``3W``): all spacings at once for at most ``AT_ONCE_ROWS`` (image, VP) pairs
-    (:func:`_peaks_at_once`: a tracked sequence's window), spacing by spacing beyond
+    ``3W``): all spacings at once for at most ``AT_ONCE_ROWS`` (image, VP) pairs, while exporting
+    ``EXPORT_AT_ONCE_ROWS`` (:func:`_peaks_at_once`: a tracked sequence's window, in the graph
+    also the wider window after a loss), spacing by spacing beyond
     (:func:`_peaks_by_spacing`); every sum is an integer below ``2**31`` (int64 where
     it could pass), so the scores are the reference's. Peak memory: the histograms twice, ``8 V (3W + d_max)`` bytes per image
-    (1 MB at 320x240), plus the table. (Repeating the counts for a flat scatter cost 9-10 % of
+    (1 MB at 320x240), plus the table; the spacings at once about 0.5 MB more per (image, VP) pair
+    at 500x281 with spacings 16..320 (the folds, their extension, its cumulative sum and the
+    teeth: 68 MB at ``EXPORT_AT_ONCE_ROWS`` pairs). (Repeating the counts for a flat scatter cost 9-10 % of
     the search eagerly, best of interleaved runs at batch 1, 16 and 64.) While exporting
     (``torch.compiler.is_exporting()``) the histograms come from :func:`_gathered_histograms`
     instead, the same integers without a scatter (ALGORITHM.md 11.5); it adds ``8 N`` bytes per
@@ -694,7 +704,7 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
         tail = torch.zeros((bsz, nv, _hist_bins(w, params) - nb), dtype=torch.int32, device=dev)
         hist = torch.cat([hist, tail], dim=2)
     total = hist.sum(dim=2, dtype=torch.int64)
-    if bsz * nv <= AT_ONCE_ROWS:
+    if bsz * nv <= (EXPORT_AT_ONCE_ROWS if torch.compiler.is_exporting() else AT_ONCE_ROWS):
         best = _peaks_at_once(hist, _fold_tables(nb, h * w, params, dev))
     else:
         best = _peaks_by_spacing(hist, nb, params, h * w)
