@@ -493,17 +493,19 @@ class _FoldTables(NamedTuple):
 _FOLD_TABLES: dict[tuple, _FoldTables] = {}
 
 #: :func:`vp_search` takes the spacings at once (:func:`_peaks_at_once`) up to this many
-#: (image, VP) pairs, spacing by spacing beyond: on one CPU thread at 500x281 with spacings
-#: 16..320 the two cost the same near 30 pairs (a tracked window of 15 VPs at batch 2; at
-#: batch 1 5.4 against 7.6 ms, at batch 8 100 against 43 ms), and a whole grid at batch 1
-#: (119 VPs at 320x240) takes 9.7 against 7.1 ms.
-AT_ONCE_ROWS = 16
+#: (image, VP) pairs, spacing by spacing beyond. Eagerly at 500x281 with spacings 16..320 (windows
+#: of 15 VPs; a search after a loss adds a grid height, 26 VPs; the best of 7 interleaved runs on
+#: rover frames), at once against spacing by spacing: on one CPU thread 30 pairs (two windows)
+#: 8 % faster, 41 pairs (one search after a loss) and 45 (three windows) the same, 82 pairs 47 %
+#: slower; on two threads 30-45 pairs 15-20 % faster, 82 the same. At batch 8 (120 pairs) 100
+#: against 43 ms, and a whole grid at batch 1 (119 VPs at 320x240) 9.7 against 7.1 ms.
+AT_ONCE_ROWS = 48
 
 #: :data:`AT_ONCE_ROWS` while exporting: onnxruntime pays more for each of the loop's hundreds of
-#: small nodes than eager torch for each operation. On one thread at 500x281 with spacings 16..320 it
-#: took a frame after a loss's search (41 pairs: 15 window VPs and a grid height of 26) 14.7 ms
-#: at once against 22.9 spacing by spacing, and a whole grid (182 VPs) 49.3 against 43.9 ms: the
-#: two cost the same near 130 pairs (``benchmarks/RESULTS.md``).
+#: small nodes than eager torch pays for each operation, so the bound lies higher. On one
+#: onnxruntime thread at 500x281 with spacings 16..320, a search after a loss (41 pairs) took
+#: 14.7 ms at once against 22.9 spacing by spacing, and a whole grid (182 VPs) 49.3 against
+#: 43.9 ms: the two cost the same near 130 pairs (``benchmarks/RESULTS.md``).
 EXPORT_AT_ONCE_ROWS = 128
 
 
@@ -654,8 +656,8 @@ def vp_search(mask: torch.Tensor, params: Params, origin: torch.Tensor | None = 
     :func:`_multiplied_histograms`, the same integers), then folded per spacing (a
     spacing whose double is searched too is folded from that fold, ``2d`` values instead of
     ``3W``): all spacings at once for at most ``AT_ONCE_ROWS`` (image, VP) pairs, while exporting
-    ``EXPORT_AT_ONCE_ROWS`` (:func:`_peaks_at_once`: a tracked sequence's window, in the graph
-    also the wider window after a loss), spacing by spacing beyond
+    ``EXPORT_AT_ONCE_ROWS`` (:func:`_peaks_at_once`: a tracked sequence's window and its
+    wider window after a loss), spacing by spacing beyond
     (:func:`_peaks_by_spacing`); every sum is an integer below ``2**31`` (int64 where
     it could pass), so the scores are the reference's. Peak memory: the histograms twice, ``8 V (3W + d_max)`` bytes per image
     (1 MB at 320x240), plus the table; the spacings at once about 0.5 MB more per (image, VP) pair
