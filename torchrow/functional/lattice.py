@@ -493,19 +493,19 @@ class _FoldTables(NamedTuple):
 _FOLD_TABLES: dict[tuple, _FoldTables] = {}
 
 #: :func:`vp_search` takes the spacings at once (:func:`_peaks_at_once`) up to this many
-#: (image, VP) pairs, spacing by spacing beyond. Eagerly at 500x281 with spacings 16..320 (windows
-#: of 15 VPs; a search after a loss adds a grid height, 26 VPs; the best of 7 interleaved runs on
-#: rover frames), at once against spacing by spacing: on one CPU thread 30 pairs (two windows)
-#: 8 % faster, 41 pairs (one search after a loss) and 45 (three windows) the same, 82 pairs 47 %
-#: slower; on two threads 30-45 pairs 15-20 % faster, 82 the same. At batch 8 (120 pairs) 100
-#: against 43 ms, and a whole grid at batch 1 (119 VPs at 320x240) 9.7 against 7.1 ms.
+#: (image, VP) pairs, spacing by spacing beyond. ``python benchmarks/bench_vp_fold.py`` (500x281,
+#: spacings 16..320, windows of 15 VPs, a search after a loss 41), the time at once over the time
+#: spacing by spacing: on one CPU thread 0.88 at 30 pairs (two windows), 1.02-1.06 at 41-45, 1.46 at 82 (two
+#: searches after a loss); on two threads (the CLI's setting) 0.62-0.85 at 30-45 pairs, 1.15 at
+#: 82; a whole grid at batch 1 (182 VPs) 4.7 and 3.3.
 AT_ONCE_ROWS = 48
 
 #: :data:`AT_ONCE_ROWS` while exporting: onnxruntime pays more for each of the loop's hundreds of
 #: small nodes than eager torch pays for each operation, so the bound lies higher. On one
-#: onnxruntime thread at 500x281 with spacings 16..320, a search after a loss (41 pairs) took
-#: 14.7 ms at once against 22.9 spacing by spacing, and a whole grid (182 VPs) 49.3 against
-#: 43.9 ms: the two cost the same near 130 pairs (``benchmarks/RESULTS.md``).
+#: onnxruntime thread (``benchmarks/bench_vp_fold.py``) a search after a loss (41 pairs) took
+#: 14.0 ms at once against 16.6 spacing by spacing and a whole grid (182 VPs) 50.5 against 48.0:
+#: linear between the two, they cost the same near 113 pairs. The bound lies a little above,
+#: since the at-once form also spares the export the loop's unrolling, about 150 s per search.
 EXPORT_AT_ONCE_ROWS = 128
 
 
