@@ -10,7 +10,8 @@ at batch 1 (182). Eagerly on one and on two threads, each form forced per call (
 to 0 or above every count), each batch's fastest of ``--rounds`` runs with both forms
 interleaved, summed over the batches (compare the two forms within a row, not the rows). Then
 (unless ``--no-onnx``) ``vp_search`` alone exported for the search after a loss and for the
-whole grid at batch 1, in each form, on one onnxruntime thread: the fastest of 30 runs on the
+whole grid at batch 1, in each form, on one onnxruntime thread with torchrow's session options
+(:func:`torchrow.onnx.runtime.session_options`): the fastest of 30 runs on the
 first frame, the two forms' sessions alternating (the spacing-by-spacing exports take about 3
 minutes each). Both forms must give the same VPs, eagerly and in onnxruntime. Prints a table;
 appends nothing to RESULTS.md. Run from the repository root, with nothing else running.
@@ -34,6 +35,7 @@ from torchrow import Params
 from torchrow.core.io import load_image
 from torchrow.core.params import FORWARD_CAMERA
 from torchrow.functional import lattice as flattice
+from torchrow.onnx.runtime import session_options
 from torchrow.reference.lattice import green_mask
 
 PARAMS = Params(mode="improved", video_width=500, **FORWARD_CAMERA)
@@ -114,9 +116,8 @@ def onnx(mask: torch.Tensor) -> list[str]:
             t0 = time.perf_counter()
             torch.onnx.export(Search().eval(), args, str(path), dynamo=True, optimize=True, verbose=False)
             print(f"  onnxruntime {name}, {form}: export {time.perf_counter() - t0:.0f} s", flush=True)
-            opts = ort.SessionOptions()
-            opts.intra_op_num_threads = 1
-            sessions[form] = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+            # opened as torchrow's runners open their models
+            sessions[form] = ort.InferenceSession(str(path), session_options(1), providers=["CPUExecutionProvider"])
         feeds = {i.name: a.numpy() for i, a in zip(sessions["at once"].get_inputs(), args)}
         ms = {form: float("inf") for form in sessions}
         for r in range(30):  # the two sessions alternate, so that the VM's drift hits both alike

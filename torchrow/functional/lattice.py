@@ -494,18 +494,18 @@ _FOLD_TABLES: dict[tuple, _FoldTables] = {}
 
 #: :func:`vp_search` takes the spacings at once (:func:`_peaks_at_once`) up to this many
 #: (image, VP) pairs, spacing by spacing beyond. ``python benchmarks/bench_vp_fold.py`` (500x281,
-#: spacings 16..320, windows of 15 VPs, a search after a loss 41), the time at once over the time
-#: spacing by spacing: on one CPU thread 0.88 at 30 pairs (two windows), 1.02-1.06 at 41-45, 1.46 at 82 (two
-#: searches after a loss); on two threads (the CLI's setting) 0.62-0.85 at 30-45 pairs, 1.15 at
-#: 82; a whole grid at batch 1 (182 VPs) 4.7 and 3.3.
+#: spacings 16..320, windows of 15 VPs, a search after a loss 41; two runs), the time at once
+#: over the time spacing by spacing: on one CPU thread 0.88-0.91 at 30 pairs (two windows),
+#: 0.97-1.06 at 41-45, 1.33-1.46 at 82 (two searches after a loss); on two threads (the CLI's
+#: setting) 0.62-0.85 at 30-45 pairs, 1.06-1.15 at 82; a whole grid at batch 1 (182 VPs) 2.7-4.7.
 AT_ONCE_ROWS = 48
 
 #: :data:`AT_ONCE_ROWS` while exporting: onnxruntime pays more for each of the loop's hundreds of
 #: small nodes than eager torch pays for each operation, so the bound lies higher. On one
-#: onnxruntime thread (``benchmarks/bench_vp_fold.py``) a search after a loss (41 pairs) took
-#: 14.0 ms at once against 16.6 spacing by spacing and a whole grid (182 VPs) 50.5 against 48.0:
-#: linear between the two, they cost the same near 113 pairs. The bound lies a little above,
-#: since the at-once form also spares the export the loop's unrolling, about 150 s per search.
+#: onnxruntime thread with torchrow's session options (``benchmarks/bench_vp_fold.py``) a search
+#: after a loss (41 pairs) took 14.3 ms at once against 16.8 spacing by spacing and a whole grid
+#: (182 VPs) 48.8 against 47.6: linear between the two, they cost the same near 136 pairs. The
+#: at-once form also spares the export the loop's unrolling, about 150 s per search.
 EXPORT_AT_ONCE_ROWS = 128
 
 

@@ -34,7 +34,7 @@ from torchrow.core.results import concat_batches
 from torchrow.core.steering import check_optics
 from torchrow.onnx.metadata import model_meta
 
-__all__ = ["OnnxDetector", "OnnxTracker", "ort_optimized", "import_ort", "ORT_CACHE_KEEP"]
+__all__ = ["OnnxDetector", "OnnxTracker", "ort_optimized", "session_options", "import_ort", "ORT_CACHE_KEEP"]
 
 def import_ort():
     """The ``onnxruntime`` module, or an ``ImportError`` naming the extra that installs it."""
@@ -180,6 +180,25 @@ def ort_optimized(path: str | Path) -> Path | None:
     return out
 
 
+def session_options(threads: int | None, optimized: bool = False) -> Any:
+    """The ``onnxruntime.SessionOptions`` torchrow's runners open their models with: errors only,
+    no spin-waiting, ``threads`` intra-op threads (``None``: onnxruntime's choice), and basic
+    graph optimisations, none where the model is already :func:`ort_optimized` (``optimized``)."""
+    ort = import_ort()
+    so = ort.SessionOptions()
+    so.log_severity_level = 3  # errors only: normal use prints nothing
+    # no spin-waiting between operations: this graph's many small nodes left onnxruntime's
+    # second thread spinning while the host's frame reader or colour clustering wanted the core
+    # (tracker step 65-72 -> 58-62 ms per frame with frames read ahead; the detector no slower)
+    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    if threads:
+        so.intra_op_num_threads = int(threads)
+    # basic optimisations only: no fusions that could change float64 rounding
+    so.graph_optimization_level = (ort.GraphOptimizationLevel.ORT_DISABLE_ALL if optimized
+                                   else ort.GraphOptimizationLevel.ORT_ENABLE_BASIC)
+    return so
+
+
 def _open(runner: OnnxRunner, model_path: str | Path, kind: str, threads: int | None, cache: bool = True) -> None:
     """Check ``model_path`` (present, a ``kind`` model), open an onnxruntime session on
     ``runner.session`` (from the :func:`ort_optimized` copy when ``cache``) and set
@@ -192,19 +211,9 @@ def _open(runner: OnnxRunner, model_path: str | Path, kind: str, threads: int | 
     if info["kind"] != kind:
         other = {"detector": "OnnxDetector", "tracker": "OnnxTracker"}[info["kind"]]
         raise ValueError(f"{path.name} is a torchrow {info['kind']} model; run it with {other}")
-    so = ort.SessionOptions()
-    so.log_severity_level = 3  # errors only: normal use prints nothing
-    # no spin-waiting between operations: this graph's many small nodes left onnxruntime's
-    # second thread spinning while the host's frame reader or colour clustering wanted the core
-    # (tracker step 65-72 -> 58-62 ms per frame with frames read ahead; the detector no slower)
-    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    if threads:
-        so.intra_op_num_threads = int(threads)
     ready = ort_optimized(path) if cache else None
-    # basic optimisations only: no fusions that could change float64 rounding
-    so.graph_optimization_level = (ort.GraphOptimizationLevel.ORT_DISABLE_ALL if ready is not None
-                                   else ort.GraphOptimizationLevel.ORT_ENABLE_BASIC)
-    runner.session = ort.InferenceSession(str(ready or path), so, providers=["CPUExecutionProvider"])
+    runner.session = ort.InferenceSession(str(ready or path), session_options(threads, optimized=ready is not None),
+                                          providers=["CPUExecutionProvider"])
     runner.path = path
     runner.height, runner.width, runner.batch = info["height"], info["width"], info["batch"]
     runner.params = info["params"]
